@@ -1,0 +1,149 @@
+"""Process image: bit and word areas as numpy arrays, and IEC 61131-3 direct addresses.
+
+Owns: the six areas (%IX %QX %MX bits, %IW %QW %MW words), address parsing and formatting
+(including the seed paper's short forms I1.2, O5.3/Q5.3, M0.1), bounds checks, snapshots.
+Does not know: symbols files, drivers, Modbus, clocks.
+"""
+
+from __future__ import annotations
+
+import enum
+import re
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+BoolArray = npt.NDArray[np.bool_]
+WordArray = npt.NDArray[np.uint16]
+
+WORD_MAX = 0xFFFF
+
+
+class AddressError(ValueError):
+    """An IEC address that does not parse or lies outside the configured image."""
+
+
+class Area(enum.Enum):
+    INPUT = "I"
+    OUTPUT = "Q"
+    MEMORY = "M"
+
+
+class Width(enum.Enum):
+    BIT = "X"
+    WORD = "W"
+
+
+@dataclass(frozen=True, slots=True, order=True)
+class Address:
+    """One location of the image. For bits `index` is byte * 8 + bit."""
+
+    area: Area
+    width: Width
+    index: int
+
+    def __str__(self) -> str:
+        if self.width is Width.BIT:
+            return f"%{self.area.value}X{self.index // 8}.{self.index % 8}"
+        return f"%{self.area.value}W{self.index}"
+
+    @property
+    def is_bit(self) -> bool:
+        return self.width is Width.BIT
+
+
+_IEC = re.compile(r"%([IQM])([XW]?)(\d+)(?:\.(\d+))?")
+_SHORT = re.compile(r"([IQOM])(W?)(\d+)(?:\.(\d+))?")
+
+
+def parse_address(text: str) -> Address:
+    """Parse `%IX0.0`, `%QW3`, `%MX1.7` or a short form (`I1.2`, `O5.3`, `Q5.3`, `M0.1`, `IW4`)."""
+    raw = text.strip().upper()
+    m = _IEC.fullmatch(raw)
+    if m is None:
+        m = _SHORT.fullmatch(raw)
+        if m is None:
+            raise AddressError(
+                f"bad address {text!r}: expected %IX<byte>.<bit>, %QW<n>, %MX.., or I1.2 / Q5.3 / M0.1"
+            )
+    letter, width_letter, major, minor = m.groups()
+    area = Area("Q" if letter == "O" else letter)
+    if width_letter == "W":
+        if minor is not None:
+            raise AddressError(f"bad address {text!r}: a word address has no .bit part")
+        return Address(area, Width.WORD, int(major))
+    if minor is None:
+        raise AddressError(f"bad address {text!r}: a bit address needs <byte>.<bit>, e.g. %IX0.3")
+    byte, bit = int(major), int(minor)
+    if bit > 7:
+        raise AddressError(f"bad address {text!r}: bit {bit} is not in 0..7")
+    return Address(area, Width.BIT, byte * 8 + bit)
+
+
+@dataclass(frozen=True, slots=True)
+class ImageSizes:
+    """Area sizes. Defaults follow OpenPLC: %IX/%QX 0.0..99.7, %IW/%QW/%MW 0..1023."""
+
+    bits: int = 800
+    words: int = 1024
+
+    def __post_init__(self) -> None:
+        if self.bits <= 0 or self.bits % 16 or self.words <= 0:
+            raise ValueError("image sizes: bits must be a positive multiple of 16, words positive")
+
+
+class ProcessImage:
+    """Inputs, outputs and memory. Arrays are public so that drivers and the HMI map can
+    move whole ranges with numpy; single locations go through get/set, which check bounds."""
+
+    __slots__ = ("ix", "iw", "mw", "mx", "qw", "qx", "sizes")
+
+    def __init__(self, sizes: ImageSizes | None = None) -> None:
+        self.sizes = sizes or ImageSizes()
+        n_bits, n_words = self.sizes.bits, self.sizes.words
+        self.ix: BoolArray = np.zeros(n_bits, dtype=np.bool_)
+        self.qx: BoolArray = np.zeros(n_bits, dtype=np.bool_)
+        self.mx: BoolArray = np.zeros(n_bits, dtype=np.bool_)
+        self.iw: WordArray = np.zeros(n_words, dtype=np.uint16)
+        self.qw: WordArray = np.zeros(n_words, dtype=np.uint16)
+        self.mw: WordArray = np.zeros(n_words, dtype=np.uint16)
+
+    def area(self, area: Area, width: Width) -> BoolArray | WordArray:
+        table: dict[tuple[Area, Width], BoolArray | WordArray] = {
+            (Area.INPUT, Width.BIT): self.ix,
+            (Area.OUTPUT, Width.BIT): self.qx,
+            (Area.MEMORY, Width.BIT): self.mx,
+            (Area.INPUT, Width.WORD): self.iw,
+            (Area.OUTPUT, Width.WORD): self.qw,
+            (Area.MEMORY, Width.WORD): self.mw,
+        }
+        return table[(area, width)]
+
+    def check(self, address: Address) -> None:
+        size = self.sizes.bits if address.is_bit else self.sizes.words
+        if not 0 <= address.index < size:
+            raise AddressError(f"address {address} is outside the image (size {size})")
+
+    def get(self, address: Address) -> int:
+        self.check(address)
+        return int(self.area(address.area, address.width)[address.index])
+
+    def set(self, address: Address, value: int) -> None:
+        """Store `value`; words wrap to 16 bits (IEC UINT), bits take its truth value."""
+        self.check(address)
+        arr = self.area(address.area, address.width)
+        arr[address.index] = bool(value) if address.is_bit else (int(value) & WORD_MAX)
+
+    def copy(self) -> ProcessImage:
+        dup = ProcessImage.__new__(ProcessImage)
+        dup.sizes = self.sizes
+        for name in ("ix", "qx", "mx", "iw", "qw", "mw"):
+            setattr(dup, name, getattr(self, name).copy())
+        return dup
+
+    def equals(self, other: ProcessImage) -> bool:
+        return all(
+            np.array_equal(getattr(self, n), getattr(other, n))
+            for n in ("ix", "qx", "mx", "iw", "qw", "mw")
+        )

@@ -1,0 +1,89 @@
+"""Symbol tables: what an `io_images/*.yaml` file declares, as frozen values.
+
+Owns: Symbol, DriverSpec, EventSpec, IoImage (the validated content of one io_images file).
+Does not know: YAML (program/io_image.py parses it), drivers (devices/ builds them).
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+from softplc.core.image import Address, Area, ImageSizes
+
+
+class Direction(enum.Enum):
+    IN = "in"
+    OUT = "out"
+    MEMORY = "memory"
+
+
+DIRECTION_OF_AREA = {Area.INPUT: Direction.IN, Area.OUTPUT: Direction.OUT, Area.MEMORY: Direction.MEMORY}
+
+
+class SymType(enum.Enum):
+    BOOL = "bool"
+    WORD = "word"
+
+
+@dataclass(frozen=True, slots=True)
+class Symbol:
+    """A named location of the process image."""
+
+    name: str
+    address: Address
+    type: SymType
+    direction: Direction
+    safe: int = 0
+    description: str = ""
+    driver: str | None = None
+    channel: str | None = None  # driver-specific: plant signal name, or modbus table/offset
+    hmi_writable: bool = True
+    line: int = 0  # line in the io_images file, for messages
+
+
+@dataclass(frozen=True, slots=True)
+class DriverSpec:
+    """One driver instance: `kind` is `sim` or `modbus`; params are kind-specific."""
+
+    name: str
+    kind: str
+    params: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+    line: int = 0
+
+
+class EventKind(enum.Enum):
+    RISING = "rising"
+    FALLING = "falling"
+    CHANGE = "change"
+    ABOVE = "above"  # word crosses `threshold` upwards; re-arms below threshold - hysteresis
+    BELOW = "below"  # word crosses `threshold` downwards; re-arms above threshold + hysteresis
+
+
+@dataclass(frozen=True, slots=True)
+class EventSpec:
+    """A named event condition over one symbol, evaluated once per scan on the latched image."""
+
+    name: str
+    kind: EventKind
+    symbol: str
+    threshold: int = 0
+    hysteresis: int = 0
+    line: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class IoImage:
+    """The validated content of one io_images file."""
+
+    path: str
+    sizes: ImageSizes
+    symbols: Mapping[str, Symbol]
+    drivers: Mapping[str, DriverSpec]
+    events: Mapping[str, EventSpec]
+
+    def lookup(self, name_or_address: str) -> Symbol | None:
+        return self.symbols.get(name_or_address)
