@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import enum
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
@@ -18,6 +18,7 @@ BoolArray = npt.NDArray[np.bool_]
 WordArray = npt.NDArray[np.uint16]
 
 WORD_MAX = 0xFFFF
+AREAS = ("ix", "qx", "mx", "iw", "qw", "mw")
 
 
 class AddressError(ValueError):
@@ -42,6 +43,10 @@ class Address:
     area: Area
     width: Width
     index: int
+    attr: str = field(init=False, compare=False, repr=False)  # "ix", "qw", ...: the array
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "attr", self.area.value.lower() + self.width.value.lower())
 
     def __str__(self) -> str:
         if self.width is Width.BIT:
@@ -127,23 +132,25 @@ class ProcessImage:
 
     def get(self, address: Address) -> int:
         self.check(address)
-        return int(self.area(address.area, address.width)[address.index])
+        return int(getattr(self, address.attr)[address.index])
 
     def set(self, address: Address, value: int) -> None:
         """Store `value`; words wrap to 16 bits (IEC UINT), bits take its truth value."""
         self.check(address)
-        arr = self.area(address.area, address.width)
+        arr = getattr(self, address.attr)
         arr[address.index] = bool(value) if address.is_bit else (int(value) & WORD_MAX)
 
     def copy(self) -> ProcessImage:
         dup = ProcessImage.__new__(ProcessImage)
         dup.sizes = self.sizes
-        for name in ("ix", "qx", "mx", "iw", "qw", "mw"):
+        for name in AREAS:
             setattr(dup, name, getattr(self, name).copy())
         return dup
 
+    def copy_into(self, other: ProcessImage) -> None:
+        """Overwrite `other` (same sizes) with this image, without allocating."""
+        for name in AREAS:
+            np.copyto(getattr(other, name), getattr(self, name))
+
     def equals(self, other: ProcessImage) -> bool:
-        return all(
-            np.array_equal(getattr(self, n), getattr(other, n))
-            for n in ("ix", "qx", "mx", "iw", "qw", "mw")
-        )
+        return all(np.array_equal(getattr(self, n), getattr(other, n)) for n in AREAS)

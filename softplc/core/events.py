@@ -1,0 +1,57 @@
+"""Event conditions over the process image, evaluated once per scan on the latched image.
+
+Owns: edge, change and threshold-with-hysteresis detection, and its per-condition memory.
+Does not know: who subscribed (devices/interface.py keeps subscriptions), clocks, sockets.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+from softplc.core.image import ProcessImage
+from softplc.core.symbols import EventKind, EventSpec, Symbol
+
+
+@dataclass(slots=True)
+class EventMemory:
+    """What the conditions remember between scans: last values and hysteresis arming."""
+
+    last: dict[str, int] = field(default_factory=dict)
+    armed: dict[str, bool] = field(default_factory=dict)
+
+
+def _occurred(spec: EventSpec, value: int, before: int | None, memory: EventMemory) -> bool:
+    if spec.kind is EventKind.RISING:
+        return before is not None and not before and bool(value)
+    if spec.kind is EventKind.FALLING:
+        return before is not None and bool(before) and not value
+    if spec.kind is EventKind.CHANGE:
+        return before is not None and before != value
+    above = spec.kind is EventKind.ABOVE
+    armed = memory.armed.get(spec.name, True)
+    crossed = value > spec.threshold if above else value < spec.threshold
+    if armed and crossed:
+        memory.armed[spec.name] = False
+        return True
+    rearm = (value <= spec.threshold - spec.hysteresis if above
+             else value >= spec.threshold + spec.hysteresis)
+    if not armed and rearm:
+        memory.armed[spec.name] = True
+    return False
+
+
+def evaluate(specs: Iterable[EventSpec], symbols: dict[str, Symbol] | object,
+             image: ProcessImage, memory: EventMemory) -> tuple[str, ...]:
+    """The names of the conditions that occur in this scan, in declaration order. The first
+    evaluation only records values: an edge needs two scans."""
+    table = symbols if isinstance(symbols, dict) else dict(symbols)  # type: ignore[call-overload]
+    occurred = []
+    values: dict[str, int] = {}
+    for spec in specs:
+        sym = table[spec.symbol]
+        value = values.setdefault(spec.symbol, image.get(sym.address))
+        if _occurred(spec, value, memory.last.get(spec.symbol), memory):
+            occurred.append(spec.name)
+    memory.last.update(values)
+    return tuple(occurred)

@@ -1,0 +1,331 @@
+"""Sandboxed expression language for guards, actions and arc inscriptions.
+
+Owns: parsing a program's expression text with Python's `ast`, checking every node against an
+allowlist, resolving names against a scope, and compiling the tree into plain closures.
+Does not know: YAML, files, devices. Program text never reaches eval/exec/compile: the only
+thing that runs is the closure tree built here from the allowlisted node types.
+"""
+
+from __future__ import annotations
+
+import ast
+import enum
+import operator
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+Value = int | bool | str
+Thunk = Callable[["EvalContext"], Value]
+
+MAX_NODES = 400
+MAX_TEXT = 2000
+INT_LIMIT = 1 << 63  # results beyond +-2**63 are an error: no unbounded integer growth
+
+
+class ExprError(ValueError):
+    """An expression that is not in the language. `col` is 0-based within the text."""
+
+    def __init__(self, message: str, col: int = 0) -> None:
+        super().__init__(message)
+        self.message = message
+        self.col = col
+
+
+class NameKind(enum.Enum):
+    BOOL = "bool"  # a bool symbol (input, output or memory bit)
+    WORD = "word"  # a word symbol
+    EVENT = "event"  # an event: true in the scan where it occurred
+    TOKEN = "token"  # a token variable bound by an input arc
+    CONST = "const"  # a subnet parameter bound to a literal
+
+
+class EvalContext(Protocol):
+    """What a compiled expression reads at run time. The scan supplies it."""
+
+    def symbol(self, name: str) -> int: ...
+
+    def previous(self, name: str) -> int: ...
+
+    def event(self, name: str) -> bool: ...
+
+    def token(self, var: str) -> Mapping[str, Value]: ...
+
+
+@dataclass(frozen=True, slots=True)
+class Scope:
+    """Names an expression may use. `consts` are substituted literally (subnet parameters)."""
+
+    names: Mapping[str, NameKind]
+    consts: Mapping[str, Value] = field(default_factory=dict)
+    token_fields: Mapping[str, frozenset[str]] | None = None  # None: any field allowed
+
+
+@dataclass(frozen=True, slots=True)
+class Compiled:
+    """A compiled expression: call `fn(ctx)`. `reads` lists the symbols and events it reads,
+    `edges` the symbols it takes edges of, so the scan knows when to re-evaluate it."""
+
+    text: str
+    fn: Thunk
+    reads: frozenset[str]
+    edges: frozenset[str]
+    tokens: frozenset[str]
+
+    def __call__(self, ctx: EvalContext) -> Value:
+        return self.fn(ctx)
+
+
+def _check_int(value: int, node: ast.AST) -> int:
+    if not -INT_LIMIT < value < INT_LIMIT:
+        raise OverflowError("integer result out of range")
+    return value
+
+
+def _floordiv(a: int, b: int) -> int:
+    # Division by zero yields 0 rather than stopping the PLC; documented in docs/programs.md.
+    return 0 if b == 0 else a // b
+
+
+def _mod(a: int, b: int) -> int:
+    return 0 if b == 0 else a % b
+
+
+_BINOPS: dict[type[ast.operator], Callable[[int, int], int]] = {
+    ast.Add: operator.add,
+    ast.Sub: operator.sub,
+    ast.Mult: operator.mul,
+    ast.FloorDiv: _floordiv,
+    ast.Mod: _mod,
+    ast.BitAnd: operator.and_,
+    ast.BitOr: operator.or_,
+    ast.BitXor: operator.xor,
+}
+_CMPOPS: dict[type[ast.cmpop], Callable[[Any, Any], bool]] = {
+    ast.Eq: operator.eq,
+    ast.NotEq: operator.ne,
+    ast.Lt: operator.lt,
+    ast.LtE: operator.le,
+    ast.Gt: operator.gt,
+    ast.GtE: operator.ge,
+}
+_FUNCS: dict[str, int] = {"rising": 1, "falling": 1, "abs": 1, "min": 2, "max": 2}
+_CONSTS: dict[str, Value] = {"true": True, "false": False, "TRUE": True, "FALSE": False}
+
+
+class _Compiler:
+    def __init__(self, text: str, scope: Scope) -> None:
+        self.text = text
+        self.scope = scope
+        self.reads: set[str] = set()
+        self.edges: set[str] = set()
+        self.tokens: set[str] = set()
+
+    def fail(self, node: ast.AST, message: str) -> ExprError:
+        return ExprError(message, getattr(node, "col_offset", 0))
+
+    def build(self, node: ast.AST) -> Thunk:
+        method: Callable[[Any], Thunk] | None = getattr(self, "on_" + type(node).__name__, None)
+        if method is None:
+            raise self.fail(node, f"{_describe(node)} is not allowed in an expression")
+        return method(node)
+
+    def on_Constant(self, node: ast.Constant) -> Thunk:
+        value = node.value
+        if isinstance(value, bool | int | str) and not isinstance(value, bytes):
+            if isinstance(value, int) and not isinstance(value, bool):
+                _check_int(value, node)
+            return lambda ctx: value
+        raise self.fail(node, f"constant {value!r} is not allowed: use integers, true/false or 'text'")
+
+    def on_Name(self, node: ast.Name) -> Thunk:
+        name = node.id
+        if name.startswith("_"):
+            raise self.fail(node, f"name {name!r} is not allowed (no leading underscore)")
+        if name in self.scope.consts:
+            const = self.scope.consts[name]
+            return lambda ctx: const
+        kind = self.scope.names.get(name)
+        if kind is None:
+            if name in _CONSTS:
+                literal = _CONSTS[name]
+                return lambda ctx: literal
+            raise self.fail(node, f"unknown name {name!r}: not a symbol, event or token variable")
+        if kind is NameKind.TOKEN:
+            raise self.fail(node, f"token variable {name!r} needs a field, e.g. {name}.id")
+        self.reads.add(name)
+        if kind is NameKind.EVENT:
+            return lambda ctx: ctx.event(name)
+        if kind is NameKind.BOOL:
+            return lambda ctx: bool(ctx.symbol(name))
+        return lambda ctx: ctx.symbol(name)
+
+    def on_Attribute(self, node: ast.Attribute) -> Thunk:
+        base = node.value
+        if not isinstance(base, ast.Name) or self.scope.names.get(base.id) is not NameKind.TOKEN:
+            raise self.fail(node, "attribute access is only allowed as <token variable>.<field>")
+        var, attr = base.id, node.attr
+        if attr.startswith("_"):
+            raise self.fail(node, f"field {attr!r} is not allowed (no leading underscore)")
+        allowed = (self.scope.token_fields or {}).get(var)
+        if self.scope.token_fields is not None and allowed is not None and attr not in allowed:
+            raise self.fail(node, f"token variable {var!r} has no field {attr!r}")
+        self.tokens.add(var)
+
+        def field_of(ctx: EvalContext) -> Value:
+            record = ctx.token(var)
+            if attr not in record:
+                raise KeyError(f"token bound to {var!r} has no field {attr!r}")
+            return record[attr]
+
+        return field_of
+
+    def on_BoolOp(self, node: ast.BoolOp) -> Thunk:
+        parts = [self.build(v) for v in node.values]
+        if isinstance(node.op, ast.And):
+            return lambda ctx: all(p(ctx) for p in parts)
+        return lambda ctx: any(p(ctx) for p in parts)
+
+    def on_UnaryOp(self, node: ast.UnaryOp) -> Thunk:
+        inner = self.build(node.operand)
+        if isinstance(node.op, ast.Not):
+            return lambda ctx: not inner(ctx)
+        if isinstance(node.op, ast.USub):
+            return lambda ctx: -_as_int(inner(ctx))
+        if isinstance(node.op, ast.UAdd):
+            return lambda ctx: _as_int(inner(ctx))
+        raise self.fail(node, "operator ~ is not allowed; use 'not' or arithmetic")
+
+    def on_BinOp(self, node: ast.BinOp) -> Thunk:
+        op = _BINOPS.get(type(node.op))
+        if op is None:
+            symbol = {ast.Pow: "**", ast.Div: "/", ast.LShift: "<<", ast.RShift: ">>"}.get(
+                type(node.op), type(node.op).__name__
+            )
+            hint = " (use // for integer division)" if symbol == "/" else ""
+            raise self.fail(node, f"operator {symbol} is not allowed{hint}")
+        left, right = self.build(node.left), self.build(node.right)
+        return lambda ctx: _check_int(op(_as_int(left(ctx)), _as_int(right(ctx))), node)
+
+    def on_Compare(self, node: ast.Compare) -> Thunk:
+        ops = []
+        for op in node.ops:
+            fn = _CMPOPS.get(type(op))
+            if fn is None:
+                raise self.fail(node, f"comparison {type(op).__name__} is not allowed")
+            ops.append(fn)
+        operands = [self.build(node.left), *(self.build(c) for c in node.comparators)]
+
+        def compare(ctx: EvalContext) -> bool:
+            values = [o(ctx) for o in operands]
+            return all(fn(values[i], values[i + 1]) for i, fn in enumerate(ops))
+
+        return compare
+
+    def on_IfExp(self, node: ast.IfExp) -> Thunk:
+        test, body, orelse = self.build(node.test), self.build(node.body), self.build(node.orelse)
+        return lambda ctx: body(ctx) if test(ctx) else orelse(ctx)
+
+    def on_Call(self, node: ast.Call) -> Thunk:
+        if not isinstance(node.func, ast.Name) or node.func.id not in _FUNCS:
+            allowed = ", ".join(sorted(_FUNCS))
+            raise self.fail(node, f"only these functions may be called: {allowed}")
+        name = node.func.id
+        if node.keywords or len(node.args) != _FUNCS[name]:
+            raise self.fail(node, f"{name}() takes {_FUNCS[name]} positional argument(s)")
+        if name in ("rising", "falling"):
+            return self._edge(node, name == "rising")
+        args = [self.build(a) for a in node.args]
+        if name == "abs":
+            return lambda ctx: abs(_as_int(args[0](ctx)))
+        pick = min if name == "min" else max
+        return lambda ctx: pick(_as_int(args[0](ctx)), _as_int(args[1](ctx)))
+
+    def _edge(self, node: ast.Call, rising: bool) -> Thunk:
+        arg = node.args[0]
+        if not isinstance(arg, ast.Name) or self.scope.names.get(arg.id) is not NameKind.BOOL:
+            raise self.fail(node, "rising()/falling() take the name of a bool symbol")
+        name = arg.id
+        self.reads.add(name)
+        self.edges.add(name)
+        if rising:
+            return lambda ctx: bool(ctx.symbol(name)) and not ctx.previous(name)
+        return lambda ctx: not ctx.symbol(name) and bool(ctx.previous(name))
+
+
+def _as_int(value: Value) -> int:
+    if isinstance(value, str):
+        raise TypeError("text cannot take part in arithmetic")
+    return int(value)
+
+
+def _describe(node: ast.AST) -> str:
+    names = {
+        "Lambda": "lambda",
+        "ListComp": "a comprehension",
+        "SetComp": "a comprehension",
+        "DictComp": "a comprehension",
+        "GeneratorExp": "a generator",
+        "Subscript": "subscript []",
+        "Starred": "*unpacking",
+        "NamedExpr": "assignment :=",
+        "JoinedStr": "an f-string",
+        "Await": "await",
+        "Yield": "yield",
+        "List": "a list",
+        "Tuple": "a tuple",
+        "Dict": "a dict",
+        "Set": "a set",
+    }
+    return names.get(type(node).__name__, type(node).__name__)
+
+
+def parse(text: str) -> ast.expr:
+    """Parse one expression; statements, imports and oversize input are rejected here."""
+    if len(text) > MAX_TEXT:
+        raise ExprError(f"expression longer than {MAX_TEXT} characters")
+    try:
+        tree = ast.parse(text.strip(), mode="eval")
+    except SyntaxError as exc:
+        raise ExprError(f"syntax error: {exc.msg}", max((exc.offset or 1) - 1, 0)) from None
+    count = sum(1 for _ in ast.walk(tree))
+    if count > MAX_NODES:
+        raise ExprError(f"expression too complex ({count} nodes, at most {MAX_NODES})")
+    return tree.body
+
+
+def compile_expr(text: str | int | bool, scope: Scope) -> Compiled:
+    """Compile `text` in `scope`. Raises ExprError; never runs any part of the text."""
+    source = str(text).lower() if isinstance(text, bool) else str(text)
+    compiler = _Compiler(source, scope)
+    fn = compiler.build(parse(source))
+    return Compiled(
+        source, fn, frozenset(compiler.reads), frozenset(compiler.edges), frozenset(compiler.tokens)
+    )
+
+
+def names_in(text: str) -> set[str]:
+    """Bare names an expression mentions (for subnet parameter checks); [] on a parse error."""
+    try:
+        tree = parse(text)
+    except ExprError:
+        return set()
+    return {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}
+
+
+def substitute(text: str, mapping: Mapping[str, Value]) -> str:
+    """Replace bare names (subnet parameters) at the ast level: a text value renames the name
+    (a symbol of the instance), a number or bool becomes a literal."""
+    tree = parse(text)
+
+    class Rename(ast.NodeTransformer):
+        def visit_Name(self, node: ast.Name) -> ast.AST:
+            if node.id not in mapping:
+                return node
+            value = mapping[node.id]
+            new: ast.AST = (
+                ast.Name(id=value, ctx=node.ctx) if isinstance(value, str) else ast.Constant(value)
+            )
+            return ast.copy_location(new, node)
+
+    return ast.unparse(Rename().visit(tree))

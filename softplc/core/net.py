@@ -1,0 +1,144 @@
+"""A compiled net: what the firing round executes.
+
+Owns: the immutable arrays and closures that program/ produces from a validated spec (arcs per
+transition, priorities as a total order, timers, guards, actions, place-attached outputs) and
+the per-run NetState (marking, coloured tokens, timers, busy three-phase firings).
+Does not know: YAML, files, devices, clocks.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from softplc.core.expr import Compiled, Value
+from softplc.core.symbols import IoImage
+
+IntArray = npt.NDArray[np.int64]
+Token = Mapping[str, Value]  # a coloured token: a small record
+Arc = tuple[int, int]  # (place index, weight)
+
+
+class ActionKind(enum.Enum):
+    SET = "set"
+    RESET = "reset"
+    PULSE = "pulse"
+    WRITE = "write"
+    EMIT = "emit"
+
+
+@dataclass(frozen=True, slots=True)
+class Action:
+    kind: ActionKind
+    target: str  # a symbol, or an event name for EMIT
+    value: Compiled | None = None  # WRITE only
+
+
+@dataclass(frozen=True, slots=True)
+class OutputArc:
+    """Where a transition puts tokens. For a coloured place `fields` computes the new record
+    (or `var` passes a bound token through unchanged)."""
+
+    place: int
+    weight: int = 1
+    var: str | None = None
+    fields: Mapping[str, Compiled] | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class InputArc:
+    place: int
+    weight: int = 1
+    var: str | None = None  # binds a token of a coloured place
+
+
+@dataclass(frozen=True, slots=True)
+class Transition:
+    name: str
+    index: int
+    priority: int
+    pre: tuple[InputArc, ...]
+    post: tuple[OutputArc, ...]
+    test: tuple[Arc, ...]
+    inhibit: tuple[Arc, ...]
+    guard: Compiled | None
+    actions: tuple[Action, ...]
+    delay_ns: int
+    duration_ns: int
+    busy_outputs: tuple[tuple[str, int], ...]  # (symbol, value) held while a duration runs
+    coloured: bool  # touches a coloured place: takes the binding path
+    line: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class CompiledNet:
+    name: str
+    source: str  # file the program came from
+    program_hash: str
+    io: IoImage
+    place_names: tuple[str, ...]
+    place_index: Mapping[str, int]
+    initial: IntArray
+    capacity: IntArray  # -1 = unbounded
+    coloured: npt.NDArray[np.bool_]
+    initial_tokens: Mapping[int, tuple[Token, ...]]
+    transitions: tuple[Transition, ...]
+    order: tuple[int, ...]  # transition indices, highest priority first, then declaration
+    place_outputs: Mapping[int, tuple[tuple[str, int], ...]]  # Moore: place -> (symbol, value)
+    moore_drivers: Mapping[str, tuple[tuple[int, int], ...]]  # symbol -> (place, value)
+    busy_drivers: Mapping[str, tuple[tuple[int, int], ...]]  # symbol -> (transition, value)
+    touching: tuple[tuple[int, ...], ...]  # place -> transitions whose enabling reads it
+    guard_deps: Mapping[str, tuple[int, ...]]  # symbol/event -> transitions whose guard reads it
+    edge_deps: Mapping[str, tuple[int, ...]]  # symbol -> transitions taking its edge
+    emits: frozenset[str] = frozenset()
+    subnets: tuple[str, ...] = ()
+
+    @property
+    def rank(self) -> dict[int, int]:
+        return {t: i for i, t in enumerate(self.order)}
+
+    def transition(self, name: str) -> Transition:
+        for t in self.transitions:
+            if t.name == name:
+                return t
+        raise KeyError(name)
+
+
+@dataclass(slots=True)
+class Busy:
+    """A three-phase firing in progress: tokens consumed, production due at `end_ns`."""
+
+    end_ns: int
+    produce: tuple[tuple[int, int, Token | None], ...]  # (place, count, record or None)
+
+
+@dataclass(slots=True)
+class NetState:
+    """Everything that changes while a net runs. Owned by one engine; `copy()` to keep one."""
+
+    marking: IntArray
+    tokens: dict[int, list[Token]]
+    enabled_since: dict[int, int] = field(default_factory=dict)
+    busy: dict[int, Busy] = field(default_factory=dict)
+
+    @classmethod
+    def initial(cls, net: CompiledNet) -> NetState:
+        return cls(
+            marking=net.initial.copy(),
+            tokens={p: list(toks) for p, toks in net.initial_tokens.items()},
+        )
+
+    def copy(self) -> NetState:
+        return NetState(
+            self.marking.copy(),
+            {p: list(t) for p, t in self.tokens.items()},
+            dict(self.enabled_since),
+            {t: Busy(b.end_ns, b.produce) for t, b in self.busy.items()},
+        )
+
+    def marking_by_name(self, net: CompiledNet) -> dict[str, int]:
+        return {net.place_names[p]: int(n) for p, n in enumerate(self.marking) if n}

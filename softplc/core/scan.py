@@ -1,0 +1,309 @@
+"""The PLC: one scan as a function of (state, input image, now_ns, commands).
+
+Owns: the order of a scan (DESIGN.md section 1): apply commands and HMI writes at the scan
+boundary; latch inputs; evaluate event conditions; one firing round when RUNNING; write the
+output image (safe values unless RUNNING). Program handling per the lifecycle table, online
+change with the marking carried over by place name, frozen timers while stopped.
+Does not know: clocks, processes, sockets, YAML (programs arrive compiled).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from softplc.core import events as event_conditions
+from softplc.core.expr import Value
+from softplc.core.firing import Engine
+from softplc.core.image import Area, ProcessImage
+from softplc.core.lifecycle import Command, CommandRejected, PlcState, next_state
+from softplc.core.net import Busy, CompiledNet, NetState
+from softplc.core.snapshot import HmiWrite
+from softplc.core.symbols import Direction, Symbol
+
+FAULT_NONE, FAULT_WATCHDOG, FAULT_DEVICE = 0, 1, 2
+_AREAS = ("ix", "iw", "qx", "qw", "mx", "mw")
+
+
+@dataclass(frozen=True, slots=True)
+class ProgramCommand:
+    """A command as the scan sees it: a download carries an already compiled net."""
+
+    command: Command
+    net: CompiledNet | None = None
+    online: bool = False
+    id: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class Reply:
+    id: int
+    ok: bool
+    message: str
+    state: PlcState
+
+
+@dataclass(frozen=True, slots=True)
+class ScanResult:
+    outputs: ProcessImage  # the PLC's image after the scan (outputs and memory committed)
+    events: tuple[str, ...]  # event conditions that occurred and events the program emitted
+    fired: tuple[str, ...]
+    completed: tuple[str, ...]
+    marking_changes: dict[str, int]
+    replies: tuple[Reply, ...]
+    outputs_changed: bool = True  # False: the output image equals the previous scan's
+
+
+class _Context:
+    """EvalContext over the scan's image: current values, previous values, events."""
+
+    __slots__ = ("events", "image", "locations", "prev")
+
+    def __init__(self, image: ProcessImage, prev: ProcessImage,
+                 locations: dict[str, tuple[str, int]], events: frozenset[str]) -> None:
+        self.image, self.prev, self.locations, self.events = image, prev, locations, events
+
+    def symbol(self, name: str) -> int:
+        area, index = self.locations[name]
+        return int(getattr(self.image, area)[index])
+
+    def previous(self, name: str) -> int:
+        area, index = self.locations[name]
+        return int(getattr(self.prev, area)[index])
+
+    def event(self, name: str) -> bool:
+        return name in self.events
+
+    def token(self, var: str) -> dict[str, Value]:
+        raise KeyError(var)
+
+
+@dataclass
+class Plc:
+    """Everything a PLC remembers between scans. Create with Plc.empty(); advance with scan()."""
+
+    state: PlcState
+    image: ProcessImage
+    prev: ProcessImage
+    net: CompiledNet | None = None
+    engine: Engine | None = None
+    events: event_conditions.EventMemory = field(default_factory=event_conditions.EventMemory)
+    last_events: frozenset[str] = frozenset()  # emitted last scan: visible to guards now
+    true_last: frozenset[str] = frozenset()  # every event true last scan: guards re-check
+    held: tuple[np.ndarray, np.ndarray] | None = None  # outputs at stop, restored on resume
+    scan_count: int = 0
+    fault_code: int = FAULT_NONE
+    stopped_at_ns: int | None = None
+    locations: dict[str, tuple[str, int]] = field(default_factory=dict)
+    by_location: dict[tuple[str, int], tuple[str, ...]] = field(default_factory=dict)
+
+    @classmethod
+    def empty(cls, image: ProcessImage | None = None) -> Plc:
+        image = image or ProcessImage()
+        return cls(PlcState.EMPTY, image, image.copy())
+
+    @property
+    def symbols(self) -> dict[str, Symbol]:
+        return dict(self.net.io.symbols) if self.net else {}
+
+    def marking(self) -> dict[str, int]:
+        if self.net is None or self.engine is None:
+            return {}
+        return self.engine.state.marking_by_name(self.net)
+
+    # -- program handling -------------------------------------------------------------------
+
+    def apply(self, cmd: ProgramCommand, now_ns: int) -> str:
+        """Apply one command. Raises CommandRejected and changes nothing when refused."""
+        target = next_state(self.state, cmd.command)
+        if cmd.command is Command.DOWNLOAD:
+            if cmd.net is None:
+                raise CommandRejected(self.state, cmd.command, "download without a program")
+            if self.state is PlcState.RUNNING:
+                return self._online_change(cmd.net, cmd.online, now_ns)
+            self._load(cmd.net, NetState.initial(cmd.net))
+        elif cmd.command is Command.START or cmd.command is Command.RESET:
+            assert self.net is not None
+            self._load(self.net, NetState.initial(self.net))
+        elif cmd.command is Command.RESUME:
+            self._thaw(now_ns)
+        if target is not PlcState.RUNNING and self.state is PlcState.RUNNING:
+            self.stopped_at_ns = now_ns
+            self.held = (self.image.qx.copy(), self.image.qw.copy())
+        if cmd.command is Command.RESUME and self.held is not None:
+            np.copyto(self.image.qx, self.held[0])
+            np.copyto(self.image.qw, self.held[1])
+        if cmd.command is not Command.STOP:
+            self.held = None
+        self.state = target
+        if target is not PlcState.FAULTED:
+            self.fault_code = FAULT_NONE
+        return f"{cmd.command.value}: now {target.name}"
+
+    def _load(self, net: CompiledNet, state: NetState) -> None:
+        if net.io.sizes != self.image.sizes:
+            self.image, self.prev = ProcessImage(net.io.sizes), ProcessImage(net.io.sizes)
+        self.net, self.engine = net, Engine(net, state)
+        self.stopped_at_ns = None
+        self.locations = {s.name: (s.address.attr, s.address.index) for s in net.io.symbols.values()}
+        by_location: dict[tuple[str, int], list[str]] = {}
+        for name, loc in self.locations.items():
+            by_location.setdefault(loc, []).append(name)
+        self.by_location = {k: tuple(v) for k, v in by_location.items()}
+        self.events = event_conditions.EventMemory()
+
+    def _thaw(self, now_ns: int) -> None:
+        """Timers were frozen at stop: shift them by the time spent stopped."""
+        if self.engine is None or self.stopped_at_ns is None:
+            return
+        shift = now_ns - self.stopped_at_ns
+        st = self.engine.state
+        st.enabled_since = {t: since + shift for t, since in st.enabled_since.items()}
+        st.busy = {t: Busy(b.end_ns + shift, b.produce) for t, b in st.busy.items()}
+        self.engine.invalidate()
+        self.stopped_at_ns = None
+
+    def _online_change(self, net: CompiledNet, online: bool, now_ns: int) -> str:
+        assert self.net is not None and self.engine is not None
+        if not online:
+            raise CommandRejected(self.state, Command.DOWNLOAD,
+                                  "download while RUNNING needs online change (--online), "
+                                  "or stop the program first")
+        old, st = self.net, self.engine.state
+        if st.busy:
+            busy = ", ".join(old.transitions[t].name for t in sorted(st.busy))
+            raise CommandRejected(self.state, Command.DOWNLOAD,
+                                  f"online change refused: timed firing in progress ({busy})")
+        new = NetState.initial(net)
+        new.marking[:] = 0
+        new.tokens = {p: [] for p in new.tokens}
+        lost = []
+        for p, count in enumerate(st.marking):
+            name = old.place_names[p]
+            if name not in net.place_index:
+                if count:
+                    lost.append(f"{name} ({int(count)})")
+                continue
+            q = net.place_index[name]
+            if old.coloured[p] != net.coloured[q]:
+                if count:
+                    lost.append(f"{name} (coloured in one net only)")
+                continue
+            new.marking[q] = count
+            if old.coloured[p]:
+                new.tokens[q] = list(st.tokens.get(p, []))
+        if lost:
+            raise CommandRejected(self.state, Command.DOWNLOAD,
+                                  "online change refused: tokens would be lost in "
+                                  + ", ".join(lost) + " (places missing in the new net)")
+        names = {t.name: t.index for t in net.transitions}
+        for t, since in st.enabled_since.items():
+            if old.transitions[t].name in names:
+                new.enabled_since[names[old.transitions[t].name]] = since
+        self._load(net, new)
+        return f"online change to {net.name} ({net.program_hash[:12]})"
+
+    def fault(self, code: int) -> None:
+        """Watchdog or device fault: FAULTED, outputs safe (the next scan writes them)."""
+        if self.state is PlcState.RUNNING:
+            self.stopped_at_ns = None
+        if self.state in (PlcState.RUNNING, PlcState.STOPPED):
+            self.state = PlcState.FAULTED
+            self.fault_code = code
+            self.drive_safe()
+
+    # -- image ------------------------------------------------------------------------------
+
+    def apply_hmi(self, writes: Iterable[HmiWrite]) -> None:
+        for write in writes:
+            arr = self.image.area(write.address.area, write.address.width)
+            if write.address.area is Area.INPUT:
+                continue  # the HMI map refuses these; inputs belong to the drivers
+            start = write.address.index
+            values = np.asarray(write.values[: max(len(arr) - start, 0)])
+            if write.address.is_bit:
+                arr[start:start + len(values)] = values != 0
+            else:
+                arr[start:start + len(values)] = values.astype(np.int64) & 0xFFFF
+
+    def drive_safe(self) -> None:
+        self.image.qx[:] = False
+        self.image.qw[:] = 0
+        if self.net is None:
+            return
+        for sym in self.net.io.symbols.values():
+            if sym.direction is Direction.OUT:
+                self.image.set(sym.address, sym.safe)
+
+    def _changed(self) -> set[str]:
+        changed: set[str] = set()
+        for area in _AREAS:
+            now, before = getattr(self.image, area), getattr(self.prev, area)
+            if now.tobytes() == before.tobytes():
+                continue
+            for index in np.flatnonzero(now != before).tolist():
+                changed.update(self.by_location.get((area, index), ()))
+        return changed
+
+    def _write(self, writes: Iterable[tuple[str, int]]) -> None:
+        for symbol, value in writes:
+            area, index = self.locations[symbol]
+            arr = getattr(self.image, area)
+            arr[index] = bool(value) if area.endswith("x") else (int(value) & 0xFFFF)
+
+
+def scan(plc: Plc, inputs: ProcessImage, now_ns: int,
+         commands: Sequence[ProgramCommand] = (), hmi: Sequence[HmiWrite] = ()) -> ScanResult:
+    """One scan. `plc` is advanced in place and must not be used by anyone else meanwhile;
+    `inputs` is only read (its %I areas are latched)."""
+    replies = []
+    for cmd in commands:
+        try:
+            message = plc.apply(cmd, now_ns)
+            replies.append(Reply(cmd.id, True, message, plc.state))
+        except CommandRejected as exc:
+            replies.append(Reply(cmd.id, False, exc.reason, plc.state))
+    killed = any(c.command is Command.KILL and r.ok for c, r in zip(commands, replies, strict=True))
+    if not killed:
+        plc.apply_hmi(hmi)
+    np.copyto(plc.image.ix, inputs.ix)
+    np.copyto(plc.image.iw, inputs.iw)
+    occurred: tuple[str, ...] = ()
+    fired: tuple[str, ...] = ()
+    completed: tuple[str, ...] = ()
+    changes: dict[str, int] = {}
+    if plc.net is not None:
+        occurred = event_conditions.evaluate(plc.net.io.events.values(), plc.net.io.symbols,
+                                             plc.image, plc.events)
+    if plc.state is PlcState.RUNNING and plc.engine is not None and plc.net is not None:
+        now_events = frozenset(occurred) | plc.last_events
+        ctx = _Context(plc.image, plc.prev, plc.locations, now_events)
+        changed = plc._changed() | set(now_events) | set(plc.true_last)
+        before = plc.engine.state.marking.copy()
+        step = plc.engine.fire_round(ctx, now_ns, changed)
+        plc._write(step.writes)
+        names = plc.net.transitions
+        fired = tuple(names[t].name for t in step.fired)
+        completed = tuple(names[t].name for t in step.completed)
+        after = plc.engine.state.marking
+        changes = {plc.net.place_names[p]: int(after[p]) for p in sorted(step.changed_places)
+                   if after[p] != before[p]}
+        emitted = step.emitted
+        plc.last_events = frozenset(emitted)
+        plc.true_last = now_events
+        occurred = occurred + emitted
+    else:
+        plc.last_events = plc.true_last = frozenset()
+        plc.drive_safe()
+    outputs_changed = bool(commands or hmi or fired or completed or plc.state is not PlcState.RUNNING
+                           or not _same_outputs(plc.image, plc.prev))
+    plc.image.copy_into(plc.prev)
+    plc.scan_count += 1
+    return ScanResult(plc.image, occurred, fired, completed, changes, tuple(replies),
+                      outputs_changed)
+
+
+def _same_outputs(a: ProcessImage, b: ProcessImage) -> bool:
+    return all(getattr(a, n).tobytes() == getattr(b, n).tobytes() for n in ("qx", "qw", "mx", "mw"))

@@ -1,0 +1,283 @@
+"""Validated spec -> CompiledNet: names, symbols, types, expressions, arrays.
+
+Owns: every semantic check of a program (unknown names, arcs to missing places, actions that
+write inputs, bool/word mismatches, guards that do not compile, coloured-arc rules), collected
+with file:line before anything is built, and the build of the arrays and closures.
+Does not know: devices, clocks, the scan.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from types import MappingProxyType
+
+import numpy as np
+
+from softplc.core.expr import Compiled, ExprError, NameKind, Scope, compile_expr
+from softplc.core.net import (
+    Action,
+    ActionKind,
+    CompiledNet,
+    InputArc,
+    OutputArc,
+    Token,
+    Transition,
+)
+from softplc.core.problems import Problem, ProgramError
+from softplc.core.symbols import Direction, IoImage, SymType
+from softplc.program.io_image import load_io_image
+from softplc.program.spec import ArcSpec, ProgramSpec, TransitionSpec, Where, parse_program, resolve
+
+
+@dataclass(frozen=True, slots=True)
+class Summary:
+    name: str
+    places: int
+    transitions: int
+    arcs: int
+    symbols: int
+    subnets: int
+    program_hash: str
+
+    def __str__(self) -> str:
+        return (f"program {self.name}: {self.places} places, {self.transitions} transitions, "
+                f"{self.arcs} arcs, {self.symbols} symbols, {self.subnets} subnets "
+                f"(hash {self.program_hash[:12]})")
+
+
+def summarize(net: CompiledNet) -> Summary:
+    arcs = sum(len(t.pre) + len(t.post) + len(t.test) + len(t.inhibit) for t in net.transitions)
+    return Summary(net.name, len(net.place_names), len(net.transitions), arcs,
+                   len(net.io.symbols), len(net.subnets), net.program_hash)
+
+
+class _Compiler:
+    def __init__(self, spec: ProgramSpec, io: IoImage, problems: list[Problem]) -> None:
+        self.spec, self.io, self.problems = spec, io, problems
+        self.places = {p.name: i for i, p in enumerate(spec.places)}
+        self.events = {name for name, _ in spec.events}
+        names: dict[str, NameKind] = {}
+        for sym in io.symbols.values():
+            names[sym.name] = NameKind.BOOL if sym.type is SymType.BOOL else NameKind.WORD
+        for ev in [*io.events, *self.events]:
+            names[ev] = NameKind.EVENT
+        self.names = names
+
+    def problem(self, where: Where, message: str, path: str | None = None) -> None:
+        self.problems.append(Problem(where.file, where.line, path or where.path, message))
+
+    def check_names(self) -> None:
+        seen: dict[str, Where] = {}
+        for kind, items in (("place", self.spec.places), ("transition", self.spec.transitions)):
+            for item in items:
+                if item.name in seen:
+                    first = seen[item.name]
+                    self.problem(item.where, f"{kind} name {item.name!r} is already used "
+                                             f"({first.file}:{first.line})")
+                seen[item.name] = item.where
+        for name, where in self.spec.events:
+            if name in self.io.symbols or name in self.io.events:
+                self.problem(where, f"event {name!r} clashes with a symbol or io event")
+
+    def expr(self, text: str, where: Where, tokens: set[str]) -> Compiled | None:
+        names = dict(self.names)
+        names.update({t: NameKind.TOKEN for t in tokens})
+        try:
+            return compile_expr(text, Scope(names))
+        except ExprError as exc:
+            self.problem(where, f"{exc.message} in {text!r}")
+            return None
+
+    def writable(self, symbol: str, where: Where, want: SymType | None) -> bool:
+        sym = self.io.symbols.get(symbol)
+        if sym is None:
+            self.problem(where, f"unknown symbol {symbol!r} (not in {self.io.path})")
+            return False
+        if sym.direction is Direction.IN:
+            self.problem(where, f"{symbol} is an input ({sym.address}); a program cannot write it")
+            return False
+        if want is not None and sym.type is not want:
+            self.problem(where, f"{symbol} is a {sym.type.value}; expected a {want.value} here")
+            return False
+        return True
+
+    def outputs(self, items: tuple[tuple[str, object, Where], ...]) -> tuple[tuple[str, int], ...]:
+        out = []
+        for symbol, value, where in items:
+            if not self.writable(symbol, where, None):
+                continue
+            sym = self.io.symbols[symbol]
+            if sym.type is SymType.BOOL and value not in (0, 1, True, False):
+                self.problem(where, f"{symbol} is a bool; its output value must be true or false")
+            elif sym.type is SymType.WORD and (not isinstance(value, int) or isinstance(value, bool)
+                                              or not 0 <= value <= 0xFFFF):
+                self.problem(where, f"{symbol} is a word; its output value must be 0..65535")
+            else:
+                out.append((symbol, int(value)))  # type: ignore[call-overload]
+        return tuple(out)
+
+    def action(self, text: str, where: Where, tokens: set[str]) -> Action | None:
+        words = text.split(None, 1)
+        if len(words) == 2 and words[0] in ("set", "reset", "pulse"):
+            if self.writable(words[1], where, SymType.BOOL):
+                return Action(ActionKind(words[0]), words[1])
+            return None
+        if len(words) == 2 and words[0] == "emit":
+            if words[1] not in self.events:
+                self.problem(where, f"event {words[1]!r} is not declared in the program's events:")
+                return None
+            return Action(ActionKind.EMIT, words[1])
+        if "=" in text:
+            target, _, value = text.partition("=")
+            target = target.strip()
+            if not self.writable(target, where, None):
+                return None
+            compiled = self.expr(value.strip(), where, tokens)
+            return None if compiled is None else Action(ActionKind.WRITE, target, compiled)
+        self.problem(where, f"bad action {text!r}: expected set X, reset X, pulse X, emit E or X = expr")
+        return None
+
+    def place_of(self, arc: ArcSpec) -> int | None:
+        index = self.places.get(arc.place)
+        if index is None:
+            self.problem(arc.where, f"arc to unknown place {arc.place!r}")
+        return index
+
+    def transition(self, index: int, spec: TransitionSpec, coloured: list[bool]) -> Transition:
+        tokens: set[str] = set()
+        pre: list[InputArc] = []
+        for arc in spec.pre:
+            p = self.place_of(arc)
+            if p is None:
+                continue
+            if arc.var is not None:
+                if not coloured[p]:
+                    self.problem(arc.where, f"var {arc.var!r}: place {arc.place} holds no records")
+                elif arc.weight != 1:
+                    self.problem(arc.where, "an arc that binds a variable has weight 1")
+                tokens.add(arc.var)
+            pre.append(InputArc(p, arc.weight, arc.var))
+        post = [o for o in (self.output_arc(a, coloured, tokens) for a in spec.post) if o]
+        test = [(p, a.weight) for a in spec.test if (p := self.place_of(a)) is not None]
+        inhibit = [(p, a.weight) for a in spec.inhibit if (p := self.place_of(a)) is not None]
+        guard = None if spec.when is None else self.expr(spec.when[0], spec.when[1], tokens)
+        actions = [a for a in (self.action(t, w, tokens) for t, w in spec.actions) if a]
+        busy = self.outputs(spec.outputs)
+        if busy and spec.duration_ns == 0:
+            self.problem(spec.where, "outputs: on a transition need a duration: (held while it runs)")
+        if not pre and spec.duration_ns == 0 and guard is None:
+            self.problem(spec.where, "a transition with no input place and no guard fires every scan")
+        touches = any(coloured[a.place] for a in pre) or any(coloured[o.place] for o in post)
+        return Transition(spec.name, index, spec.priority, tuple(pre), tuple(post), tuple(test),
+                          tuple(inhibit), guard, tuple(actions), spec.delay_ns, spec.duration_ns,
+                          busy, touches, spec.where.line)
+
+    def output_arc(self, arc: ArcSpec, coloured: list[bool], tokens: set[str]) -> OutputArc | None:
+        p = self.place_of(arc)
+        if p is None:
+            return None
+        if arc.token is None:
+            return OutputArc(p, arc.weight)
+        if not coloured[p]:
+            self.problem(arc.where, f"token: place {arc.place} holds no records")
+            return None
+        if isinstance(arc.token, str):
+            if arc.token not in tokens:
+                self.problem(arc.where, f"token {arc.token!r} is not bound by an input arc")
+                return None
+            return OutputArc(p, arc.weight, var=arc.token)
+        fields = {k: c for k, v in arc.token.items() if (c := self.expr(v, arc.where, tokens))}
+        return OutputArc(p, arc.weight, fields=MappingProxyType(fields))
+
+
+def _build(spec: ProgramSpec, io: IoImage, c: _Compiler) -> CompiledNet:
+    coloured = [p.coloured for p in spec.places]
+    for p in spec.places:
+        c.outputs(p.outputs)
+    transitions = tuple(c.transition(i, t, coloured) for i, t in enumerate(spec.transitions))
+    if c.problems:
+        raise ProgramError(sorted(set(c.problems)))
+    n_places = len(spec.places)
+    touching: list[set[int]] = [set() for _ in range(n_places)]
+    guard_deps: dict[str, set[int]] = defaultdict(set)
+    edge_deps: dict[str, set[int]] = defaultdict(set)
+    busy_drivers: dict[str, list[tuple[int, int]]] = defaultdict(list)
+    capacity = np.array([-1 if p.capacity is None else p.capacity for p in spec.places], np.int64)
+    for t in transitions:
+        for p in [a.place for a in t.pre] + [q for q, _ in t.test + t.inhibit]:
+            touching[p].add(t.index)
+        for o in t.post:
+            if capacity[o.place] >= 0:
+                touching[o.place].add(t.index)
+        exprs = [t.guard] if t.guard else []
+        for name in (n for e in exprs for n in e.reads):
+            guard_deps[name].add(t.index)
+        for name in (n for e in exprs for n in e.edges):
+            edge_deps[name].add(t.index)
+        for sym, value in t.busy_outputs:
+            busy_drivers[sym].append((t.index, value))
+    place_outputs = {i: c.outputs(p.outputs) for i, p in enumerate(spec.places) if p.outputs}
+    moore: dict[str, list[tuple[int, int]]] = defaultdict(list)
+    for i, outs in place_outputs.items():
+        for sym, value in outs:
+            moore[sym].append((i, value))
+    initial_tokens: dict[int, tuple[Token, ...]] = {
+        i: tuple(p.records or ()) for i, p in enumerate(spec.places) if p.coloured
+    }
+    digest = hashlib.sha256()
+    for text in [*spec.texts, _io_text(io)]:
+        digest.update(text.encode())
+    order = tuple(sorted(range(len(transitions)), key=lambda i: (-transitions[i].priority, i)))
+    return CompiledNet(
+        spec.name, spec.file, digest.hexdigest(), io,
+        tuple(p.name for p in spec.places), MappingProxyType(dict(c.places)),
+        np.array([p.tokens for p in spec.places], np.int64), capacity,
+        np.array(coloured, np.bool_), MappingProxyType(initial_tokens), transitions, order,
+        MappingProxyType(place_outputs), _frozen(moore), _frozen(busy_drivers),
+        tuple(tuple(sorted(s)) for s in touching), _frozen(guard_deps), _frozen(edge_deps),
+        frozenset(c.events), tuple(spec.subnets),
+    )
+
+
+def _frozen(d: dict[str, list[tuple[int, int]]] | dict[str, set[int]]) -> MappingProxyType:  # type: ignore[type-arg]
+    return MappingProxyType({k: tuple(sorted(v)) for k, v in d.items()})
+
+
+def _io_text(io: IoImage) -> str:
+    return repr(sorted((s.name, str(s.address), s.type.value, s.safe) for s in io.symbols.values()))
+
+
+def compile_text(text: str, filename: str, root: Path | None = None) -> CompiledNet:
+    """Validate and compile a program given as text. Raises ProgramError listing every
+    problem; nothing is built unless the whole program is valid."""
+    spec, problems = parse_program(text, filename, root)
+    io = None
+    if spec.io_image is None:
+        problems.append(Problem(filename, 1, "io_image", "missing io_image: (the symbols file)"))
+    else:
+        ref, where = spec.io_image
+        target = resolve(Path(filename).parent, ref, root)
+        if isinstance(target, str):
+            problems.append(Problem(where.file, where.line, where.path, target))
+        else:
+            try:
+                io = load_io_image(target)
+            except ProgramError as exc:
+                problems.extend(exc.problems)
+    if io is None:
+        raise ProgramError(sorted(set(problems)))
+    compiler = _Compiler(spec, io, problems)
+    compiler.check_names()
+    return _build(spec, io, compiler)
+
+
+def compile_file(path: str | Path, root: Path | None = None) -> CompiledNet:
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ProgramError([Problem(str(path), 0, "", f"cannot read program: {exc.strerror}")]) from None
+    return compile_text(text, str(path), root)

@@ -1,0 +1,191 @@
+"""Load an `io_images/*.yaml` symbols file into an IoImage, collecting every problem.
+
+Owns: the symbols file format (image sizes, drivers, symbols, event conditions).
+Does not know: programs, drivers' internals.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+from softplc.core.image import AddressError, ImageSizes, ProcessImage, Width, parse_address
+from softplc.core.problems import Problem, ProgramError
+from softplc.core.symbols import (
+    DIRECTION_OF_AREA,
+    Direction,
+    DriverSpec,
+    EventKind,
+    EventSpec,
+    IoImage,
+    Symbol,
+    SymType,
+)
+from softplc.program.yamlload import YMap, line_of, load_yaml, trap_hint
+
+DRIVER_KINDS = ("sim", "modbus")
+SYMBOL_KEYS = {"address", "type", "dir", "safe", "driver", "channel", "description", "hmi_writable"}
+
+
+class _Reader:
+    def __init__(self, filename: str) -> None:
+        self.file = filename
+        self.problems: list[Problem] = []
+
+    def problem(self, line: int, path: str, message: str) -> None:
+        self.problems.append(Problem(self.file, line, path, message))
+
+    def section(self, data: YMap, key: str) -> YMap:
+        value = data.get(key, YMap())
+        if not isinstance(value, dict):
+            self.problem(line_of(data, key), key, "expected a mapping of name: {...}")
+            return YMap()
+        return value  # type: ignore[return-value]
+
+    def sizes(self, data: YMap) -> ImageSizes:
+        spec = data.get("image") or {}
+        try:
+            return ImageSizes(bits=int(spec.get("bits", 800)), words=int(spec.get("words", 1024)))
+        except (TypeError, ValueError, AttributeError) as exc:
+            self.problem(line_of(data, "image"), "image", f"bad image sizes: {exc}")
+            return ImageSizes()
+
+    def drivers(self, data: YMap) -> dict[str, DriverSpec]:
+        out: dict[str, DriverSpec] = {}
+        section = self.section(data, "drivers")
+        for name, spec in section.items():
+            line, path = line_of(section, name), f"drivers.{name}"
+            if not isinstance(spec, dict) or spec.get("kind") not in DRIVER_KINDS:
+                self.problem(line, path, f"expected {{kind: {' | '.join(DRIVER_KINDS)}, ...}}")
+                continue
+            params = {k: v for k, v in spec.items() if k != "kind"}
+            out[str(name)] = DriverSpec(str(name), str(spec["kind"]), MappingProxyType(params), line)
+        return out
+
+    def symbol(self, name: str, spec: Any, line: int, drivers: dict[str, DriverSpec],
+               image: ProcessImage) -> Symbol | None:
+        path = f"symbols.{name}"
+        if not isinstance(spec, dict) or "address" not in spec:
+            self.problem(line, path, "expected {address: '%IX0.0', type: bool|word, ...}")
+            return None
+        for key in sorted(set(spec) - SYMBOL_KEYS, key=str):
+            self.problem(line_of(spec, key), f"{path}.{key}",
+                         f"unknown key {key!r}; expected one of {', '.join(sorted(SYMBOL_KEYS))}")
+        try:
+            address = parse_address(str(spec["address"]))
+            image.check(address)
+        except AddressError as exc:
+            self.problem(line_of(spec, "address"), f"{path}.address", str(exc))
+            return None
+        natural = SymType.BOOL if address.width is Width.BIT else SymType.WORD
+        sym_type = self._type(spec, path, natural)
+        direction = DIRECTION_OF_AREA[address.area]
+        if "dir" in spec and spec["dir"] != direction.value:
+            self.problem(line_of(spec, "dir"), f"{path}.dir",
+                         f"dir {spec['dir']!r} contradicts address {address} ({direction.value})")
+        driver = spec.get("driver")
+        if "driver" not in spec and direction is not Direction.MEMORY and len(drivers) == 1:
+            driver = next(iter(drivers))  # one driver: it serves every I/O symbol by default
+        if driver == "none":
+            driver = None  # kept in the image only (e.g. a value shown to HMIs)
+        if driver is not None and driver not in drivers:
+            self.problem(line_of(spec, "driver"), f"{path}.driver", f"unknown driver {driver!r}")
+        safe = self._safe(spec, path, sym_type)
+        return Symbol(name, address, sym_type, direction, safe, str(spec.get("description", "")),
+                      driver, str(spec.get("channel", name)),
+                      spec.get("hmi_writable", True) is True, line)
+
+    def _type(self, spec: YMap, path: str, natural: SymType) -> SymType:
+        declared = spec.get("type", natural.value)
+        if declared not in ("bool", "word"):
+            self.problem(line_of(spec, "type"), f"{path}.type",
+                         f"unknown type {declared!r}; expected bool or word")
+            return natural
+        if declared != natural.value:
+            self.problem(line_of(spec, "type"), f"{path}.type",
+                         f"type {declared} does not fit a {natural.value} address")
+        return natural
+
+    def _safe(self, spec: YMap, path: str, sym_type: SymType) -> int:
+        value = spec.get("safe", 0)
+        line = line_of(spec, "safe")
+        if sym_type is SymType.BOOL:
+            if isinstance(value, bool) or value in (0, 1):
+                return int(value)
+            self.problem(line, f"{path}.safe", f"safe value of a bool must be true or false{trap_hint(value)}")
+            return 0
+        if isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 0xFFFF:
+            return value
+        self.problem(line, f"{path}.safe", f"safe value of a word must be 0..65535{trap_hint(value)}")
+        return 0
+
+    def events(self, data: YMap, symbols: dict[str, Symbol]) -> dict[str, EventSpec]:
+        out: dict[str, EventSpec] = {}
+        section = self.section(data, "events")
+        for name, spec in section.items():
+            line, path = line_of(section, name), f"events.{name}"
+            kinds = [k for k in EventKind if isinstance(spec, dict) and k.value in spec]
+            if len(kinds) != 1:
+                self.problem(line, path, "expected exactly one of rising, falling, change, above, below")
+                continue
+            kind = kinds[0]
+            target = spec[kind.value]
+            sym = symbols.get(str(target))
+            if sym is None:
+                self.problem(line, path, f"unknown symbol {target!r}")
+                continue
+            if kind in (EventKind.RISING, EventKind.FALLING) and sym.type is not SymType.BOOL:
+                self.problem(line, path, f"{kind.value} needs a bool symbol; {sym.name} is a word")
+                continue
+            if kind in (EventKind.ABOVE, EventKind.BELOW) and sym.type is not SymType.WORD:
+                self.problem(line, path, f"{kind.value} needs a word symbol; {sym.name} is a bool")
+                continue
+            threshold, hysteresis = spec.get("threshold", 0), spec.get("hysteresis", 0)
+            if not all(isinstance(v, int) and not isinstance(v, bool) for v in (threshold, hysteresis)):
+                self.problem(line, path, "threshold and hysteresis must be integers")
+                continue
+            out[str(name)] = EventSpec(str(name), kind, sym.name, threshold, hysteresis, line)
+        return out
+
+
+def parse_io_image(text: str, filename: str) -> IoImage:
+    data, problems = load_yaml(text, filename)
+    reader = _Reader(filename)
+    reader.problems.extend(problems)
+    if not isinstance(data, dict):
+        if data is not None or not problems:
+            reader.problem(1, "", "expected a mapping with symbols: (and drivers:, events:)")
+        raise ProgramError(reader.problems)
+    sizes = reader.sizes(data)  # type: ignore[arg-type]
+    image = ProcessImage(sizes)
+    drivers = reader.drivers(data)  # type: ignore[arg-type]
+    symbols: dict[str, Symbol] = {}
+    taken: dict[object, str] = {}
+    section = reader.section(data, "symbols")  # type: ignore[arg-type]
+    for name, spec in section.items():
+        sym = reader.symbol(str(name), spec, line_of(section, name), drivers, image)
+        if sym is None:
+            continue
+        if sym.address in taken:
+            reader.problem(sym.line, f"symbols.{name}",
+                           f"address {sym.address} is already used by {taken[sym.address]}")
+        taken[sym.address] = sym.name
+        symbols[sym.name] = sym
+    events = reader.events(data, symbols)  # type: ignore[arg-type]
+    for name in events:
+        if name in symbols:
+            reader.problem(events[name].line, f"events.{name}", "an event cannot share a symbol's name")
+    if reader.problems:
+        raise ProgramError(sorted(reader.problems))
+    return IoImage(filename, sizes, MappingProxyType(symbols), MappingProxyType(drivers),
+                   MappingProxyType(events))
+
+
+def load_io_image(path: str | Path) -> IoImage:
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ProgramError([Problem(str(path), 0, "", f"cannot read symbols file: {exc.strerror}")]) from None
+    return parse_io_image(text, str(path))
