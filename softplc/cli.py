@@ -6,23 +6,96 @@ Owns: argument parsing, exit codes, what a person sees. Does not know: how any o
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from collections.abc import Sequence
 
 from softplc.core.problems import ProgramError
+from softplc.core.units import parse_duration_ns
 from softplc.program.compiler import compile_file, summarize
 
 
-def cmd_check(args: argparse.Namespace) -> int:
+def _compile_or_report(path: str):  # type: ignore[no-untyped-def]
     try:
-        net = compile_file(args.program)
+        return compile_file(path)
     except ProgramError as exc:
         for problem in exc.problems:
             print(problem, file=sys.stderr)
-        print(f"{args.program}: {len(exc.problems)} problem(s)", file=sys.stderr)
+        print(f"{path}: {len(exc.problems)} problem(s)", file=sys.stderr)
+        return None
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    net = _compile_or_report(args.program)
+    if net is None:
         return 1
     print(summarize(net))
     return 0
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from softplc.runtime.simulate import simulate
+
+    net = _compile_or_report(args.program)
+    if net is None:
+        return 1
+    report = simulate(net, args.duration, args.period, args.seed, args.trace, plant=args.plant)
+    if args.json:
+        print(json.dumps(report, sort_keys=True))
+        return 0
+    plant = report["plant"]
+    print(f"{report['program']}: {report['scans']} scans, {report['duration_s']:.0f} s virtual, "
+          f"state {report['state']}")
+    if isinstance(plant, dict):
+        print(f"plant: {plant['parts_in']} in, {plant['parts_out']} out, "
+              f"{plant['parts_drilled']} drilled, {len(plant['faults'])} fault(s)")
+        for fault in plant["faults"]:
+            print(f"  fault: {fault}")
+    print(f"fired: {report['fired']}")
+    print(f"trace sha256: {report['trace_sha256']}")
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from softplc.runtime.replay import replay
+
+    net = _compile_or_report(args.program)
+    if net is None:
+        return 1
+    result = replay(args.trace, net)
+    if result.ok:
+        print(f"replay: {result.scans} scans reproduced bit for bit")
+        return 0
+    print(f"replay: first divergence at {result.divergence}", file=sys.stderr)
+    return 1
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from softplc.runtime.supervisor import run
+
+    return run(args)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from softplc.bench.harness import main as bench_main
+
+    return bench_main(args)
+
+
+def _duration(text: str) -> int:
+    try:
+        return parse_duration_ns(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _endpoint(text: str) -> tuple[str, int] | None:
+    if text in ("off", "none"):
+        return None
+    host, _, port = text.rpartition(":")
+    if not port.isdigit():
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT or off, got {text!r}")
+    return (host or "127.0.0.1", int(port))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -31,6 +104,52 @@ def build_parser() -> argparse.ArgumentParser:
     check = sub.add_parser("check", help="validate and compile a program; print a summary")
     check.add_argument("program")
     check.set_defaults(func=cmd_check)
+
+    run = sub.add_parser("run", help="run a soft PLC (scan process + Modbus/HTTP process)")
+    run.add_argument("program", nargs="?")
+    run.add_argument("--period", type=_duration, default=10_000_000, help="scan period (10ms)")
+    run.add_argument("--modbus", type=_endpoint, default=("127.0.0.1", 5020),
+                     help="Modbus TCP slave HOST:PORT, or off (127.0.0.1:5020)")
+    run.add_argument("--api", type=_endpoint, default=("127.0.0.1", 8080),
+                     help="HTTP API HOST:PORT, or off (127.0.0.1:8080)")
+    run.add_argument("--plant", help="plant model for sim drivers (transport, drilling)")
+    run.add_argument("--start", action="store_true", help="start the program at once")
+    run.add_argument("--state-dir", default="state", help="retain and token directory (./state)")
+    run.add_argument("--trace", help="record every scan to this JSON Lines file")
+    run.add_argument("--seed", type=int, default=0, help="plant seed (0)")
+    run.add_argument("--watchdog", type=float, default=10.0,
+                     help="fault when a scan runs longer than period x this (10)")
+    run.add_argument("--duration", type=_duration, help="stop after this long (default: Ctrl-C)")
+    run.add_argument("--quiet", action="store_true", help="no live status line")
+    run.set_defaults(func=cmd_run)
+
+    sim = sub.add_parser("simulate", help="run a program on a simulated plant in virtual time")
+    sim.add_argument("program")
+    sim.add_argument("--plant", help="plant model (default: the one the io image declares)")
+    sim.add_argument("--duration", type=_duration, default=600_000_000_000)
+    sim.add_argument("--period", type=_duration, default=10_000_000)
+    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--json", action="store_true", help="print one JSON object")
+    sim.add_argument("--trace", help="record every scan to this JSON Lines file")
+    sim.set_defaults(func=cmd_simulate)
+
+    rep = sub.add_parser("replay", help="re-run a trace's inputs and compare outputs bit for bit")
+    rep.add_argument("trace")
+    rep.add_argument("program")
+    rep.set_defaults(func=cmd_replay)
+
+    bench = sub.add_parser("bench", help="benchmarks of the engine, scan timing and Modbus")
+    bench.add_argument("--quick", action="store_true")
+    bench.add_argument("--json", dest="json_file")
+    bench.add_argument("--plots")
+    bench.set_defaults(func=cmd_bench)
+
+    try:
+        from softplc.api.clicmds import add_client_commands
+    except ImportError:  # the HTTP client commands need the api package's dependencies
+        pass
+    else:
+        add_client_commands(sub)
     return parser
 
 

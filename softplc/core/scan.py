@@ -172,6 +172,13 @@ class Plc:
                                   "download while RUNNING needs online change (--online), "
                                   "or stop the program first")
         old, st = self.net, self.engine.state
+        if net.name != old.name:
+            # Another program (reconfiguration, seed paper 4.2): nothing to carry over; it
+            # takes over at this scan boundary from its initial marking, without a stop.
+            self._load(net, NetState.initial(net))
+            self.drive_safe()  # outputs the new program does not drive must not stay on
+            return (f"online replacement: {old.name} -> {net.name} ({net.program_hash[:12]}), "
+                    "initial marking")
         if st.busy:
             busy = ", ".join(old.transitions[t].name for t in sorted(st.busy))
             raise CommandRejected(self.state, Command.DOWNLOAD,

@@ -20,14 +20,17 @@ from softplc.devices.driver import Driver, Health
 from softplc.runtime.trace import TraceWriter, image_digest, input_changes
 
 
-def open_drivers(io: IoImage, seed: int = 0) -> list[Driver]:
+def open_drivers(io: IoImage, seed: int = 0, plant: str | None = None) -> list[Driver]:
+    """The drivers `io` declares, opened. `plant` replaces the plant model of sim drivers."""
     drivers: list[Driver] = []
     symbols = list(io.symbols.values())
     for spec in io.drivers.values():
         if spec.kind == "sim":
+            from softplc.devices.plants.registry import make_plant
             from softplc.devices.sim import SimDriver
 
-            drivers.append(SimDriver(spec, symbols, seed=seed))
+            model = make_plant(plant, seed) if plant else None
+            drivers.append(SimDriver(spec, symbols, plant=model, seed=seed))
         elif spec.kind == "modbus":
             from softplc.devices.modbus_io import ModbusIoDriver
 
@@ -117,11 +120,11 @@ def _command(cmd: ProgramCommand) -> dict[str, Any]:
     return out
 
 
-def boot(net: CompiledNet, seed: int = 0, start: bool = True,
-         trace: TraceWriter | None = None) -> tuple[ScanRunner, list[ProgramCommand]]:
+def boot(net: CompiledNet, seed: int = 0, start: bool = True, trace: TraceWriter | None = None,
+         plant: str | None = None) -> tuple[ScanRunner, list[ProgramCommand]]:
     """A runner for `net` and the commands that download (and start) it on the first scan."""
     plc = Plc.empty(ProcessImage(net.io.sizes))
-    runner = ScanRunner(plc, open_drivers(net.io, seed), trace)
+    runner = ScanRunner(plc, open_drivers(net.io, seed, plant), trace)
     commands = [ProgramCommand(Command.DOWNLOAD, net, id=1)]
     if start:
         commands.append(ProgramCommand(Command.START, id=2))

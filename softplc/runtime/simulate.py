@@ -16,12 +16,12 @@ from softplc.runtime.trace import TraceWriter
 
 
 def simulate(net: CompiledNet, duration_ns: int, period_ns: int = 10_000_000, seed: int = 0,
-             trace_path: str | Path | None = None) -> dict[str, Any]:
+             trace_path: str | Path | None = None, plant: str | None = None) -> dict[str, Any]:
     """Run `net` on its simulated plant for `duration_ns` of virtual time."""
     if period_ns <= 0:
         raise ValueError("period must be positive")
     trace = TraceWriter(trace_path)
-    runner, commands = boot(net, seed, start=True, trace=trace)
+    runner, commands = boot(net, seed, start=True, trace=trace, plant=plant)
     scans = duration_ns // period_ns
     try:
         for k in range(scans):

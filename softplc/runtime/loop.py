@@ -1,0 +1,220 @@
+"""The real-time scan loop: the scan process of DESIGN.md section 7.
+
+Owns: absolute deadlines on the monotonic clock, skipped slots counted as overruns, the
+watchdog (execution time over period x sensitivity -> FAULTED, safe outputs), commands and
+HMI writes drained at the scan boundary (downloads compiled here, before the scan, so a bad
+program never reaches the PLC), the snapshot published to shared memory after every scan,
+and safe outputs on shutdown.
+Does not know: Modbus, HTTP (the communication process), terminals (the CLI).
+"""
+
+from __future__ import annotations
+
+import signal
+from collections.abc import Sequence
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+from multiprocessing.synchronize import Event
+from pathlib import Path
+
+from softplc.core.image import ImageSizes
+from softplc.core.lifecycle import Command, PlcState
+from softplc.core.problems import ProgramError
+from softplc.core.scan import FAULT_WATCHDOG, Plc, ProgramCommand, Reply
+from softplc.core.snapshot import CommandReply, CommandRequest, Status
+from softplc.program.compiler import compile_file, compile_text
+from softplc.runtime.board import StatusBoard
+from softplc.runtime.channel import Channel
+from softplc.runtime.clock import Clock, MonotonicClock
+from softplc.runtime.runner import ScanRunner, open_drivers
+from softplc.runtime.shm import SnapshotWriter
+from softplc.runtime.stats import TimingStats
+from softplc.runtime.trace import TraceWriter
+
+
+@dataclass(frozen=True, slots=True)
+class LoopConfig:
+    program: str | None = None  # compiled and downloaded on the first scan
+    start: bool = False
+    period_ns: int = 10_000_000
+    plant: str | None = None  # overrides the plant of a sim driver
+    seed: int = 0
+    trace: str | None = None
+    watchdog: float = 10.0  # fault when one scan runs longer than period x this
+    root: str | None = None  # downloads may only reference files under this directory
+    sizes: ImageSizes = ImageSizes()
+    max_scans: int | None = None  # stop after this many (tests, benchmarks)
+
+
+class ScanLoop:
+    """One PLC on a clock. `run()` until `stop` is set (or max_scans)."""
+
+    def __init__(self, config: LoopConfig, channel: Channel | None, writer: SnapshotWriter | None,
+                 clock: Clock | None = None, board: StatusBoard | None = None) -> None:
+        self.config = config
+        self.channel = channel
+        self.writer = writer
+        self.board = board
+        self.board_every = max(1, 50_000_000 // config.period_ns)  # about every 50 ms
+        self.events: deque[dict[str, Any]] = deque(maxlen=256)
+        self.event_seq = 0
+        self.start_mode = "cold"
+        self.clock = clock or MonotonicClock()
+        self.stats = TimingStats()
+        self.runner = ScanRunner(Plc.empty(), [], TraceWriter(config.trace) if config.trace else None)
+        self.pending: list[ProgramCommand] = []
+        self._driver_specs: tuple[object, ...] = ()
+        if config.program:
+            net = compile_file(config.program)  # a bad startup program: the CLI reports it
+            self.pending.append(ProgramCommand(Command.DOWNLOAD, net, id=0))
+            if config.start:
+                self.pending.append(ProgramCommand(Command.START, id=0))
+
+    # -- commands ---------------------------------------------------------------------------
+
+    def _translate(self, requests: Sequence[CommandRequest]) -> list[ProgramCommand]:
+        commands = []
+        for req in requests:
+            if req.command is not Command.DOWNLOAD:
+                commands.append(ProgramCommand(req.command, online=req.online, id=req.id))
+                continue
+            try:
+                net = self._compile(req)
+            except ProgramError as exc:
+                self._reply(CommandReply(req.id, False, f"download refused:\n{exc}",
+                                         self.runner.plc.state))
+                continue
+            if net.io.sizes != self.config.sizes:
+                self._reply(CommandReply(req.id, False, "download refused: the program's image "
+                                         f"sizes {net.io.sizes} differ from the runtime's",
+                                         self.runner.plc.state))
+                continue
+            commands.append(ProgramCommand(Command.DOWNLOAD, net, req.online, req.id))
+        return commands
+
+    def _compile(self, req: CommandRequest):  # type: ignore[no-untyped-def]
+        root = Path(self.config.root) if self.config.root else None
+        name = req.program_path or "downloaded.yaml"
+        if req.program_text is None:
+            return compile_file(name, root)
+        base = (root or Path.cwd()) / "programs"
+        filename = str(base / Path(name).name) if not Path(name).is_absolute() else name
+        return compile_text(req.program_text, filename, root)
+
+    def _reply(self, reply: CommandReply) -> None:
+        if reply.id == 0 or self.channel is None:
+            return  # startup commands come from the command line, not from a client
+        self.channel.reply(reply)
+
+    def _after(self, commands: Sequence[ProgramCommand], replies: Sequence[Reply]) -> None:
+        for reply in replies:
+            self._reply(CommandReply(reply.id, reply.ok, reply.message, reply.state))
+        net = self.runner.plc.net
+        if net is not None and tuple(net.io.drivers.values()) != self._driver_specs:
+            # Another io image (reconfiguration): its devices replace the old ones.
+            self._driver_specs = tuple(net.io.drivers.values())
+            self.runner.set_drivers(open_drivers(net.io, self.config.seed, self.config.plant))
+
+    # -- the loop ---------------------------------------------------------------------------
+
+    def scan_once(self, now_ns: int) -> None:
+        requests, writes = self.channel.drain() if self.channel else ([], [])
+        commands = self.pending + self._translate(requests)
+        self.pending = []
+        result = self.runner.step(now_ns, commands, writes)
+        self._after(commands, result.replies)
+        for name in result.events:
+            self.event_seq += 1
+            self.events.append({"seq": self.event_seq, "scan": self.runner.plc.scan_count,
+                                "t_ns": now_ns, "name": name})
+
+    def document(self) -> dict[str, Any]:
+        """The status board: what `softplc status` and the HTTP API show."""
+        plc = self.runner.plc
+        timing: dict[str, Any] = dict(self.stats.summary().as_dict())
+        timing["p99_lateness_us"] = timing.get("lateness_p99_us", 0)
+        timing["overruns"] = self.stats.overruns
+        net = plc.net
+        symbols = {} if net is None else {
+            s.name: {"address": str(s.address), "type": s.type.value,
+                     "direction": s.direction.value, "value": plc.image.get(s.address)}
+            for s in net.io.symbols.values()}
+        return {
+            "state": plc.state.name, "program": net.name if net else None,
+            "program_hash": net.program_hash if net else None, "scan_count": plc.scan_count,
+            "period_us": self.config.period_ns // 1000, "marking": plc.marking(),
+            "timing": timing, "fault_code": plc.fault_code, "start_mode": self.start_mode,
+            "health": {name: h.value for name, h in self.runner.health().items()},
+            "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
+            "symbols": symbols, "events": list(self.events),
+        }
+
+    def status(self) -> Status:
+        plc, s = self.runner.plc, self.stats.summary()
+        return Status(plc.state, plc.scan_count, self.stats.last_exec_ns // 1000,
+                      self.stats.max_exec_ns // 1000, int(s.lateness_p99_us), self.stats.overruns,
+                      plc.net.program_hash if plc.net else "", plc.fault_code,
+                      self.config.period_ns // 1000)
+
+    def run(self, stop: Event | None = None) -> None:
+        period = self.config.period_ns
+        start = self.clock.now_ns()
+        k = 0
+        while (stop is None or not stop.is_set()) and (
+                self.config.max_scans is None or self.runner.plc.scan_count < self.config.max_scans):
+            deadline = start + k * period
+            reached = self.clock.wait_until(deadline)
+            self.scan_once(reached)
+            done = self.clock.now_ns()
+            exec_ns = done - reached
+            if exec_ns > period * self.config.watchdog and self.runner.plc.state is PlcState.RUNNING:
+                self._watchdog()
+            k += 1
+            missed = max(0, (done - start) // period - k + 1) if done > start + k * period else 0
+            k += missed
+            self.stats.record(exec_ns, reached - deadline, overrun=missed > 0)
+            if missed > 1:
+                self.stats.overruns += missed - 1
+            if self.writer is not None:
+                self.writer.publish(self.runner.plc.image, self.status())
+            if self.board is not None and k % self.board_every == 0:
+                self.board.publish(self.document())
+        self.shutdown()
+
+    def _watchdog(self) -> None:
+        plc = self.runner.plc
+        plc.fault(FAULT_WATCHDOG)
+        for driver in self.runner.drivers:  # safe outputs now, not one period later
+            driver.write_outputs(plc.image, self.clock.now_ns())
+
+    def shutdown(self) -> None:
+        """Outputs to their safe values, written through the drivers, then close."""
+        plc = self.runner.plc
+        plc.drive_safe()
+        for driver in self.runner.drivers:
+            driver.write_outputs(plc.image, self.clock.now_ns())
+        if self.writer is not None:
+            self.writer.publish(plc.image, self.status())
+        if self.board is not None:
+            self.board.publish(self.document())
+        self.runner.close()
+
+
+def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board_name: str,
+                      ready: Event, stop: Event) -> None:
+    """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    writer = SnapshotWriter.create(config.sizes, name=shm_name)
+    board = StatusBoard.create(board_name)
+    try:
+        loop = ScanLoop(config, channel, writer, board=board)
+        writer.publish(loop.runner.plc.image, loop.status())
+        board.publish(loop.document())
+        ready.set()
+        loop.run(stop)
+    finally:
+        writer.close()
+        writer.unlink()
+        board.close()

@@ -1,0 +1,71 @@
+"""Replay a trace: feed the recorded inputs, commands and HMI writes back into a fresh PLC
+and compare every scan's output image bit for bit.
+
+Owns: the reconstruction of each scan's inputs from the trace and the first divergence.
+Does not know: devices (replay needs none), clocks (recorded times are used).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from softplc.core.image import ProcessImage, parse_address
+from softplc.core.lifecycle import Command
+from softplc.core.net import CompiledNet
+from softplc.core.scan import Plc, ProgramCommand, scan
+from softplc.core.snapshot import HmiWrite
+from softplc.runtime.trace import image_digest, read_trace
+
+
+@dataclass(frozen=True, slots=True)
+class ReplayResult:
+    scans: int
+    divergence: str | None  # None: every scan matched
+
+    @property
+    def ok(self) -> bool:
+        return self.divergence is None
+
+
+def _commands(record: dict[str, Any], net: CompiledNet) -> tuple[list[ProgramCommand], str]:
+    commands, note = [], ""
+    for entry in record.get("cmd", []):
+        command = Command(entry["c"])
+        if command is Command.DOWNLOAD:
+            if entry.get("hash") and entry["hash"] != net.program_hash:
+                note = (f" (the trace ran program {entry.get('program')} "
+                        f"{entry['hash'][:12]}, replay runs {net.name} {net.program_hash[:12]})")
+            commands.append(ProgramCommand(command, net, bool(entry.get("online"))))
+        else:
+            commands.append(ProgramCommand(command))
+    return commands, note
+
+
+def _apply_inputs(image: ProcessImage, changes: dict[str, dict[str, int]]) -> None:
+    for area, values in changes.items():
+        arr = getattr(image, area)
+        for index, value in values.items():
+            arr[int(index)] = value
+
+
+def replay(trace_path: str | Path, net: CompiledNet) -> ReplayResult:
+    plc = Plc.empty(ProcessImage(net.io.sizes))
+    inputs = ProcessImage(net.io.sizes)
+    note = ""
+    count = 0
+    for count, record in enumerate(read_trace(trace_path), 1):
+        _apply_inputs(inputs, record.get("in", {}))
+        commands, why = _commands(record, net)
+        note = note or why
+        hmi = [HmiWrite(parse_address(a), tuple(v)) for a, v in record.get("hmi", [])]
+        result = scan(plc, inputs, int(record["t"]), commands, hmi)
+        fired = list(result.fired)
+        if image_digest(result.outputs) != record["out"] or fired != record.get("fired", []):
+            return ReplayResult(count, (
+                f"scan {record['k']} (t={record['t'] / 1e9:.3f} s): "
+                f"recorded fired {record.get('fired', [])}, replay fired {fired}; "
+                f"output image {'differs' if image_digest(result.outputs) != record['out'] else 'same'}"
+                f"{note}"))
+    return ReplayResult(count, None)
