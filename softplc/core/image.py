@@ -126,19 +126,22 @@ class ProcessImage:
         return table[(area, width)]
 
     def check(self, address: Address) -> None:
-        size = self.sizes.bits if address.is_bit else self.sizes.words
+        size = len(getattr(self, address.attr))
         if not 0 <= address.index < size:
             raise AddressError(f"address {address} is outside the image (size {size})")
 
     def get(self, address: Address) -> int:
-        self.check(address)
-        return int(getattr(self, address.attr)[address.index])
+        arr = getattr(self, address.attr)
+        if not 0 <= address.index < len(arr):
+            self.check(address)
+        return int(arr[address.index])
 
     def set(self, address: Address, value: int) -> None:
         """Store `value`; words wrap to 16 bits (IEC UINT), bits take its truth value."""
-        self.check(address)
         arr = getattr(self, address.attr)
-        arr[address.index] = bool(value) if address.is_bit else (int(value) & WORD_MAX)
+        if not 0 <= address.index < len(arr):
+            self.check(address)
+        arr[address.index] = bool(value) if arr.dtype == np.bool_ else (int(value) & WORD_MAX)
 
     def copy(self) -> ProcessImage:
         dup = ProcessImage.__new__(ProcessImage)
