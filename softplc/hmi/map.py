@@ -1,0 +1,229 @@
+"""The Modbus register map for HMIs: Modbus tables and 0-based addresses <-> IEC areas.
+
+Owns: the four tables and their segments (OpenPLC-compatible, DESIGN.md section 6), the
+status block layout, read range checks, and turning an HMI write into journal entries.
+Does not know: sockets, frames, function codes, pymodbus, when writes are applied.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+
+from softplc.core.image import WORD_MAX, Address, Area, ImageSizes, Width
+from softplc.core.snapshot import HmiWrite, Snapshot, Status
+
+
+class Table(enum.Enum):
+    COILS = "coils"
+    DISCRETE_INPUTS = "discrete inputs"
+    INPUT_REGISTERS = "input registers"
+    HOLDING_REGISTERS = "holding registers"
+
+
+class ExceptionCode(enum.IntEnum):
+    """Modbus exception codes (Modbus Application Protocol V1.1b3, section 7)."""
+
+    ILLEGAL_FUNCTION = 0x01
+    ILLEGAL_DATA_ADDRESS = 0x02
+    ILLEGAL_DATA_VALUE = 0x03
+    SERVER_DEVICE_FAILURE = 0x04
+
+
+class MapError(Exception):
+    """A request the map refuses; `code` is the Modbus exception to answer with."""
+
+    def __init__(self, code: ExceptionCode, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+# Status block: input registers from `status_base(sizes)` (= sizes.words, 1024 by default).
+# Offsets are relative to the base. u32 values take two registers, high word first, and
+# saturate at 0xFFFFFFFF.
+STATUS_STATE = 0  # PlcState as an int
+STATUS_FAULT_CODE = 1  # 0 none, 1 watchdog, 2 device
+STATUS_SCAN_COUNT = 2  # u32
+STATUS_LAST_EXEC_US = 4  # u32
+STATUS_MAX_EXEC_US = 6  # u32
+STATUS_P99_LATENESS_US = 8  # u32
+STATUS_OVERRUNS = 10  # u32
+STATUS_PERIOD_US = 12  # u32
+STATUS_PROGRAM_HASH = 14  # first 64 bits of the sha256, 4 registers, high word first
+STATUS_WORDS = 18
+
+U32_MAX = 0xFFFFFFFF
+
+Writable = Callable[[Address], bool]
+
+
+def status_base(sizes: ImageSizes) -> int:
+    """First input register of the status block."""
+    return sizes.words
+
+
+def _u32(value: int) -> list[int]:
+    v = min(max(int(value), 0), U32_MAX)
+    return [v >> 16, v & WORD_MAX]
+
+
+def _hash_words(program_hash: str) -> list[int]:
+    if not program_hash:
+        return [0, 0, 0, 0]
+    v = int(program_hash[:16], 16)
+    return [(v >> shift) & WORD_MAX for shift in (48, 32, 16, 0)]
+
+
+def status_registers(status: Status) -> list[int]:
+    """The status block as STATUS_WORDS register values."""
+    words = [int(status.state), min(max(status.fault_code, 0), WORD_MAX)]
+    for value in (
+        status.scan_count,
+        status.last_exec_us,
+        status.max_exec_us,
+        status.p99_lateness_us,
+        status.overruns,
+        status.period_us,
+    ):
+        words += _u32(value)
+    return words + _hash_words(status.program_hash)
+
+
+@dataclass(frozen=True, slots=True)
+class _Segment:
+    """A run of one table backed by one IEC area; `area` None is the status block."""
+
+    start: int
+    length: int
+    area: Area | None
+    width: Width
+
+    @property
+    def end(self) -> int:
+        return self.start + self.length
+
+
+@dataclass(frozen=True, slots=True)
+class _Piece:
+    """The part of a request [address, address + count) that falls in one segment."""
+
+    segment: _Segment
+    offset: int  # index in the IEC area
+    first: int  # index in the request's values
+    count: int
+
+
+def _segments(sizes: ImageSizes) -> dict[Table, tuple[_Segment, ...]]:
+    bits, words = sizes.bits, sizes.words
+    X, W = Width.BIT, Width.WORD
+    return {
+        Table.COILS: (
+            _Segment(0, bits, Area.OUTPUT, X),
+            _Segment(bits, bits, Area.MEMORY, X),
+        ),
+        Table.DISCRETE_INPUTS: (_Segment(0, bits, Area.INPUT, X),),
+        Table.INPUT_REGISTERS: (
+            _Segment(0, words, Area.INPUT, W),
+            _Segment(words, STATUS_WORDS, None, W),
+        ),
+        Table.HOLDING_REGISTERS: (
+            _Segment(0, words, Area.OUTPUT, W),
+            _Segment(words, words, Area.MEMORY, W),
+        ),
+    }
+
+
+_WRITABLE_TABLES = (Table.COILS, Table.HOLDING_REGISTERS)
+
+
+class RegisterMap:
+    """Modbus tables over a process image of `sizes`. Every method is pure: reads take the
+    snapshot to answer from, writes return the journal entries and change nothing."""
+
+    def __init__(
+        self, sizes: ImageSizes, *, writable: Writable | None = None, read_only: bool = False
+    ) -> None:
+        self.sizes = sizes
+        self.read_only = read_only
+        self._writable = writable
+        self._segments = _segments(sizes)
+
+    def size(self, table: Table) -> int:
+        """Number of addresses of `table`; valid addresses are 0 .. size - 1."""
+        return self._segments[table][-1].end
+
+    def read(self, snapshot: Snapshot, table: Table, address: int, count: int) -> list[int]:
+        """Values of `count` consecutive addresses (bits as 0/1) from the published scan."""
+        if snapshot.image.sizes != self.sizes:
+            raise MapError(
+                ExceptionCode.SERVER_DEVICE_FAILURE,
+                f"snapshot image {snapshot.image.sizes} does not match the map {self.sizes}",
+            )
+        values: list[int] = []
+        for piece in self._pieces(table, address, count):
+            values += _read_piece(snapshot, piece)
+        return values
+
+    def plan_write(self, table: Table, address: int, values: Sequence[int]) -> list[HmiWrite]:
+        """The journal entries for an HMI write, one per IEC area it touches. All or nothing:
+        raises MapError when any address is outside the map or not writable."""
+        if table not in _WRITABLE_TABLES:
+            raise MapError(ExceptionCode.ILLEGAL_FUNCTION, f"{table.value} are read-only")
+        _check_values(table, values)
+        pieces = list(self._pieces(table, address, len(values)))
+        if self.read_only:
+            raise MapError(ExceptionCode.ILLEGAL_DATA_ADDRESS, "the Modbus slave is read-only")
+        writes = [_journal_entry(piece, values) for piece in pieces]
+        for write in writes:
+            self._check_writable(write)
+        return writes
+
+    def _check_writable(self, write: HmiWrite) -> None:
+        if self._writable is None:
+            return
+        first = write.address
+        for i in range(len(write.values)):
+            where = Address(first.area, first.width, first.index + i)
+            if not self._writable(where):
+                raise MapError(ExceptionCode.ILLEGAL_DATA_ADDRESS, f"{where} is not writable")
+
+    def _pieces(self, table: Table, address: int, count: int) -> Iterator[_Piece]:
+        if count < 1:
+            raise MapError(ExceptionCode.ILLEGAL_DATA_VALUE, f"quantity {count} is not >= 1")
+        end = address + count
+        if address < 0 or end > self.size(table):
+            raise MapError(
+                ExceptionCode.ILLEGAL_DATA_ADDRESS,
+                f"{table.value} {address}..{end - 1} outside 0..{self.size(table) - 1}",
+            )
+        return _overlaps(self._segments[table], address, end)
+
+
+def _overlaps(segments: Sequence[_Segment], address: int, end: int) -> Iterator[_Piece]:
+    for seg in segments:
+        lo, hi = max(address, seg.start), min(end, seg.end)
+        if lo < hi:
+            yield _Piece(seg, lo - seg.start, lo - address, hi - lo)
+
+
+def _read_piece(snapshot: Snapshot, piece: _Piece) -> list[int]:
+    seg, lo, hi = piece.segment, piece.offset, piece.offset + piece.count
+    if seg.area is None:
+        return status_registers(snapshot.status)[lo:hi]
+    area = snapshot.image.area(seg.area, seg.width)
+    return [int(v) for v in area[lo:hi].tolist()]
+
+
+def _journal_entry(piece: _Piece, values: Sequence[int]) -> HmiWrite:
+    seg = piece.segment
+    assert seg.area is not None, "writable tables have no status segment"
+    chunk = tuple(int(v) for v in values[piece.first : piece.first + piece.count])
+    return HmiWrite(Address(seg.area, seg.width, piece.offset), chunk)
+
+
+def _check_values(table: Table, values: Sequence[int]) -> None:
+    top = 1 if table is Table.COILS else WORD_MAX
+    for v in values:
+        if not 0 <= v <= top:
+            raise MapError(ExceptionCode.ILLEGAL_DATA_VALUE, f"value {v} is not in 0..{top}")

@@ -1,0 +1,307 @@
+"""The HMI Modbus TCP slave: a pymodbus 3.16 ModbusTcpServer whose connections we own.
+
+Owns: listening, the connection limit, the idle timeout, flow control, and moving bytes
+between sockets and the pure Responder (frames.py); a thread helper for tests and the CLI.
+Does not know: the register map (map.py), Modbus semantics (frames.py), how snapshots are
+published or journaled writes applied.
+
+pymodbus gives the listener and the connection registry that `shutdown()` closes. Every
+byte a client sends is handled by `_Connection.data_received`; pymodbus' framer, decoder,
+request handler and datastore are never reached (docs/modbus.md, "Design choice").
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from collections.abc import Callable
+from types import TracebackType
+from typing import Any, cast
+
+from pymodbus.server import ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+from pymodbus.transport import CommParams, CommType, ModbusProtocol
+
+from softplc.core.image import ImageSizes
+from softplc.core.snapshot import HmiWrite, SnapshotSource
+from softplc.hmi.frames import (
+    Adu,
+    FramingError,
+    Responder,
+    encode_adu,
+    exception_pdu,
+    split_adu,
+)
+from softplc.hmi.map import ExceptionCode, RegisterMap, Writable
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PORT = 5020
+ERROR_LOG_INTERVAL_S = 10.0
+
+
+class _RateLimitedErrors:
+    """Logs an unexpected failure at most once per interval, with how many were skipped."""
+
+    def __init__(self, interval_s: float = ERROR_LOG_INTERVAL_S) -> None:
+        self._interval_s = interval_s
+        self._next_s = 0.0
+        self._skipped = 0
+
+    def report(self, what: str) -> None:
+        now_s = time.monotonic()
+        if now_s < self._next_s:
+            self._skipped += 1
+            return
+        log.exception("%s (%d similar errors not logged)", what, self._skipped)
+        self._skipped = 0
+        self._next_s = now_s + self._interval_s
+
+
+class _Connection(ModbusProtocol):
+    """One HMI connection. Requests are answered in arrival order, several per segment if
+    the client pipelines; nothing is awaited, so a reply is written before the next request
+    is looked at."""
+
+    def __init__(self, owner: _Listener, refuse: bool) -> None:
+        params = CommParams(comm_name="hmi", comm_type=CommType.TCP)
+        params.source_address = owner.comm_params.source_address
+        super().__init__(params, True)
+        self._responder = owner.responder
+        self._errors = owner.errors
+        self._idle_timeout_s = owner.idle_timeout_s
+        self._refuse = refuse
+        self._buffer = b""
+        self._last_request_s = 0.0
+        self._idle_timer: asyncio.TimerHandle | None = None
+
+    def callback_connected(self) -> None:
+        if self._refuse:
+            log.info("HMI connection refused: connection limit reached")
+            self.close()
+            return
+        self._last_request_s = self.loop.time()
+        self._idle_timer = self.loop.call_later(self._idle_timeout_s, self._check_idle)
+
+    def callback_disconnected(self, exc: Exception | None) -> None:
+        self._stop_idle_timer()
+
+    def callback_data(self, data: bytes, addr: tuple[str, int] | None = None) -> int:
+        raise AssertionError("unreachable: data_received is overridden")
+
+    def callback_new_connection(self) -> ModbusProtocol:
+        raise AssertionError("unreachable: a connection does not accept connections")
+
+    def close(self, reconnect: bool = False) -> None:
+        self._stop_idle_timer()
+        super().close(reconnect)
+
+    def data_received(self, data: bytes) -> None:
+        buffer, pos = self._buffer + data, 0
+        while self.transport is not None:
+            try:
+                adu, end = split_adu(buffer, pos)
+            except FramingError as exc:
+                log.info("HMI connection closed: %s", exc)
+                self.close()
+                return
+            if adu is None:
+                break
+            pos = end
+            self._last_request_s = self.loop.time()
+            if (reply := self._answer(adu)) is not None:
+                self._stream.write(reply)
+        self._buffer = buffer[pos:]
+
+    def pause_writing(self) -> None:
+        # The client does not read its replies: stop reading its requests until it does.
+        self._stream.pause_reading()
+
+    def resume_writing(self) -> None:
+        self._stream.resume_reading()
+
+    @property
+    def _stream(self) -> asyncio.Transport:
+        return cast(asyncio.Transport, self.transport)
+
+    def _answer(self, adu: Adu) -> bytes | None:
+        try:
+            return self._responder.answer(adu)
+        except Exception:
+            # The snapshot source or the write sink failed: the Modbus answer is 04.
+            self._errors.report("HMI request failed")
+            pdu = exception_pdu(adu.pdu[0], ExceptionCode.SERVER_DEVICE_FAILURE)
+            return encode_adu(adu.transaction_id, adu.unit_id, pdu)
+
+    def _check_idle(self) -> None:
+        idle_s = self.loop.time() - self._last_request_s
+        if idle_s >= self._idle_timeout_s:
+            log.info("HMI connection closed: idle for %.1f s", idle_s)
+            self._idle_timer = None
+            self.close()
+            return
+        remaining_s = self._idle_timeout_s - idle_s
+        self._idle_timer = self.loop.call_later(remaining_s, self._check_idle)
+
+    def _stop_idle_timer(self) -> None:
+        if self._idle_timer is not None:
+            self._idle_timer.cancel()
+            self._idle_timer = None
+
+
+def _placeholder_device() -> SimDevice:
+    # ModbusTcpServer insists on a datastore; our connections never consult it.
+    return SimDevice(id=0, simdata=[SimData(0, values=[0], datatype=DataType.REGISTERS)])
+
+
+class _Listener(ModbusTcpServer):
+    """The pymodbus listener, with our connection class and the connection limit."""
+
+    def __init__(
+        self,
+        responder: Responder,
+        address: tuple[str, int],
+        max_connections: int,
+        idle_timeout_s: float,
+    ) -> None:
+        super().__init__(_placeholder_device(), address=address)
+        self.responder = responder
+        self.errors = _RateLimitedErrors()
+        self.max_connections = max_connections
+        self.idle_timeout_s = idle_timeout_s
+
+    def callback_new_connection(self) -> _Connection:
+        refuse = len(self.active_connections) >= self.max_connections
+        return _Connection(self, refuse)
+
+
+class ModbusSlave:
+    """Modbus TCP slave for HMIs. Reads answer from `source.latest()`; writes are passed to
+    `sink` as HmiWrite journal entries and show up only in a later published snapshot.
+    Runs on the asyncio loop that calls `start()`; `source` and `sink` are called there."""
+
+    def __init__(
+        self,
+        source: SnapshotSource,
+        sink: Callable[[HmiWrite], None],
+        *,
+        sizes: ImageSizes,
+        host: str = "127.0.0.1",
+        port: int = DEFAULT_PORT,
+        writable: Writable | None = None,
+        read_only: bool = False,
+        max_connections: int = 16,
+        idle_timeout_s: float = 60.0,
+    ) -> None:
+        if max_connections < 1 or idle_timeout_s <= 0:
+            raise ValueError("max_connections must be >= 1 and idle_timeout_s > 0")
+        self.map = RegisterMap(sizes, writable=writable, read_only=read_only)
+        self._responder = Responder(self.map, source, sink)
+        self.host = host
+        self.port = port
+        self.max_connections = max_connections
+        self.idle_timeout_s = idle_timeout_s
+        self._listener: _Listener | None = None
+        self._server: asyncio.Server | None = None
+
+    async def start(self) -> None:
+        """Listen; returns once connections are accepted. Port 0 picks a free port."""
+        if self._listener is not None:
+            raise RuntimeError("the Modbus slave is already started")
+        listener = _Listener(
+            self._responder, (self.host, self.port), self.max_connections, self.idle_timeout_s
+        )
+        try:
+            await listener.serve_forever(background=True)
+        except RuntimeError as exc:
+            raise OSError(f"Modbus slave cannot listen on {self.host}:{self.port}") from exc
+        self._listener = listener
+        self._server = cast(asyncio.Server, listener.transport)
+
+    async def stop(self) -> None:
+        """Stop listening and close every HMI connection."""
+        listener, server = self._listener, self._server
+        self._listener = self._server = None
+        if listener is None or server is None:
+            return
+        await listener.shutdown()  # type: ignore[no-untyped-call]
+        await server.wait_closed()
+
+    @property
+    def bound_port(self) -> int:
+        if self._server is None:
+            raise RuntimeError("the Modbus slave is not started")
+        return int(self._server.sockets[0].getsockname()[1])
+
+    @property
+    def connection_count(self) -> int:
+        return 0 if self._listener is None else len(self._listener.active_connections)
+
+    async def __aenter__(self) -> ModbusSlave:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.stop()
+
+
+class SlaveThread:
+    """A ModbusSlave served by its own asyncio loop in a daemon thread."""
+
+    def __init__(self, slave: ModbusSlave, start_timeout_s: float = 5.0) -> None:
+        self.slave = slave
+        self._ready = threading.Event()
+        self._failure: BaseException | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop_event: asyncio.Event | None = None
+        self._thread = threading.Thread(target=asyncio.run, args=(self._main(),), daemon=True)
+        self._thread.name = "modbus-slave"
+        self._thread.start()
+        if not self._ready.wait(start_timeout_s):
+            raise TimeoutError(f"Modbus slave did not start within {start_timeout_s} s")
+        if self._failure is not None:
+            self._thread.join()
+            raise self._failure
+
+    @property
+    def port(self) -> int:
+        return self.slave.bound_port
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        loop, stop_event = self._loop, self._stop_event
+        if loop is not None and stop_event is not None and self._thread.is_alive():
+            loop.call_soon_threadsafe(stop_event.set)
+        self._thread.join(timeout_s)
+
+    def __enter__(self) -> SlaveThread:
+        return self
+
+    def __exit__(self, *exc_info: Any) -> None:
+        self.stop()
+
+    async def _main(self) -> None:
+        try:
+            await self.slave.start()
+        except BaseException as exc:
+            self._failure = exc
+            self._ready.set()
+            return
+        self._loop = asyncio.get_running_loop()
+        self._stop_event = asyncio.Event()
+        self._ready.set()
+        try:
+            await self._stop_event.wait()
+        finally:
+            await self.slave.stop()
+
+
+def run_in_thread(slave: ModbusSlave, start_timeout_s: float = 5.0) -> SlaveThread:
+    """Start `slave` in a thread; returns once it listens (`.port`), stop with `.stop()`."""
+    return SlaveThread(slave, start_timeout_s)
