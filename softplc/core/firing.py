@@ -352,6 +352,10 @@ class Engine:
                 if act.kind is ActionKind.PULSE:
                     self._pulsed.add(act.target)
 
+    def refresh_outputs(self) -> None:
+        """Rewrite every place-attached and busy output this round (after an outside write)."""
+        self._outputs_pending = True
+
     def invalidate(self) -> None:
         """Forget cached enabledness (after the marking was changed from outside)."""
         self._fresh = True

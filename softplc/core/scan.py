@@ -275,6 +275,8 @@ def scan(plc: Plc, inputs: ProcessImage, now_ns: int,
     killed = any(c.command is Command.KILL and r.ok for c, r in zip(commands, replies, strict=True))
     if not killed:
         plc.apply_hmi(hmi)
+        if plc.engine is not None and any(w.address.area is Area.OUTPUT for w in hmi):
+            plc.engine.refresh_outputs()  # a program-driven output stays the program's
     np.copyto(plc.image.ix, inputs.ix)
     np.copyto(plc.image.iw, inputs.iw)
     occurred: tuple[str, ...] = ()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import signal
 from dataclasses import dataclass
 from multiprocessing.synchronize import Event
@@ -57,8 +58,9 @@ async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name
         await api.start()
         services.append(api)
     ready.set()
+    parent = os.getppid()
     try:
-        while not stop.is_set():
+        while not stop.is_set() and os.getppid() == parent:
             await asyncio.sleep(0.1)
     finally:
         for service in reversed(services):
@@ -69,6 +71,9 @@ async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name
 
 def comm_process_main(config: CommConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: Event, stop: Event) -> None:
+    from softplc.runtime.supervisor import die_with_parent
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    die_with_parent()
     asyncio.run(_serve(config, channel, shm_name, board_name, ready, stop))

@@ -10,7 +10,9 @@ Does not know: Modbus, HTTP (the communication process), terminals (the CLI).
 
 from __future__ import annotations
 
+import os
 import signal
+import threading
 from collections.abc import Sequence
 from collections import deque
 from dataclasses import dataclass
@@ -118,7 +120,9 @@ class ScanLoop:
 
     # -- the loop ---------------------------------------------------------------------------
 
-    def scan_once(self, now_ns: int) -> None:
+    def scan_once(self, now_ns: int) -> bool:
+        """One scan; True if it handled program commands (exempt from the watchdog: a
+        download compiles and may open devices, which is not the program's execution time)."""
         requests, writes = self.channel.drain() if self.channel else ([], [])
         commands = self.pending + self._translate(requests)
         self.pending = []
@@ -128,6 +132,7 @@ class ScanLoop:
             self.event_seq += 1
             self.events.append({"seq": self.event_seq, "scan": self.runner.plc.scan_count,
                                 "t_ns": now_ns, "name": name})
+        return bool(requests) or bool(commands)
 
     def document(self) -> dict[str, Any]:
         """The status board: what `softplc status` and the HTTP API show."""
@@ -165,10 +170,11 @@ class ScanLoop:
                 self.config.max_scans is None or self.runner.plc.scan_count < self.config.max_scans):
             deadline = start + k * period
             reached = self.clock.wait_until(deadline)
-            self.scan_once(reached)
+            handled_commands = self.scan_once(reached)
             done = self.clock.now_ns()
             exec_ns = done - reached
-            if exec_ns > period * self.config.watchdog and self.runner.plc.state is PlcState.RUNNING:
+            if (exec_ns > period * self.config.watchdog and not handled_commands
+                    and self.runner.plc.state is PlcState.RUNNING):
                 self._watchdog()
             k += 1
             missed = max(0, (done - start) // period - k + 1) if done > start + k * period else 0
@@ -204,8 +210,19 @@ class ScanLoop:
 def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: Event, stop: Event) -> None:
     """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`."""
+    from softplc.runtime.supervisor import die_with_parent
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    die_with_parent()
+    parent = os.getppid()
+
+    def watch_parent() -> None:
+        while not stop.wait(0.5):
+            if os.getppid() != parent:
+                stop.set()
+
+    threading.Thread(target=watch_parent, name="watch-parent", daemon=True).start()
     writer = SnapshotWriter.create(config.sizes, name=shm_name)
     board = StatusBoard.create(board_name)
     try:

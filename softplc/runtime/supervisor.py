@@ -49,6 +49,18 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def die_with_parent() -> None:
+    """In a child process: end when the supervisor ends, even if it was killed (SIGKILL).
+    Linux delivers SIGTERM on the parent's death (PR_SET_PDEATHSIG); the loops also poll."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
 def status_line(doc: dict[str, Any]) -> str:
     timing = doc.get("timing", {})
     marked = ",".join(sorted(doc.get("marking", {}))) or "-"
@@ -154,6 +166,8 @@ def run(args: argparse.Namespace) -> int:
         supervisor.stop()
         return 1
     _banner(args)
+    print(f"  scan process pid {supervisor.scan.pid}, communication process pid "
+          f"{supervisor.comm.pid if supervisor.comm else '-'}", flush=True)
     board = StatusBoard.attach(supervisor.board_name)
     began = time.monotonic()
     tty = sys.stdout.isatty() and not args.quiet

@@ -164,11 +164,9 @@ def test_a_write_to_an_output_the_program_does_not_hold_sticks(running: DeviceIn
     assert running.readAnalog("parts_delivered") == 7
 
 
-@pytest.mark.xfail(strict=True, reason="core bug: Moore outputs are rewritten only when the "
-                   "marking of a driving place changes, so an HMI write to m2 sticks")
 def test_a_program_overwrites_an_output_it_drives(running: DeviceInterface) -> None:
     assert running.writeDB("m2", 1) == 0  # c2.idle is marked: the program drives m2 off
-    running.run_for(S)
+    running.step()  # the write is applied at this scan's start and overwritten in it
     assert running.readDB("m2") is False
 
 
