@@ -29,8 +29,11 @@ def _occurred(spec: EventSpec, value: int, before: int | None, memory: EventMemo
     if spec.kind is EventKind.CHANGE:
         return before is not None and before != value
     above = spec.kind is EventKind.ABOVE
-    armed = memory.armed.get(spec.name, True)
     crossed = value > spec.threshold if above else value < spec.threshold
+    if before is None:  # first evaluation only records: already beyond is not a crossing
+        memory.armed[spec.name] = not crossed
+        return False
+    armed = memory.armed.get(spec.name, True)
     if armed and crossed:
         memory.armed[spec.name] = False
         return True

@@ -133,8 +133,9 @@ class _Compiler:
     def on_Constant(self, node: ast.Constant) -> Thunk:
         value = node.value
         if isinstance(value, bool | int | str) and not isinstance(value, bytes):
-            if isinstance(value, int) and not isinstance(value, bool):
-                _check_int(value, node)
+            if isinstance(value, int) and not isinstance(value, bool) and not (
+                    -INT_LIMIT < value < INT_LIMIT):
+                raise self.fail(node, f"integer {value} is out of range (at most 2**63 - 1)")
             return lambda ctx: value
         raise self.fail(node, f"constant {value!r} is not allowed: use integers, true/false or 'text'")
 

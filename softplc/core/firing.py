@@ -68,6 +68,8 @@ class Engine:
         self._dirty_edges: set[str] = set()  # edges seen last round: they "change back" now
         self._fresh = True
         self._pulsed: set[str] = set()
+        self._recheck: set[int] = set()  # fired or completed: enabledness may hold again
+        self._remoore: set[str] = set()  # place-driven outputs an action overwrote
         self.diagnostics: list[str] = []
 
     # -- enabling ---------------------------------------------------------------------------
@@ -106,15 +108,16 @@ class Engine:
             self.diagnostics.append(message)
 
     def _bind(
-        self, t: Transition, ctx: EvalContext, taken: Mapping[int, int]
+        self, t: Transition, ctx: EvalContext, taken: Mapping[int, set[int]]
     ) -> dict[str, tuple[int, int]] | None:
-        """First binding (FIFO order over each arc's tokens) for which the guard holds.
-        Returns var -> (place, token position); None if none exists."""
+        """First binding (FIFO order over each arc's tokens not yet taken in this round) for
+        which the guard holds. Returns var -> (place, token position); None if none exists."""
         arcs = [a for a in t.pre if a.var is not None]
         pools: list[list[int]] = []
         for a in arcs:
             toks = self.state.tokens.get(a.place, [])
-            pools.append(list(range(taken.get(a.place, 0), len(toks))))
+            used = taken.get(a.place, set())
+            pools.append([i for i in range(len(toks)) if i not in used])
         for count, combo in enumerate(itertools.product(*pools)):
             if count >= MAX_BINDINGS:
                 self._diagnose(f"{t.name}: binding search stopped after {MAX_BINDINGS} tries")
@@ -138,9 +141,11 @@ class Engine:
                 todo.update(net.touching[p])
             for name in itertools.chain(changed, self._dirty_edges):
                 todo.update(net.guard_deps.get(name, ()))
+            todo.update(self._recheck)
             todo.update(t for t in self._ready if net.transitions[t].coloured)
             dirty = todo
         self._dirty_places = set()
+        self._recheck = set()
         self._dirty_edges = {n for n in changed if n in net.edge_deps}
         for ti in dirty:
             t = net.transitions[ti]
@@ -185,7 +190,7 @@ class Engine:
         m, ts = self.state.marking, self.net.transitions
         residual: dict[int, int] = {}
         delta: dict[int, int] = {}
-        taken: dict[int, int] = {}  # coloured place -> tokens already bound (FIFO prefix)
+        taken: dict[int, set[int]] = {}  # coloured place -> token positions taken this round
         selected: list[int] = []
         bindings: dict[int, dict[str, tuple[int, int]]] = {}
         for ti in cands:
@@ -198,16 +203,30 @@ class Engine:
                 binding = self._bind(t, ctx, taken)
                 if binding is None:
                     continue
-                bindings[ti] = binding
+                bindings[ti] = self._take(t, binding, taken)
             for a in t.pre:
                 residual[a.place] = residual.get(a.place, int(m[a.place])) - a.weight
                 delta[a.place] = delta.get(a.place, 0) - a.weight
-                if self.net.coloured[a.place]:
-                    taken[a.place] = taken.get(a.place, 0) + a.weight
             for o in t.post:
                 delta[o.place] = delta.get(o.place, 0) + o.weight
             selected.append(ti)
         return selected, bindings
+
+    def _take(self, t: Transition, binding: dict[str, tuple[int, int]],
+              taken: dict[int, set[int]]) -> dict[str, tuple[int, int]]:
+        """Reserve the bound tokens, and for plain arcs from coloured places the oldest
+        free ones (recorded under keys "#place#n"), so no other transition takes them."""
+        positions = dict(binding)
+        for var, (place, index) in binding.items():
+            taken.setdefault(place, set()).add(index)
+        for a in t.pre:
+            if a.var is None and self.net.coloured[a.place]:
+                used = taken.setdefault(a.place, set())
+                free = (i for i in range(len(self.state.tokens.get(a.place, []))) if i not in used)
+                for n, index in zip(range(a.weight), free):
+                    used.add(index)
+                    positions[f"#{a.place}#{n}"] = (a.place, index)
+        return positions
 
     def _fire(
         self,
@@ -218,9 +237,17 @@ class Engine:
     ) -> Step:
         st, ts = self.state, self.net.transitions
         changed: set[int] = set()
-        envs: dict[int, dict[str, Token]] = {}
+        envs = {ti: {v: st.tokens[p][i] for v, (p, i) in bindings.get(ti, {}).items()
+                     if not v.startswith("#")} for ti in selected}
+        doomed: dict[int, set[int]] = {}
         for ti in selected:  # all consumptions
-            envs[ti] = self._consume(ts[ti], bindings.get(ti, {}), changed)
+            for a in ts[ti].pre:
+                st.marking[a.place] -= a.weight
+                changed.add(a.place)
+            for place, index in bindings.get(ti, {}).values():
+                doomed.setdefault(place, set()).add(index)
+        for place, indexes in doomed.items():
+            st.tokens[place] = [tok for i, tok in enumerate(st.tokens[place]) if i not in indexes]
         productions: list[tuple[int, int, Token | None]] = []
         completed = sorted(t for t, b in st.busy.items() if b.end_ns <= now_ns)
         for ti in completed:
@@ -243,6 +270,8 @@ class Engine:
             changed.add(place)
         for ti in busy_changed:  # a busy transition is disabled; re-check it next round
             self._dirty_places.update(a.place for a in ts[ti].pre)
+        self._recheck.update(selected)
+        self._recheck.update(completed)
         self._dirty_places |= changed
         writes = self._outputs(changed, busy_changed)
         emitted: list[str] = []
@@ -250,22 +279,6 @@ class Engine:
             self._actions(ts[ti], _Bound(ctx, envs[ti]), writes, emitted)
         return Step(tuple(selected), tuple(completed), tuple(writes), tuple(emitted),
                     frozenset(changed))
-
-    def _consume(
-        self, t: Transition, binding: Mapping[str, tuple[int, int]], changed: set[int]
-    ) -> dict[str, Token]:
-        st = self.state
-        env = {var: st.tokens[p][i] for var, (p, i) in binding.items()}
-        for a in t.pre:
-            st.marking[a.place] -= a.weight
-            changed.add(a.place)
-            if self.net.coloured[a.place]:
-                toks = st.tokens.setdefault(a.place, [])
-                if a.var is not None:
-                    toks.remove(env[a.var])
-                else:
-                    del toks[: a.weight]
-        return env
 
     def _produce(self, t: Transition, ctx: _Bound) -> tuple[tuple[int, int, Token | None], ...]:
         out: list[tuple[int, int, Token | None]] = []
@@ -299,7 +312,8 @@ class Engine:
         net, st = self.net, self.state
         writes: list[tuple[str, int]] = []
         symbols: set[str] = set()
-        if not self._pulsed and not changed and not busy_changed and not self._first_outputs():
+        if (not self._pulsed and not changed and not busy_changed and not self._remoore
+                and not self._first_outputs()):
             return writes
         for sym in sorted(self._pulsed):
             if sym in net.moore_drivers or sym in net.busy_drivers:
@@ -311,6 +325,8 @@ class Engine:
             symbols.update(s for s, _ in net.place_outputs.get(p, ()))
         for ti in busy_changed:
             symbols.update(s for s, _ in net.transitions[ti].busy_outputs)
+        symbols.update(self._remoore)
+        self._remoore = set()
         if self._outputs_pending:
             symbols.update(net.moore_drivers)
             symbols.update(net.busy_drivers)
@@ -351,6 +367,8 @@ class Engine:
                 writes.append((act.target, 0 if act.kind is ActionKind.RESET else 1))
                 if act.kind is ActionKind.PULSE:
                     self._pulsed.add(act.target)
+            if act.target in self.net.moore_drivers or act.target in self.net.busy_drivers:
+                self._remoore.add(act.target)  # the marking drives it again next round
 
     def refresh_outputs(self) -> None:
         """Rewrite every place-attached and busy output this round (after an outside write)."""

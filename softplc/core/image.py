@@ -102,7 +102,7 @@ class ProcessImage:
     """Inputs, outputs and memory. Arrays are public so that drivers and the HMI map can
     move whole ranges with numpy; single locations go through get/set, which check bounds."""
 
-    __slots__ = ("ix", "iw", "mw", "mx", "qw", "qx", "sizes")
+    __slots__ = ("iw", "ix", "mw", "mx", "qw", "qx", "sizes")
 
     def __init__(self, sizes: ImageSizes | None = None) -> None:
         self.sizes = sizes or ImageSizes()

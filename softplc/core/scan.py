@@ -93,6 +93,7 @@ class Plc:
     last_events: frozenset[str] = frozenset()  # emitted last scan: visible to guards now
     true_last: frozenset[str] = frozenset()  # every event true last scan: guards re-check
     held: tuple[np.ndarray, np.ndarray] | None = None  # outputs at stop, restored on resume
+    written_last: set[str] = field(default_factory=set)
     scan_count: int = 0
     fault_code: int = FAULT_NONE
     stopped_at_ns: int | None = None
@@ -275,7 +276,7 @@ def scan(plc: Plc, inputs: ProcessImage, now_ns: int,
     killed = any(c.command is Command.KILL and r.ok for c, r in zip(commands, replies, strict=True))
     if not killed:
         plc.apply_hmi(hmi)
-        if plc.engine is not None and any(w.address.area is Area.OUTPUT for w in hmi):
+        if plc.engine is not None and any(w.address.area is not Area.INPUT for w in hmi):
             plc.engine.refresh_outputs()  # a program-driven output stays the program's
     np.copyto(plc.image.ix, inputs.ix)
     np.copyto(plc.image.iw, inputs.iw)
@@ -289,10 +290,13 @@ def scan(plc: Plc, inputs: ProcessImage, now_ns: int,
     if plc.state is PlcState.RUNNING and plc.engine is not None and plc.net is not None:
         now_events = frozenset(occurred) | plc.last_events
         ctx = _Context(plc.image, plc.prev, plc.locations, now_events)
-        changed = plc._changed() | set(now_events) | set(plc.true_last)
+        # Symbols the program wrote last scan count as changed too: the end-of-scan image
+        # already holds them, so the image difference alone would miss them.
+        changed = plc._changed() | set(now_events) | set(plc.true_last) | plc.written_last
         before = plc.engine.state.marking.copy()
         step = plc.engine.fire_round(ctx, now_ns, changed)
         plc._write(step.writes)
+        plc.written_last = {symbol for symbol, _ in step.writes}
         names = plc.net.transitions
         fired = tuple(names[t].name for t in step.fired)
         completed = tuple(names[t].name for t in step.completed)

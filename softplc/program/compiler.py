@@ -149,7 +149,7 @@ class _Compiler:
     def transition(self, index: int, spec: TransitionSpec, coloured: list[bool]) -> Transition:
         tokens: set[str] = set()
         pre: list[InputArc] = []
-        for arc in spec.pre:
+        for arc in _merged(spec.pre):
             p = self.place_of(arc)
             if p is None:
                 continue
@@ -160,7 +160,7 @@ class _Compiler:
                     self.problem(arc.where, "an arc that binds a variable has weight 1")
                 tokens.add(arc.var)
             pre.append(InputArc(p, arc.weight, arc.var))
-        post = [o for o in (self.output_arc(a, coloured, tokens) for a in spec.post) if o]
+        post = [o for o in (self.output_arc(a, coloured, tokens) for a in _merged(spec.post)) if o]
         test = [(p, a.weight) for a in spec.test if (p := self.place_of(a)) is not None]
         inhibit = [(p, a.weight) for a in spec.inhibit if (p := self.place_of(a)) is not None]
         guard = None if spec.when is None else self.expr(spec.when[0], spec.when[1], tokens)
@@ -193,10 +193,27 @@ class _Compiler:
         return OutputArc(p, arc.weight, fields=MappingProxyType(fields))
 
 
+def _merged(arcs: tuple[ArcSpec, ...]) -> list[ArcSpec]:
+    """`from: [p, p]` is one arc of weight 2: repeated plain arcs to a place add up."""
+    out: list[ArcSpec] = []
+    plain: dict[str, int] = {}
+    for arc in arcs:
+        if arc.var is None and arc.token is None and arc.place in plain:
+            first = out[plain[arc.place]]
+            out[plain[arc.place]] = ArcSpec(first.place, first.weight + arc.weight, where=first.where)
+            continue
+        if arc.var is None and arc.token is None:
+            plain[arc.place] = len(out)
+        out.append(arc)
+    return out
+
+
 def _build(spec: ProgramSpec, io: IoImage, c: _Compiler) -> CompiledNet:
     coloured = [p.coloured for p in spec.places]
     for p in spec.places:
         c.outputs(p.outputs)
+        if p.capacity is not None and p.tokens > p.capacity:
+            c.problem(p.where, f"initial tokens ({p.tokens}) exceed the capacity ({p.capacity})")
     transitions = tuple(c.transition(i, t, coloured) for i, t in enumerate(spec.transitions))
     if c.problems:
         raise ProgramError(sorted(set(c.problems)))
@@ -255,6 +272,8 @@ def compile_text(text: str, filename: str, root: Path | None = None) -> Compiled
     problem; nothing is built unless the whole program is valid."""
     spec, problems = parse_program(text, filename, root)
     io = None
+    if spec.io_image is None and any("YAML" in p.message for p in problems):
+        raise ProgramError(sorted(set(problems)))
     if spec.io_image is None:
         problems.append(Problem(filename, 1, "io_image", "missing io_image: (the symbols file)"))
     else:

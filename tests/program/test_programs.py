@@ -1,0 +1,63 @@
+"""Golden traces: every program in programs/ simulated for 120 s of virtual time, seed 0, on
+the plant its io image declares; the trace's sha256 must equal the value in golden.json.
+
+A golden value changes only when behaviour changes: the firing semantics, a program, an io
+image, a plant model or the trace format. Refresh deliberately, after checking the new
+behaviour is the intended one (e.g. with `softplc simulate PROGRAM --trace t.jsonl`):
+
+    SOFTPLC_UPDATE_GOLDEN=1 .venv/bin/pytest tests/program/test_programs.py
+
+then review and commit the diff of tests/program/golden.json with the change that caused it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from softplc.program.compiler import compile_file
+from softplc.runtime.simulate import simulate
+
+HERE = Path(__file__).resolve().parent
+PROGRAMS = HERE.parent.parent / "programs"
+GOLDEN = HERE / "golden.json"
+DURATION_NS = 120 * 10**9
+NAMES = sorted(p.name for p in PROGRAMS.glob("*.yaml"))
+
+
+@cache
+def run(name: str) -> dict[str, Any]:
+    return simulate(compile_file(PROGRAMS / name), DURATION_NS, seed=0)
+
+
+def golden() -> dict[str, str]:
+    return json.loads(GOLDEN.read_text(encoding="utf-8")) if GOLDEN.exists() else {}
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_trace_matches_the_golden_value(name: str) -> None:
+    sha = run(name)["trace_sha256"]
+    if os.environ.get("SOFTPLC_UPDATE_GOLDEN") == "1":
+        values = golden()
+        values[name] = sha
+        GOLDEN.write_text(json.dumps(values, indent=2, sort_keys=True) + "\n", encoding="utf-8")
+    assert name in golden(), f"no golden trace for {name}: see this module's docstring"
+    assert sha == golden()[name], f"{name}: behaviour changed; see this module's docstring"
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_two_runs_give_identical_results(name: str) -> None:
+    first = run(name)
+    second = simulate(compile_file(PROGRAMS / name), DURATION_NS, seed=0)
+    assert second == first
+    assert first["state"] == "RUNNING" and first["diagnostics"] == []
+    assert sum(first["fired"].values()) > 0
+
+
+def test_every_golden_value_belongs_to_a_program() -> None:
+    assert sorted(golden()) == NAMES
