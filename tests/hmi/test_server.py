@@ -245,7 +245,9 @@ def test_random_requests_get_one_reply_each_and_no_log_flood(
     loud = [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert loud == []
     from_pymodbus = [r for r in caplog.records if r.name.startswith("pymodbus")]
-    assert 0 < len(from_pymodbus) < 20  # captured (connect/disconnect), but not per frame
+    # at most connect/disconnect lines, never one per frame (none at all when another test,
+    # e.g. the remote-I/O driver, has raised the "pymodbus" logger's level first)
+    assert len(from_pymodbus) < 20
 
 
 def test_a_failing_sink_answers_04_and_the_slave_keeps_serving(source: ImageSource) -> None:
