@@ -78,7 +78,10 @@ _Loader.add_constructor("tag:yaml.org,2002:seq", _sequence)  # type: ignore[arg-
 
 def load_yaml(text: str, filename: str) -> tuple[Any, list[Problem]]:
     """Parse `text`. Returns (data, problems); data is None when the text does not parse."""
-    loader = _Loader(text)
+    try:
+        loader = _Loader(text)  # the reader rejects control characters right here
+    except yaml.YAMLError as exc:
+        return None, [Problem(filename, 1, "", f"YAML error: {exc}")]
     loader.problems = []
     loader.filename = filename
     try:

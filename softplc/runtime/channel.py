@@ -11,12 +11,16 @@ with the context that starts them). Three kinds of OS pipe from multiprocessing.
   PIPE_BUF bytes, which POSIX writes atomically, so several writers need no lock, and the
   scan never finds half a message: drain() polls and reads, and can never block, even if a
   client is killed mid-send. Write ends are non-blocking: a full pipe refuses the frame
-  instead of stalling the writer (the ~64 KiB kernel buffer is the queue bound).
+  instead of stalling the writer. The kernel buffer (64 KiB on Linux, about 570
+  single-register writes) is the queue bound; commands have their own pipe, so a flood of
+  HMI writes cannot hold back a stop or kill.
 - replies, scan -> clients: one pipe ("lane") per client process, claimed on its first
   command by pid and reclaimed from dead processes. A dispatcher thread in the client routes
   each reply to the waiting thread by ticket, so any number of threads may have commands in
   flight. Replies that do not fit in the pipe wait in the scan process and go out at the
   next drain() or reply(); the scan side never blocks.
+
+POSIX only (PIPE_BUF atomicity, non-blocking pipes), like the shared-memory snapshot.
 """
 
 from __future__ import annotations
@@ -81,8 +85,9 @@ if hasattr(os, "register_at_fork"):
 
 
 class Channel:
-    """The scan process calls drain() and reply(); clients call send_command() and
-    send_hmi_write(), from any thread of any process that received the Channel."""
+    """The scan process calls drain() and reply() (from one thread); clients call
+    send_command() and send_hmi_write() from any thread of any process that received the
+    Channel. At most `lanes` live processes can send commands; HMI writes are unlimited."""
 
     def __init__(
         self, *, lanes: int = 4, drain_limit: int = 64, ctx: BaseContext | None = None
@@ -106,6 +111,15 @@ class Channel:
         self._partial: dict[tuple[int, int], list[bytes]] = {}
         self._awaiting: dict[int, deque[tuple[int, int]]] = {}
         self._backlog: dict[int, deque[bytes]] = {}
+        self._ready: dict[int, select.poll] = {}  # Connection.poll() costs ~5 µs a call
+
+    def _readable(self, reader: Connection) -> bool:
+        fd = reader.fileno()
+        poller = self._ready.get(fd)
+        if poller is None:
+            poller = self._ready[fd] = select.poll()
+            poller.register(fd, select.POLLIN)
+        return bool(poller.poll(0))
 
     def __getstate__(self) -> dict[str, Any]:
         keep = ("drain_limit", "_commands", "_hmi", "_lanes", "_owners")
@@ -127,7 +141,7 @@ class Channel:
         commands: list[CommandRequest] = []
         reader = self._commands[0]
         for _ in range(self.drain_limit):
-            if not reader.poll():
+            if not self._readable(reader):
                 break
             ticket, lane, index, count, chunk = pickle.loads(reader.recv_bytes())
             request = self._assemble((lane, ticket), index, count, chunk)
@@ -137,7 +151,7 @@ class Channel:
         writes: list[HmiWrite] = []
         reader = self._hmi[0]
         for _ in range(self.drain_limit):
-            if not reader.poll():
+            if not self._readable(reader):
                 break
             writes.append(_decode_hmi(reader.recv_bytes()))
         return commands, writes

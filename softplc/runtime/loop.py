@@ -13,12 +13,12 @@ from __future__ import annotations
 import os
 import signal
 import threading
-from collections.abc import Sequence
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 from multiprocessing.synchronize import Event
 from pathlib import Path
+from typing import Any
 
 from softplc.core.image import ImageSizes
 from softplc.core.lifecycle import Command, PlcState
@@ -85,6 +85,11 @@ class ScanLoop:
                 net = self._compile(req)
             except ProgramError as exc:
                 self._reply(CommandReply(req.id, False, f"download refused:\n{exc}",
+                                         self.runner.plc.state))
+                continue
+            except Exception as exc:  # a compiler bug must never stop the scan
+                self._reply(CommandReply(req.id, False, "download refused: internal compiler "
+                                         f"error ({type(exc).__name__}: {exc})",
                                          self.runner.plc.state))
                 continue
             if net.io.sizes != self.config.sizes:

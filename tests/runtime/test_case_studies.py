@@ -44,8 +44,8 @@ def test_simulation_is_deterministic(program: str) -> None:
 
 def test_reconfiguration_by_online_change_keeps_the_runtime() -> None:
     """Transport runs; drilling is downloaded online; same engine, plant swapped by the io image."""
-    from softplc.runtime.loop import LoopConfig, ScanLoop
     from softplc.runtime.clock import VirtualClock
+    from softplc.runtime.loop import LoopConfig, ScanLoop
 
     loop = ScanLoop(LoopConfig(program="programs/transport.yaml", start=True,
                                period_ns=10_000_000, max_scans=1500), None, None, VirtualClock())

@@ -17,8 +17,8 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
-from softplc.hmi.map import STATUS_SCAN_COUNT, STATUS_STATE
 from softplc.core.lifecycle import PlcState
+from softplc.hmi.map import STATUS_SCAN_COUNT, STATUS_STATE
 
 ROOT = Path(__file__).resolve().parents[2]
 

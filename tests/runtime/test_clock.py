@@ -1,0 +1,88 @@
+"""Clock protocol implementations and duration parsing."""
+
+from __future__ import annotations
+
+import pytest
+
+from softplc.runtime.clock import Clock, MonotonicClock, VirtualClock, parse_duration_ns
+
+
+def test_monotonic_wait_until_never_returns_before_the_deadline() -> None:
+    clock = MonotonicClock(spin_ns=100_000)
+    for step_ns in (0, 50_000, 300_000, 1_000_000):
+        deadline = clock.now_ns() + step_ns
+        reached = clock.wait_until(deadline)
+        assert reached >= deadline
+        assert clock.now_ns() >= reached
+
+
+def test_monotonic_wait_until_a_past_deadline_returns_at_once() -> None:
+    clock = MonotonicClock()
+    now = clock.now_ns()
+    assert clock.wait_until(now - 10**9) >= now
+
+
+def test_monotonic_rejects_negative_spin() -> None:
+    with pytest.raises(ValueError, match="spin_ns"):
+        MonotonicClock(spin_ns=-1)
+
+
+def test_virtual_clock_jumps_to_the_deadline_and_never_goes_back() -> None:
+    clock: Clock = VirtualClock(start_ns=1_000)
+    assert clock.now_ns() == 1_000
+    assert clock.wait_until(5_000_000_000) == 5_000_000_000
+    assert clock.now_ns() == 5_000_000_000
+    assert clock.wait_until(10) == 5_000_000_000
+    assert clock.now_ns() == 5_000_000_000
+
+
+def test_virtual_clock_advance() -> None:
+    clock = VirtualClock()
+    assert clock.advance(250) == 250
+    with pytest.raises(ValueError, match="cannot go back"):
+        clock.advance(-1)
+
+
+@pytest.mark.parametrize(
+    ("text", "ns"),
+    [
+        ("10ms", 10_000_000),
+        ("1s", 1_000_000_000),
+        ("500us", 500_000),
+        ("500µs", 500_000),
+        ("500μs", 500_000),
+        ("2.5s", 2_500_000_000),
+        ("3600s", 3_600_000_000_000),
+        ("1min", 60_000_000_000),
+        ("1.5min", 90_000_000_000),
+        ("2h", 7_200_000_000_000),
+        ("750ns", 750),
+        (" 10 ms ", 10_000_000),
+        ("0.1s", 100_000_000),
+        (".5ms", 500_000),
+        ("0s", 0),
+        ("10MS", 10_000_000),
+    ],
+)
+def test_parse_duration(text: str, ns: int) -> None:
+    assert parse_duration_ns(text) == ns
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("10", "expected a number and a unit"),
+        ("ms", "expected a number and a unit"),
+        ("", "expected a number and a unit"),
+        ("-5ms", "expected a number and a unit"),
+        ("1e3ms", "expected a number and a unit"),
+        ("10 m s", "expected a number and a unit"),
+        ("10sec", "unknown unit 'sec'"),
+        ("3days", "unknown unit 'days'"),
+        ("1.5ns", "whole number of nanoseconds"),
+    ],
+)
+def test_parse_duration_errors(text: str, message: str) -> None:
+    with pytest.raises(ValueError, match=message) as err:
+        parse_duration_ns(text)
+    assert repr(text) in str(err.value)
