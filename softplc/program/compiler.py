@@ -168,7 +168,7 @@ class _Compiler:
         busy = self.outputs(spec.outputs)
         if busy and spec.duration_ns == 0:
             self.problem(spec.where, "outputs: on a transition need a duration: (held while it runs)")
-        if not pre and spec.duration_ns == 0 and guard is None:
+        if not pre and spec.duration_ns == 0 and spec.when is None:
             self.problem(spec.where, "a transition with no input place and no guard fires every scan")
         touches = any(coloured[a.place] for a in pre) or any(coloured[o.place] for o in post)
         return Transition(spec.name, index, spec.priority, tuple(pre), tuple(post), tuple(test),

@@ -1,0 +1,145 @@
+"""The client commands of the CLI: `softplc download|start|stop|resume|reset|kill|status`.
+
+Owns: their arguments (every one takes --api URL, --token, --state-dir, --timeout), exit
+codes (0 done, 1 refused or bad program with every problem on stderr, 2 no API answering)
+and what a person reads. Does not know: HTTP (client.py does), the PLC.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Final
+
+from softplc.api.auth import TOKEN_ENV
+from softplc.api.client import DEFAULT_URL, ApiClient, ApiError, ApiUnreachable
+from softplc.api.openapi import LIFECYCLE_COMMANDS
+
+EXIT_OK: Final = 0
+EXIT_REFUSED: Final = 1
+EXIT_UNREACHABLE: Final = 2
+
+_HELP: Final = {
+    "start": "start the program from its initial marking (cold)",
+    "stop": "stop the program: outputs safe, marking frozen",
+    "resume": "resume a stopped program with its marking (warm)",
+    "reset": "back to the initial marking, stopped",
+    "kill": "stop at once without committing the scan's outputs",
+}
+
+
+def add_client_commands(subparsers: Any) -> None:
+    """Add the client commands to `subparsers` (from ArgumentParser.add_subparsers())."""
+    download = subparsers.add_parser("download", help="download a program to a running softplc")
+    download.add_argument("program", help="program file (YAML)")
+    download.add_argument("--online", action="store_true",
+                          help="online change while RUNNING: keep the marking by place name")
+    _connection_options(download)
+    download.set_defaults(func=cmd_download)
+    for command in LIFECYCLE_COMMANDS:
+        parser = subparsers.add_parser(command, help=_HELP[command])
+        _connection_options(parser)
+        parser.set_defaults(func=cmd_lifecycle, api_command=command)
+    status = subparsers.add_parser("status", help="state, program, scans, timing, marking")
+    status.add_argument("--json", action="store_true", help="print the status as JSON")
+    _connection_options(status)
+    status.set_defaults(func=cmd_status)
+
+
+def _connection_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--api", metavar="URL", default=DEFAULT_URL,
+                        help="the softplc's HTTP API (default: %(default)s)")
+    parser.add_argument("--token", default=None,
+                        help=f"bearer token (default: ${TOKEN_ENV}, else --state-dir's "
+                        "api_token); needed when the API is bound off loopback")
+    parser.add_argument("--state-dir", metavar="DIR", default=None,
+                        help="the server's state directory, to read DIR/api_token from")
+    parser.add_argument("--timeout", metavar="SECONDS", type=float, default=10.0,
+                        help="how long to wait for an answer (default: %(default)s)")
+
+
+def _call(args: argparse.Namespace, what: str,
+          action: Callable[[ApiClient], dict[str, Any]]) -> tuple[int, dict[str, Any]]:
+    """Run `action`, turning failures into a message on stderr and an exit code."""
+    try:
+        client = ApiClient(args.api, args.token, args.timeout, state_dir=args.state_dir)
+        return EXIT_OK, action(client)
+    except ApiError as exc:
+        print(f"softplc {what}: refused (HTTP {exc.status}): {exc.message}", file=sys.stderr)
+        for problem in exc.problems:
+            print(problem, file=sys.stderr)
+        if exc.problems:
+            print(f"{len(exc.problems)} problem(s)", file=sys.stderr)
+        return EXIT_REFUSED, {}
+    except ApiUnreachable as exc:
+        print(f"softplc {what}: {exc}", file=sys.stderr)
+        return EXIT_UNREACHABLE, {}
+    except ValueError as exc:  # a malformed --api URL
+        print(f"softplc {what}: {exc}", file=sys.stderr)
+        return EXIT_UNREACHABLE, {}
+
+
+def cmd_download(args: argparse.Namespace) -> int:
+    try:
+        with open(args.program, encoding="utf-8") as handle:
+            text = handle.read()
+    except (OSError, UnicodeDecodeError) as exc:
+        print(f"softplc download: cannot read {args.program}: {exc}", file=sys.stderr)
+        return EXIT_REFUSED
+    name = Path(args.program).name
+    code, reply = _call(args, "download",
+                        lambda client: client.download_text(text, args.online, name))
+    if code == EXIT_OK:
+        print(f"{reply.get('message', 'downloaded')} (state {reply.get('state')})")
+    return code
+
+
+def cmd_lifecycle(args: argparse.Namespace) -> int:
+    command: str = args.api_command
+    code, reply = _call(args, command, lambda client: client.command(command))
+    if code == EXIT_OK:
+        print(f"{command}: {reply.get('message') or 'done'} (state {reply.get('state')})")
+    return code
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    code, status = _call(args, "status", lambda client: client.status())
+    if code == EXIT_OK:
+        print(json.dumps(status, indent=2, sort_keys=True) if args.json else format_status(status))
+    return code
+
+
+def format_status(status: dict[str, Any]) -> str:
+    """A readable summary of GET /api/v1/status."""
+    timing = status.get("timing") or {}
+    program = status.get("program") or "(none)"
+    digest = status.get("program_hash") or ""
+    lines = [
+        f"state       {status.get('state', '?')}"
+        + (f" (fault code {status['fault_code']})" if status.get("fault_code") else ""),
+        f"program     {program}" + (f"  hash {digest[:12]}" if digest else ""),
+        f"start mode  {status.get('start_mode', '?')}",
+        f"scans       {status.get('scan_count', 0)}, period {_us(status.get('period_us'))}",
+        f"execution   median {_us(timing.get('exec_median_us'))}, "
+        f"p99 {_us(timing.get('exec_p99_us'))}, max {_us(timing.get('exec_max_us'))}",
+        f"lateness    p99 {_us(timing.get('p99_lateness_us'))}, "
+        f"max {_us(timing.get('lateness_max_us'))}; overruns {timing.get('overruns', 0)}",
+    ]
+    health = status.get("health") or {}
+    if health:
+        lines.append("devices     " + ", ".join(f"{k} {v}" for k, v in sorted(health.items())))
+    marking = status.get("marking") or {}
+    marked = {place: tokens for place, tokens in marking.items() if tokens}
+    lines.append("marking" + ("" if marked else "     (no tokens)"))
+    lines += [f"  {place:<24} {tokens}" for place, tokens in sorted(marked.items())]
+    lines += [f"diagnostic  {d}" for d in status.get("diagnostics") or []]
+    return "\n".join(lines)
+
+
+def _us(value: Any) -> str:
+    if not isinstance(value, int | float):
+        return "?"
+    return f"{value / 1000:.3g} ms" if value >= 10_000 else f"{value:.0f} µs"

@@ -1,0 +1,205 @@
+"""A client of the HTTP management service, standard library only (urllib).
+
+Owns: ApiClient (one method per endpoint), ApiError (a 4xx/5xx answer with its problems),
+ApiUnreachable (nothing answers at the URL), the event-stream reader.
+Does not know: argparse or exit codes (clicmds.py), the server's internals.
+
+Proxies from the environment and redirects are not followed: the token must go to the
+PLC named by the URL and nowhere else.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import urllib.error
+import urllib.parse
+import urllib.request
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any, Final
+
+from softplc.api import auth
+
+DEFAULT_URL: Final = "http://127.0.0.1:8080"
+API: Final = "/api/v1"
+
+
+class ApiError(Exception):
+    """The service answered with an error status: `problems` lists every problem line of a
+    refused program (FILE:LINE: path: message)."""
+
+    def __init__(self, status: int, message: str, problems: Sequence[str] = ()) -> None:
+        self.status = status
+        self.message = message
+        self.problems = tuple(problems)
+        super().__init__(f"HTTP {status}: {message}")
+
+
+class ApiUnreachable(ConnectionError):
+    """Nothing answers at the API URL (refused, unresolvable, timed out, connection lost)."""
+
+
+class _NoRedirect(urllib.request.HTTPRedirectHandler):
+    def redirect_request(self, *args: Any, **kwargs: Any) -> None:
+        return None  # a 3xx becomes an HTTPError: the Authorization header stays home
+
+
+class ApiClient:
+    """One softplc's API. `token` falls back to $SOFTPLC_API_TOKEN, then to the api_token
+    file of `state_dir` (when the client runs on the PLC's machine)."""
+
+    def __init__(self, url: str = DEFAULT_URL, token: str | None = None,
+                 timeout_s: float = 10.0, *, state_dir: Path | str | None = None) -> None:
+        parts = urllib.parse.urlsplit(url)
+        if parts.scheme not in ("http", "https") or not parts.netloc:
+            raise ValueError(f"API URL must look like {DEFAULT_URL}, not {url!r}")
+        self.url = url.rstrip("/")
+        self.timeout_s = timeout_s
+        self._token = auth.client_token(token, state_dir)
+        self._opener = urllib.request.build_opener(urllib.request.ProxyHandler({}), _NoRedirect())
+
+    def __repr__(self) -> str:
+        return f"ApiClient({self.url!r}, token={'set' if self._token else 'none'})"
+
+    # -- program handling -------------------------------------------------------------------
+
+    def download(self, path_or_text: str | Path, online: bool = False,
+                 name: str | None = None) -> dict[str, Any]:
+        """Download a program file (a Path, or a string without a newline) or YAML text.
+        `name` (default: the file's name) is what problem messages call the program."""
+        if isinstance(path_or_text, str) and "\n" in path_or_text:
+            return self.download_text(path_or_text, online, name)
+        path = Path(path_or_text)
+        return self.download_text(path.read_text(encoding="utf-8"), online, name or path.name)
+
+    def download_text(self, text: str, online: bool = False,
+                      name: str | None = None) -> dict[str, Any]:
+        query = {"online": "true" if online else "false"}
+        if name:  # the server takes plain file names only
+            query["name"] = re.sub(r"[^A-Za-z0-9._-]", "_", name)[:128]
+        return self._json("POST", "/program", text.encode(), "application/yaml", query)
+
+    def command(self, command: str) -> dict[str, Any]:
+        """start, stop, resume, reset or kill: {"ok", "message", "state"}."""
+        return self._json("POST", f"/{command}")
+
+    def start(self) -> dict[str, Any]:
+        return self.command("start")
+
+    def stop(self) -> dict[str, Any]:
+        return self.command("stop")
+
+    def resume(self) -> dict[str, Any]:
+        return self.command("resume")
+
+    def reset(self) -> dict[str, Any]:
+        return self.command("reset")
+
+    def kill(self) -> dict[str, Any]:
+        return self.command("kill")
+
+    # -- status, symbols, events ------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        return self._json("GET", "/status")
+
+    def symbols(self) -> dict[str, Any]:
+        symbols: dict[str, Any] = self._json("GET", "/symbols")["symbols"]
+        return symbols
+
+    def read_symbol(self, name: str) -> bool | int:
+        value: bool | int = self._json("GET", f"/symbols/{_quote(name)}")["value"]
+        return value
+
+    def write_symbol(self, name: str, value: bool | int) -> dict[str, Any]:
+        """Journal a write, applied at the next scan start (202)."""
+        body = json.dumps({"value": value}).encode()
+        return self._json("PUT", f"/symbols/{_quote(name)}", body, "application/json")
+
+    def openapi(self) -> dict[str, Any]:
+        return self._json("GET", "/openapi.json")
+
+    def events(self, names: Sequence[str] = (), last_id: int | None = None
+               ) -> Iterator[dict[str, Any]]:
+        """Yield PLC events as they happen ({seq, scan, t_ns, name}); the stream ends when
+        the server stops. `timeout_s` bounds the wait for each line (heartbeats every 15 s)."""
+        query = {"names": ",".join(names)} if names else None
+        headers = {"Last-Event-ID": str(last_id)} if last_id is not None else {}
+        with self._open("GET", "/events", None, None, query, headers) as response:
+            kind, data, pending = "message", list[str](), b""
+            # read1, not line iteration: http.client's readline waits for more chunks
+            while chunk := response.read1(65536):
+                *lines, pending = (pending + chunk).split(b"\n")
+                for raw in lines:
+                    line = raw.decode("utf-8").rstrip("\r")
+                    if not line:
+                        if data and kind == "message":  # `event: overflow` is no PLC event
+                            yield json.loads("\n".join(data))
+                        kind, data = "message", []
+                    elif line.startswith("data:"):
+                        data.append(line[5:].lstrip())
+                    elif line.startswith("event:"):
+                        kind = line[6:].strip()
+
+    # -- transport --------------------------------------------------------------------------
+
+    def _json(self, method: str, path: str, body: bytes | None = None,
+              content_type: str | None = None, query: dict[str, str] | None = None
+              ) -> dict[str, Any]:
+        with self._open(method, path, body, content_type, query) as response:
+            status, raw = response.status, response.read()
+        try:
+            answer = json.loads(raw or b"{}")
+        except ValueError:
+            answer = None
+        if not isinstance(answer, dict):
+            raise ApiError(status, f"{method} {path}: the answer is not a JSON object")
+        return answer
+
+    def _open(self, method: str, path: str, body: bytes | None, content_type: str | None,
+              query: dict[str, str] | None, headers: dict[str, str] | None = None) -> Any:
+        url = self.url + API + path
+        if query:
+            url += "?" + urllib.parse.urlencode(query)
+        request = urllib.request.Request(url, data=body, method=method,
+                                         headers={"Accept": "application/json", **(headers or {})})
+        if content_type:
+            request.add_header("Content-Type", content_type)
+        if self._token:
+            request.add_header("Authorization", f"Bearer {self._token}")
+        try:
+            return self._opener.open(request, timeout=self.timeout_s)
+        except urllib.error.HTTPError as exc:
+            raise _api_error(exc) from None
+        except (urllib.error.URLError, OSError) as exc:
+            reason = getattr(exc, "reason", exc)
+            raise ApiUnreachable(
+                f"cannot reach the softplc API at {self.url}: {reason}. Is `softplc run` "
+                f"serving its API there (--api HOST:PORT)?") from None
+
+
+def _quote(name: str) -> str:
+    return urllib.parse.quote(name, safe="")
+
+
+def _api_error(exc: urllib.error.HTTPError) -> ApiError:
+    try:
+        raw = exc.read()
+    except OSError:
+        raw = b""
+    finally:
+        exc.close()
+    try:
+        body = json.loads(raw)
+    except ValueError:
+        body = None
+    problems: list[str] = []
+    if isinstance(body, dict) and "error" in body:
+        text = str(body["error"])
+        problems = [str(p) for p in body.get("problems") or []]
+    else:
+        text = raw.decode("utf-8", "replace").strip()[:200] or str(exc.reason)
+    if exc.code == 401:
+        text += f" (give --token, set ${auth.TOKEN_ENV}, or --state-dir of the server)"
+    return ApiError(exc.code, text, problems)
