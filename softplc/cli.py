@@ -77,9 +77,13 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from softplc.bench.harness import main as bench_main
-
-    return bench_main(args)
+    try:
+        from softplc.bench.harness import main as bench_main  # type: ignore[import-not-found]
+    except ImportError:
+        print("softplc bench: the benchmark harness is not built yet (issue 6)", file=sys.stderr)
+        return 2
+    result: int = bench_main(args)
+    return result
 
 
 def _duration(text: str) -> int:
