@@ -67,7 +67,9 @@ def load_or_create_token(state_dir: Path) -> str:
     A file left readable by others is tightened to 0600 before it is used."""
     state_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
     path = state_dir / TOKEN_FILE
-    token = secrets.token_urlsafe(_TOKEN_BYTES)
+    token = "-"
+    while token.startswith("-"):  # `--token -x...` would read as an option
+        token = secrets.token_urlsafe(_TOKEN_BYTES)
     try:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
     except FileExistsError:

@@ -23,6 +23,7 @@ from softplc.api import auth
 
 DEFAULT_URL: Final = "http://127.0.0.1:8080"
 API: Final = "/api/v1"
+_SILENCE_S: Final = 30.0  # two server heartbeats
 
 
 class ApiError(Exception):
@@ -123,13 +124,14 @@ class ApiClient:
     def events(self, names: Sequence[str] = (), last_id: int | None = None
                ) -> Iterator[dict[str, Any]]:
         """Yield PLC events as they happen ({seq, scan, t_ns, name}); the stream ends when
-        the server stops. `timeout_s` bounds the wait for each line (heartbeats every 15 s)."""
+        the server stops. Silence longer than two heartbeats (30 s) raises ApiUnreachable."""
         query = {"names": ",".join(names)} if names else None
         headers = {"Last-Event-ID": str(last_id)} if last_id is not None else {}
-        with self._open("GET", "/events", None, None, query, headers) as response:
+        timeout_s = max(self.timeout_s, _SILENCE_S)
+        with self._open("GET", "/events", None, None, query, headers, timeout_s) as response:
             kind, data, pending = "message", list[str](), b""
             # read1, not line iteration: http.client's readline waits for more chunks
-            while chunk := response.read1(65536):
+            while chunk := self._read1(response):
                 *lines, pending = (pending + chunk).split(b"\n")
                 for raw in lines:
                     line = raw.decode("utf-8").rstrip("\r")
@@ -142,13 +144,23 @@ class ApiClient:
                     elif line.startswith("event:"):
                         kind = line[6:].strip()
 
+    def _read1(self, response: Any) -> bytes:
+        try:
+            chunk: bytes = response.read1(65536)
+        except OSError as exc:
+            raise ApiUnreachable(f"the event stream from {self.url} broke off: {exc}") from None
+        return chunk
+
     # -- transport --------------------------------------------------------------------------
 
     def _json(self, method: str, path: str, body: bytes | None = None,
               content_type: str | None = None, query: dict[str, str] | None = None
               ) -> dict[str, Any]:
         with self._open(method, path, body, content_type, query) as response:
-            status, raw = response.status, response.read()
+            try:
+                status, raw = response.status, response.read()
+            except OSError as exc:
+                raise ApiUnreachable(f"the answer from {self.url} broke off: {exc}") from None
         try:
             answer = json.loads(raw or b"{}")
         except ValueError:
@@ -158,7 +170,8 @@ class ApiClient:
         return answer
 
     def _open(self, method: str, path: str, body: bytes | None, content_type: str | None,
-              query: dict[str, str] | None, headers: dict[str, str] | None = None) -> Any:
+              query: dict[str, str] | None, headers: dict[str, str] | None = None,
+              timeout_s: float | None = None) -> Any:
         url = self.url + API + path
         if query:
             url += "?" + urllib.parse.urlencode(query)
@@ -169,7 +182,7 @@ class ApiClient:
         if self._token:
             request.add_header("Authorization", f"Bearer {self._token}")
         try:
-            return self._opener.open(request, timeout=self.timeout_s)
+            return self._opener.open(request, timeout=timeout_s or self.timeout_s)
         except urllib.error.HTTPError as exc:
             raise _api_error(exc) from None
         except (urllib.error.URLError, OSError) as exc:

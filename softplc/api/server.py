@@ -168,7 +168,7 @@ class _EventHub:
     async def _events(self) -> list[dict[str, Any]]:
         try:
             events = (await self._read_board()).get("events") or []
-        except ApiProblem:
+        except (ApiProblem, ValueError):  # unavailable or torn: the next poll will do
             return []
         return [e for e in events if isinstance(e, dict) and isinstance(e.get("seq"), int)]
 
@@ -176,9 +176,13 @@ class _EventHub:
         while self._subscribers:
             events = await self._events()
             newest = max((int(e["seq"]) for e in events), default=self._last)
+            oldest = min((int(e["seq"]) for e in events), default=newest)
             if newest < self._last:  # the scan process restarted: its seq starts again
                 for sub in self._subscribers:
                     sub.after = 0
+            elif self._last and oldest > self._last + 1:  # more than the board holds
+                for sub in self._subscribers:
+                    sub.dropped += oldest - self._last - 1
             self._last = newest
             for event in events:
                 for sub in self._subscribers:
@@ -264,16 +268,17 @@ class ApiServer:
         try:
             return await handler(request)
         except ApiProblem as problem:
-            return problem.response()
+            failure = problem
         except web.HTTPException as exc:
             if exc.status < 400:
                 raise
             headers = {k: v for k, v in exc.headers.items() if k == "Allow"}
-            what = f"{exc.reason}: {request.method} {request.path[:200]}"
-            return ApiProblem(exc.status, what, headers=headers).response()
+            failure = ApiProblem(exc.status, f"{exc.reason}: {request.method} "
+                                 f"{request.path[:200]}", headers=headers)
         except Exception:
             log.exception("internal error in %s %s", request.method, request.path)
-            return ApiProblem(500, "internal error (logged by the server)").response()
+            failure = ApiProblem(500, "internal error (logged by the server)")
+        return failure.response()
 
     @web.middleware
     async def _guard(self, request: web.Request,

@@ -112,6 +112,14 @@ class ServerThread:
     def call(self, coro: Any, timeout_s: float = 10.0) -> Any:
         return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout_s)
 
+    @staticmethod
+    async def _drain() -> None:
+        """Let connection handlers that stop() cancelled finish before the loop closes."""
+        others = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        for task in others:
+            task.cancel()
+        await asyncio.gather(*others, return_exceptions=True)
+
     @property
     def url(self) -> str:
         return f"http://127.0.0.1:{self.server.bound_port}"
@@ -124,6 +132,7 @@ class ServerThread:
     def __exit__(self, *exc: object) -> None:
         try:
             self.call(self.server.stop())
+            self.call(self._drain())
         finally:
             self.loop.call_soon_threadsafe(self.loop.stop)
             self._thread.join(5)

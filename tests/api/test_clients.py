@@ -187,7 +187,7 @@ def test_cli_token_options(plc_parts: Plc, scan: ScanThread, tmp_path: Path,
         token = (state / auth.TOKEN_FILE).read_text().strip()
         assert run_cli("status", "--api", api.url) == EXIT_REFUSED
         assert "401" in capsys.readouterr().err
-        assert run_cli("status", "--api", api.url, "--token", token) == EXIT_OK
+        assert run_cli("status", "--api", api.url, f"--token={token}") == EXIT_OK
         assert run_cli("status", "--api", api.url, "--state-dir", str(state)) == EXIT_OK
         assert token not in capsys.readouterr().out
 

@@ -228,3 +228,20 @@ def test_streams_end_when_the_server_stops(plc_parts: Plc, tmp_path: Path) -> No
                 assert not stream.readline().startswith("data:")
     finally:
         stream.close()
+
+
+def test_events_beyond_what_the_board_holds_are_reported(sse: tuple[ServerThread, Board]
+                                                          ) -> None:
+    api, board = sse
+    stream = Stream(api)
+    try:
+        time.sleep(0.2)
+        board.add(*[f"e{i}" for i in range(300)])  # seq 3..302; the board keeps the last 256
+        block = stream.next_block()
+        while block[0].startswith(":"):
+            block = stream.next_block()
+        assert block == ["event: overflow", 'data: {"dropped": 44}']
+        received = stream.next_events(256)
+        assert [e["seq"] for e in received] == list(range(47, 303))
+    finally:
+        stream.close()
