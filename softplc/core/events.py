@@ -6,7 +6,7 @@ Does not know: who subscribed (devices/interface.py keeps subscriptions), clocks
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
 from softplc.core.image import ProcessImage
@@ -44,15 +44,14 @@ def _occurred(spec: EventSpec, value: int, before: int | None, memory: EventMemo
     return False
 
 
-def evaluate(specs: Iterable[EventSpec], symbols: dict[str, Symbol] | object,
+def evaluate(specs: Iterable[EventSpec], symbols: Mapping[str, Symbol],
              image: ProcessImage, memory: EventMemory) -> tuple[str, ...]:
     """The names of the conditions that occur in this scan, in declaration order. The first
     evaluation only records values: an edge needs two scans."""
-    table = symbols if isinstance(symbols, dict) else dict(symbols)  # type: ignore[call-overload]
     occurred = []
     values: dict[str, int] = {}
     for spec in specs:
-        sym = table[spec.symbol]
+        sym = symbols[spec.symbol]
         value = values.setdefault(spec.symbol, image.get(sym.address))
         if _occurred(spec, value, memory.last.get(spec.symbol), memory):
             occurred.append(spec.name)

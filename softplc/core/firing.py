@@ -70,6 +70,7 @@ class Engine:
         self._pulsed: set[str] = set()
         self._recheck: set[int] = set()  # fired or completed: enabledness may hold again
         self._remoore: set[str] = set()  # place-driven outputs an action overwrote
+        self._outputs_pending = True  # rewrite every place-driven output this round
         self.diagnostics: list[str] = []
 
     # -- enabling ---------------------------------------------------------------------------
@@ -313,7 +314,7 @@ class Engine:
         writes: list[tuple[str, int]] = []
         symbols: set[str] = set()
         if (not self._pulsed and not changed and not busy_changed and not self._remoore
-                and not self._first_outputs()):
+                and not self._outputs_pending):
             return writes
         for sym in sorted(self._pulsed):
             if sym in net.moore_drivers or sym in net.busy_drivers:
@@ -341,11 +342,6 @@ class Engine:
                     value = value or v
             writes.append((sym, value))
         return writes
-
-    _outputs_pending = True
-
-    def _first_outputs(self) -> bool:
-        return self._outputs_pending
 
     def moore_values(self) -> list[tuple[str, int]]:
         """Every place-attached and busy output as the current marking drives it."""

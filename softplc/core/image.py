@@ -19,6 +19,7 @@ WordArray = npt.NDArray[np.uint16]
 
 WORD_MAX = 0xFFFF
 AREAS = ("ix", "qx", "mx", "iw", "qw", "mw")
+OUTPUT_AREAS = ("qx", "qw", "mx", "mw")  # what a scan writes: outputs and memory
 
 
 class AddressError(ValueError):

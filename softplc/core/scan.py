@@ -17,14 +17,13 @@ import numpy as np
 from softplc.core import events as event_conditions
 from softplc.core.expr import Value
 from softplc.core.firing import Engine
-from softplc.core.image import Area, ProcessImage
+from softplc.core.image import AREAS, OUTPUT_AREAS, Area, ProcessImage
 from softplc.core.lifecycle import Command, CommandRejected, PlcState, next_state
 from softplc.core.net import Busy, CompiledNet, NetState
-from softplc.core.snapshot import HmiWrite
-from softplc.core.symbols import Direction, Symbol
+from softplc.core.snapshot import CommandReply, HmiWrite
+from softplc.core.symbols import Direction
 
 FAULT_NONE, FAULT_WATCHDOG, FAULT_DEVICE = 0, 1, 2
-_AREAS = ("ix", "iw", "qx", "qw", "mx", "mw")
 
 
 @dataclass(frozen=True, slots=True)
@@ -38,21 +37,13 @@ class ProgramCommand:
 
 
 @dataclass(frozen=True, slots=True)
-class Reply:
-    id: int
-    ok: bool
-    message: str
-    state: PlcState
-
-
-@dataclass(frozen=True, slots=True)
 class ScanResult:
     outputs: ProcessImage  # the PLC's image after the scan (outputs and memory committed)
     events: tuple[str, ...]  # event conditions that occurred and events the program emitted
     fired: tuple[str, ...]
     completed: tuple[str, ...]
     marking_changes: dict[str, int]
-    replies: tuple[Reply, ...]
+    replies: tuple[CommandReply, ...]
     outputs_changed: bool = True  # False: the output image equals the previous scan's
 
 
@@ -104,10 +95,6 @@ class Plc:
     def empty(cls, image: ProcessImage | None = None) -> Plc:
         image = image or ProcessImage()
         return cls(PlcState.EMPTY, image, image.copy())
-
-    @property
-    def symbols(self) -> dict[str, Symbol]:
-        return dict(self.net.io.symbols) if self.net else {}
 
     def marking(self) -> dict[str, int]:
         if self.net is None or self.engine is None:
@@ -247,7 +234,7 @@ class Plc:
 
     def _changed(self) -> set[str]:
         changed: set[str] = set()
-        for area in _AREAS:
+        for area in AREAS:
             now, before = getattr(self.image, area), getattr(self.prev, area)
             if now.tobytes() == before.tobytes():
                 continue
@@ -270,9 +257,9 @@ def scan(plc: Plc, inputs: ProcessImage, now_ns: int,
     for cmd in commands:
         try:
             message = plc.apply(cmd, now_ns)
-            replies.append(Reply(cmd.id, True, message, plc.state))
+            replies.append(CommandReply(cmd.id, True, message, plc.state))
         except CommandRejected as exc:
-            replies.append(Reply(cmd.id, False, exc.reason, plc.state))
+            replies.append(CommandReply(cmd.id, False, exc.reason, plc.state))
     killed = any(c.command is Command.KILL and r.ok for c, r in zip(commands, replies, strict=True))
     if not killed:
         plc.apply_hmi(hmi)
@@ -319,4 +306,4 @@ def scan(plc: Plc, inputs: ProcessImage, now_ns: int,
 
 
 def _same_outputs(a: ProcessImage, b: ProcessImage) -> bool:
-    return all(getattr(a, n).tobytes() == getattr(b, n).tobytes() for n in ("qx", "qw", "mx", "mw"))
+    return all(getattr(a, n).tobytes() == getattr(b, n).tobytes() for n in OUTPUT_AREAS)

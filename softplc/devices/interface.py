@@ -41,6 +41,7 @@ from softplc.devices.driver import (
     WrongDirection,
     WrongType,
 )
+from softplc.devices.facade import PaperProgramHandling
 from softplc.program.compiler import Summary, compile_file, summarize
 from softplc.program.io_image import load_io_image
 from softplc.runtime.runner import ScanRunner, open_drivers
@@ -75,7 +76,7 @@ def open_device(io_image_path: str | Path, *, seed: int = 0) -> DeviceInterface:
     return DeviceInterface(io, drivers)
 
 
-class DeviceInterface:
+class DeviceInterface(PaperProgramHandling):
     """One automation device: the drivers of an io image around a local PLC, in virtual time.
 
     Timing: `step()` runs one scan (drivers read, scan, drivers write) at `now_ns`, then
@@ -335,24 +336,6 @@ class DeviceInterface:
     def writeAnalog(self, address: str, value: int) -> int:
         return self._code(lambda: self.write_analog(address, value))
 
-    def download(self, file: str, location: str | None = None) -> int:
-        return self._code(lambda: self.download_program(file, location))
-
-    def start(self, program: str | None = None) -> int:
-        return self._code(lambda: self.start_program(program))
-
-    def stop(self, program: str | None = None) -> int:
-        return self._code(lambda: self.stop_program(program))
-
-    def reset(self, program: str | None = None) -> int:
-        return self._code(lambda: self.reset_program(program))
-
-    def resume(self, program: str | None = None) -> int:
-        return self._code(lambda: self.resume_program(program))
-
-    def kill(self, program: str | None = None) -> int:
-        return self._code(lambda: self.kill_program(program))
-
     def subscribeEvent(self, event: str) -> int:
         return self._code(lambda: self.subscribe_event(event))
 
@@ -370,15 +353,6 @@ class DeviceInterface:
             return None
         self.last_error = ""
         return value
-
-    def _code(self, call: Callable[[], object]) -> int:
-        try:
-            call()
-        except DeviceError as exc:
-            self.last_error = str(exc)
-            return -1
-        self.last_error = ""
-        return 0
 
 
 def _checked_write(address: Address, value: object, target: str) -> HmiWrite:

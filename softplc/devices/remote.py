@@ -14,7 +14,8 @@ from typing import Any
 
 from softplc.api.client import DEFAULT_URL, ApiClient, ApiError, ApiUnreachable
 from softplc.core.lifecycle import Command, PlcState
-from softplc.devices.driver import DeviceError, DeviceUnavailable, ProgramHandlingError
+from softplc.devices.driver import DeviceUnavailable, ProgramHandlingError
+from softplc.devices.facade import PaperProgramHandling
 
 _UNAVAILABLE = frozenset({401, 503})  # not the program's fault: no usable device behind
 
@@ -28,7 +29,7 @@ class RemoteProgramRefused(ProgramHandlingError):
         super().__init__("\n".join([message, *self.problems]))
 
 
-class RemoteSoftplc:
+class RemoteSoftplc(PaperProgramHandling):
     """Another softplc, handled like a device: `url` is its API (e.g. http://10.0.0.7:8080),
     `token` its bearer token when it is bound off loopback."""
 
@@ -98,34 +99,7 @@ class RemoteSoftplc:
             raise RemoteProgramRefused(f"{self.url}: {exc.message}", exc.status,
                                        exc.problems) from None
 
-    # -- the paper's facade (Fig. 2): 0 on success, -1 on error (see last_error) ------------
-
-    def download(self, file: str, location: str | None = None) -> int:
-        return self._code(lambda: self.download_program(file, location))
-
-    def start(self, program: str | None = None) -> int:
-        return self._code(lambda: self.start_program(program))
-
-    def stop(self, program: str | None = None) -> int:
-        return self._code(lambda: self.stop_program(program))
-
-    def reset(self, program: str | None = None) -> int:
-        return self._code(lambda: self.reset_program(program))
-
-    def resume(self, program: str | None = None) -> int:
-        return self._code(lambda: self.resume_program(program))
-
-    def kill(self, program: str | None = None) -> int:
-        return self._code(lambda: self.kill_program(program))
-
-    def _code(self, call: Callable[[], object]) -> int:
-        try:
-            call()
-        except DeviceError as exc:
-            self.last_error = str(exc)
-            return -1
-        self.last_error = ""
-        return 0
+    # -- the paper's facade (Fig. 2): download/start/.../kill come from PaperProgramHandling
 
 
 def _state(answer: dict[str, Any]) -> PlcState:

@@ -273,7 +273,7 @@ class Channel:
         with self._owners.get_lock():
             for lane in range(len(self._lanes)):
                 owner: int = self._owners[lane]
-                if owner == 0 or (owner != pid and not _alive(owner)):
+                if owner == 0 or (owner != pid and not pid_alive(owner)):
                     self._owners[lane] = pid
                     return lane
         raise ChannelFull(
@@ -332,7 +332,7 @@ def _decode_hmi(frame: bytes) -> HmiWrite:
     return HmiWrite(address, tuple(values))
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
     if os.name != "posix":
         return True  # no cheap probe: never reclaim
     try:

@@ -23,7 +23,7 @@ from typing import Any
 from softplc.core.image import ImageSizes
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.problems import ProgramError
-from softplc.core.scan import FAULT_WATCHDOG, Plc, ProgramCommand, Reply
+from softplc.core.scan import FAULT_WATCHDOG, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
 from softplc.program.compiler import compile_file, compile_text
 from softplc.runtime.board import StatusBoard
@@ -64,6 +64,7 @@ class ScanLoop:
         self.start_mode = "cold"
         self.clock = clock or MonotonicClock()
         self.stats = TimingStats()
+        self.summary = self.stats.summary()  # refreshed every board_every scans, not every scan
         self.runner = ScanRunner(Plc.empty(), [], TraceWriter(config.trace) if config.trace else None)
         self.pending: list[ProgramCommand] = []
         self._driver_specs: tuple[object, ...] = ()
@@ -114,9 +115,9 @@ class ScanLoop:
             return  # startup commands come from the command line, not from a client
         self.channel.reply(reply)
 
-    def _after(self, commands: Sequence[ProgramCommand], replies: Sequence[Reply]) -> None:
+    def _after(self, replies: Sequence[CommandReply]) -> None:
         for reply in replies:
-            self._reply(CommandReply(reply.id, reply.ok, reply.message, reply.state))
+            self._reply(reply)
         net = self.runner.plc.net
         if net is not None and tuple(net.io.drivers.values()) != self._driver_specs:
             # Another io image (reconfiguration): its devices replace the old ones.
@@ -132,7 +133,7 @@ class ScanLoop:
         commands = self.pending + self._translate(requests)
         self.pending = []
         result = self.runner.step(now_ns, commands, writes)
-        self._after(commands, result.replies)
+        self._after(result.replies)
         for name in result.events:
             self.event_seq += 1
             self.events.append({"seq": self.event_seq, "scan": self.runner.plc.scan_count,
@@ -142,7 +143,7 @@ class ScanLoop:
     def document(self) -> dict[str, Any]:
         """The status board: what `softplc status` and the HTTP API show."""
         plc = self.runner.plc
-        timing: dict[str, Any] = dict(self.stats.summary().as_dict())
+        timing: dict[str, Any] = dict(self.summary.as_dict())
         timing["p99_lateness_us"] = timing.get("lateness_p99_us", 0)
         timing["overruns"] = self.stats.overruns
         net = plc.net
@@ -161,9 +162,10 @@ class ScanLoop:
         }
 
     def status(self) -> Status:
-        plc, s = self.runner.plc, self.stats.summary()
+        plc = self.runner.plc
         return Status(plc.state, plc.scan_count, self.stats.last_exec_ns // 1000,
-                      self.stats.max_exec_ns // 1000, int(s.lateness_p99_us), self.stats.overruns,
+                      self.stats.max_exec_ns // 1000, int(self.summary.lateness_p99_us),
+                      self.stats.overruns,
                       plc.net.program_hash if plc.net else "", plc.fault_code,
                       self.config.period_ns // 1000)
 
@@ -187,9 +189,12 @@ class ScanLoop:
             self.stats.record(exec_ns, reached - deadline, overrun=missed > 0)
             if missed > 1:
                 self.stats.overruns += missed - 1
+            refresh = self.runner.plc.scan_count % self.board_every == 0
+            if refresh:  # percentiles cost ~20 µs: not on every scan
+                self.summary = self.stats.summary()
             if self.writer is not None:
                 self.writer.publish(self.runner.plc.image, self.status())
-            if self.board is not None and k % self.board_every == 0:
+            if self.board is not None and refresh:
                 self.board.publish(self.document())
         self.shutdown()
 
@@ -201,6 +206,7 @@ class ScanLoop:
 
     def shutdown(self) -> None:
         """Outputs to their safe values, written through the drivers, then close."""
+        self.summary = self.stats.summary()
         plc = self.runner.plc
         plc.drive_safe()
         for driver in self.runner.drivers:

@@ -20,7 +20,7 @@ from softplc.core.image import ImageSizes
 from softplc.core.problems import ProgramError
 from softplc.program.compiler import compile_file
 from softplc.runtime.board import StatusBoard
-from softplc.runtime.channel import Channel
+from softplc.runtime.channel import Channel, pid_alive
 from softplc.runtime.comm import CommConfig, comm_process_main
 from softplc.runtime.loop import LoopConfig, scan_process_main
 
@@ -35,18 +35,8 @@ def _remove_stale_segments() -> None:
         return
     for entry in shm_dir.glob(SHM_PREFIX + "*"):
         parts = entry.name.split("_")
-        if len(parts) >= 2 and parts[1].isdigit() and not _alive(int(parts[1])):
+        if len(parts) >= 2 and parts[1].isdigit() and not pid_alive(int(parts[1])):
             entry.unlink(missing_ok=True)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def die_with_parent() -> None:

@@ -16,9 +16,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from softplc.core.image import ProcessImage
-
-OUTPUT_AREAS = ("qx", "qw", "mx", "mw")
+from softplc.core.image import OUTPUT_AREAS, ProcessImage
 
 
 def image_digest(image: ProcessImage) -> str:
