@@ -26,7 +26,7 @@ lint: setup
 	$(VENV)/bin/mypy
 
 bench: setup
-	$(VENV)/bin/softplc bench --json bench.json
+	$(VENV)/bin/softplc bench --json bench.json --plots docs/bench --markdown BENCHMARKS.md
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache .hypothesis

@@ -1,0 +1,1 @@
+"""Benchmark harness (`softplc bench`): engine scaling, scan timing, Modbus, online change."""

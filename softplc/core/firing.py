@@ -63,6 +63,9 @@ class Engine:
         self.net = net
         self.state = state if state is not None else NetState.initial(net)
         self._rank = net.rank
+        # Transitions that put tokens on a place with a capacity: only these need the check.
+        self._capped = frozenset(t.index for t in net.transitions
+                                 if any(net.capacity[o.place] >= 0 for o in t.post))
         self._ready: set[int] = set()  # marking-enabled, not busy, guard (or a binding) holds
         self._dirty_places: set[int] = set()
         self._dirty_edges: set[str] = set()  # edges seen last round: they "change back" now
@@ -79,11 +82,18 @@ class Engine:
         m, st = self.state.marking, self.state
         if t.index in st.busy:
             return False
-        if any(m[a.place] < a.weight for a in t.pre):
-            return False
-        if any(m[p] < w for p, w in t.test) or any(m[p] >= w for p, w in t.inhibit):
-            return False
-        return self._fits_capacity(t, {})
+        # Plain loops, not any(<generator>): this runs for every re-checked transition of
+        # every round, and the generators were a third of its cost (bench: engine scaling).
+        for a in t.pre:
+            if m[a.place] < a.weight:
+                return False
+        for p, w in t.test:
+            if m[p] < w:
+                return False
+        for p, w in t.inhibit:
+            if m[p] >= w:
+                return False
+        return t.index not in self._capped or self._fits_capacity(t, {})
 
     def _fits_capacity(self, t: Transition, delta: Mapping[int, int]) -> bool:
         cap, m = self.net.capacity, self.state.marking

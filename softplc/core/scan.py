@@ -87,6 +87,7 @@ class Plc:
     written_last: set[str] = field(default_factory=set)
     scan_count: int = 0
     fault_code: int = FAULT_NONE
+    fault_reason: str = ""  # what faulted the PLC, for people (status, events)
     stopped_at_ns: int | None = None
     locations: dict[str, tuple[str, int]] = field(default_factory=dict)
     by_location: dict[tuple[str, int], tuple[str, ...]] = field(default_factory=dict)
@@ -127,7 +128,7 @@ class Plc:
             self.held = None
         self.state = target
         if target is not PlcState.FAULTED:
-            self.fault_code = FAULT_NONE
+            self.fault_code, self.fault_reason = FAULT_NONE, ""
         return f"{cmd.command.value}: now {target.name}"
 
     def _load(self, net: CompiledNet, state: NetState) -> None:
@@ -200,14 +201,32 @@ class Plc:
         self._load(net, new)
         return f"online change to {net.name} ({net.program_hash[:12]})"
 
-    def fault(self, code: int) -> None:
-        """Watchdog or device fault: FAULTED, outputs safe (the next scan writes them)."""
+    def fault(self, code: int, now_ns: int | None = None, reason: str = "") -> None:
+        """Watchdog or device fault: FAULTED, outputs safe (the next scan writes them).
+
+        With `now_ns`, timers freeze and the outputs are kept as at a stop, so that recover()
+        can continue where the program was; without it nothing is kept for later."""
         if self.state is PlcState.RUNNING:
-            self.stopped_at_ns = None
+            self.stopped_at_ns = now_ns
+            self.held = None if now_ns is None else (self.image.qx.copy(), self.image.qw.copy())
         if self.state in (PlcState.RUNNING, PlcState.STOPPED):
             self.state = PlcState.FAULTED
-            self.fault_code = code
+            self.fault_code, self.fault_reason = code, reason
             self.drive_safe()
+
+    def recover(self, now_ns: int) -> bool:
+        """Device auto-recovery: FAULTED by a device while RUNNING -> RUNNING as a resume
+        would (marking kept, timers shifted by the time faulted, outputs as they were).
+        Not a lifecycle command: the table has no way out of FAULTED but reset/download."""
+        if (self.state is not PlcState.FAULTED or self.fault_code != FAULT_DEVICE
+                or self.held is None):
+            return False
+        self._thaw(now_ns)
+        np.copyto(self.image.qx, self.held[0])
+        np.copyto(self.image.qw, self.held[1])
+        self.held = None
+        self.state, self.fault_code, self.fault_reason = PlcState.RUNNING, FAULT_NONE, ""
+        return True
 
     # -- image ------------------------------------------------------------------------------
 

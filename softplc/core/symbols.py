@@ -1,6 +1,7 @@
 """Symbol tables: what an `io_images/*.yaml` file declares, as frozen values.
 
-Owns: Symbol, DriverSpec, EventSpec, IoImage (the validated content of one io_images file).
+Owns: Symbol, DriverSpec with its FaultPolicy, EventSpec, IoImage (the validated content of
+one io_images file).
 Does not know: YAML (program/io_image.py parses it), drivers (devices/ builds them).
 """
 
@@ -45,14 +46,34 @@ class Symbol:
     line: int = 0  # line in the io_images file, for messages
 
 
+class OnFailure(enum.Enum):
+    FAULT = "fault"  # FAULTED with safe outputs in the first scan the device does not answer
+    HOLD = "hold"  # keep the last good inputs for hold_scans scans, then fault
+
+
+@dataclass(frozen=True, slots=True)
+class FaultPolicy:
+    """What the PLC does when a driver's device stops answering (docs/faults.md).
+
+    The defaults are the safe ones: fault at once, recover only by an operator's command.
+    """
+
+    on_failure: OnFailure = OnFailure.FAULT
+    hold_scans: int = 0
+    auto_recover: bool = False
+    startup_s: float = 5.0  # a device that has not answered since it was opened is not failing yet
+
+
 @dataclass(frozen=True, slots=True)
 class DriverSpec:
-    """One driver instance: `kind` is `sim` or `modbus`; params are kind-specific."""
+    """One driver instance: `kind` is `sim` or `modbus`; params are kind-specific, the fault
+    policy is the same for every kind."""
 
     name: str
     kind: str
     params: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
     line: int = 0
+    policy: FaultPolicy = FaultPolicy()
 
 
 class EventKind(enum.Enum):

@@ -1,14 +1,14 @@
 """The small protocol every I/O driver implements, and the errors drivers raise.
 
 Owns: Driver (open, close, read inputs into the image, write outputs from the image, health),
-Health, DeviceError and its subclasses.
+Diagnosed (a driver that can say why it is not OK), Health, DeviceError and its subclasses.
 Does not know: the scan, the Petri net, Modbus slaves for HMIs.
 """
 
 from __future__ import annotations
 
 import enum
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 from softplc.core.image import ProcessImage
 
@@ -61,3 +61,12 @@ class Driver(Protocol):
     def write_outputs(self, image: ProcessImage, now_ns: int) -> None: ...
 
     def health(self) -> Health: ...
+
+
+@runtime_checkable
+class Diagnosed(Protocol):
+    """A driver that can say why its device is not OK, for the fault reason in the status."""
+
+    def problem(self) -> str:
+        """The latest failure in a few words ("cannot connect to host:502"); "" when none."""
+        ...

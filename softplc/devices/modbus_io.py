@@ -346,6 +346,17 @@ class ModbusIoDriver:
         with self._lock:
             return _HEALTH.get((self._connected, self._last_cycle_ok), Health.DOWN)
 
+    def problem(self) -> str:
+        if self._thread is None:
+            return "closed"
+        with self._lock:
+            if self._connected and self._last_cycle_ok:
+                return ""
+            if self._last_error:
+                return self._last_error
+            where = f"{self.params.host}:{self.params.port}"
+            return "no cycle completed yet" if self._connected else f"not connected to {where}"
+
     def stats(self) -> IoStats:
         with self._lock:
             return IoStats(

@@ -1,7 +1,8 @@
 """The `sim` driver: an in-memory device whose inputs come from a plant model in virtual time.
 
-Owns: the mapping between symbols (by channel) and a plant's sensors and actuators, and the
-program commands the device received (so tests can check what a controller asked of it).
+Owns: the mapping between symbols (by channel) and a plant's sensors and actuators, the
+program commands the device received (so tests can check what a controller asked of it), and
+an `offline` switch that makes the device stop answering (fault injection).
 Does not know: the Petri net, clocks (time arrives as now_ns), Modbus.
 """
 
@@ -38,6 +39,9 @@ class SimDriver:
         if problems:
             raise DeviceError(f"driver {spec.name}: " + "; ".join(problems))
         self.commands: list[tuple[str, str]] = []  # (command, program) received
+        # Fault injection: while set, the device does not answer. The plant's physics go on,
+        # but the image keeps its last inputs and the actuators their last commands.
+        self.offline = False
         self._open = False
 
     def open(self) -> None:
@@ -48,12 +52,21 @@ class SimDriver:
 
     def read_inputs(self, image: ProcessImage, now_ns: int) -> None:
         self.plant.advance(now_ns)
+        if self.offline:
+            return
         sensors = self.plant.read_sensors()
         for sym in self.inputs:
             image.set(sym.address, sensors[str(sym.channel)])
 
     def write_outputs(self, image: ProcessImage, now_ns: int) -> None:
+        if self.offline:
+            return
         self.plant.set_actuators({str(s.channel): image.get(s.address) for s in self.outputs})
 
     def health(self) -> Health:
-        return Health.OK if self._open else Health.DOWN
+        return Health.OK if self._open and not self.offline else Health.DOWN
+
+    def problem(self) -> str:
+        if not self._open:
+            return "closed"
+        return "offline (fault injection)" if self.offline else ""

@@ -74,6 +74,7 @@ class _Connection(ModbusProtocol):
         self._idle_timeout_s = owner.idle_timeout_s
         self._refuse = refuse
         self._buffer = b""
+        self._writing_paused = False
         self._last_request_s = 0.0
         self._idle_timer: asyncio.TimerHandle | None = None
 
@@ -98,9 +99,22 @@ class _Connection(ModbusProtocol):
         self._stop_idle_timer()
         super().close(reconnect)
 
+    @property
+    def buffered_bytes(self) -> int:
+        """Requests not yet answered plus replies not yet sent, in bytes."""
+        unsent = 0 if self.transport is None else self._stream.get_write_buffer_size()
+        return len(self._buffer) + unsent
+
     def data_received(self, data: bytes) -> None:
-        buffer, pos = self._buffer + data, 0
-        while self.transport is not None:
+        self._buffer += data
+        self._serve_buffer()
+
+    def _serve_buffer(self) -> None:
+        # While the client does not read, requests stay unparsed in `_buffer` (reading is
+        # paused, so it holds at most one segment): replies never pile up beyond the
+        # transport's high-water mark plus one reply.
+        buffer, pos = self._buffer, 0
+        while self._can_answer():
             try:
                 adu, end = split_adu(buffer, pos)
             except FramingError as exc:
@@ -115,12 +129,20 @@ class _Connection(ModbusProtocol):
                 self._stream.write(reply)
         self._buffer = buffer[pos:]
 
+    def _can_answer(self) -> bool:
+        # A transport that is closing (the client reset) would log every further write.
+        transport = self.transport
+        return transport is not None and not transport.is_closing() and not self._writing_paused
+
     def pause_writing(self) -> None:
         # The client does not read its replies: stop reading its requests until it does.
+        self._writing_paused = True
         self._stream.pause_reading()
 
     def resume_writing(self) -> None:
+        self._writing_paused = False
         self._stream.resume_reading()
+        self._serve_buffer()
 
     @property
     def _stream(self) -> asyncio.Transport:
@@ -238,6 +260,15 @@ class ModbusSlave:
     @property
     def connection_count(self) -> int:
         return 0 if self._listener is None else len(self._listener.active_connections)
+
+    @property
+    def buffered_bytes(self) -> int:
+        """Bytes held for all connections (unparsed requests, unsent replies): bounded by
+        the connection limit times one read segment plus the write high-water mark."""
+        if self._listener is None:
+            return 0
+        connections = list(self._listener.active_connections.values())
+        return sum(c.buffered_bytes for c in connections if isinstance(c, _Connection))
 
     async def __aenter__(self) -> ModbusSlave:
         await self.start()

@@ -267,6 +267,14 @@ def _io_text(io: IoImage) -> str:
     return repr(sorted((s.name, str(s.address), s.type.value, s.safe) for s in io.symbols.values()))
 
 
+def _at_reference(problem: Problem, ref: str, where: Where) -> Problem:
+    # A symbols file that cannot be read has no line of its own: the problem is the line
+    # of the program that names it.
+    if problem.line > 0:
+        return problem
+    return Problem(where.file, where.line, where.path, f"{ref!r}: {problem.message}")
+
+
 def compile_text(text: str, filename: str, root: Path | None = None) -> CompiledNet:
     """Validate and compile a program given as text. Raises ProgramError listing every
     problem; nothing is built unless the whole program is valid."""
@@ -275,7 +283,9 @@ def compile_text(text: str, filename: str, root: Path | None = None) -> Compiled
     if spec.io_image is None and any("YAML" in p.message for p in problems):
         raise ProgramError(sorted(set(problems)))
     if spec.io_image is None:
-        problems.append(Problem(filename, 1, "io_image", "missing io_image: (the symbols file)"))
+        if not any(p.path == "io_image" for p in problems):
+            problems.append(Problem(filename, 1, "io_image",
+                                    "missing io_image: (the symbols file)"))
     else:
         ref, where = spec.io_image
         target = resolve(Path(filename).parent, ref, root)
@@ -285,7 +295,7 @@ def compile_text(text: str, filename: str, root: Path | None = None) -> Compiled
             try:
                 io = load_io_image(target)
             except ProgramError as exc:
-                problems.extend(exc.problems)
+                problems.extend(_at_reference(p, ref, where) for p in exc.problems)
     if io is None:
         raise ProgramError(sorted(set(problems)))
     compiler = _Compiler(spec, io, problems)

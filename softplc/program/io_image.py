@@ -1,6 +1,7 @@
 """Load an `io_images/*.yaml` symbols file into an IoImage, collecting every problem.
 
-Owns: the symbols file format (image sizes, drivers, symbols, event conditions).
+Owns: the symbols file format (image sizes, drivers with their fault policy, symbols, event
+conditions).
 Does not know: programs, drivers' internals.
 """
 
@@ -18,13 +19,16 @@ from softplc.core.symbols import (
     DriverSpec,
     EventKind,
     EventSpec,
+    FaultPolicy,
     IoImage,
+    OnFailure,
     Symbol,
     SymType,
 )
 from softplc.program.yamlload import YMap, line_of, load_yaml, trap_hint
 
 DRIVER_KINDS = ("sim", "modbus")
+POLICY_KEYS = ("on_failure", "hold_scans", "auto_recover", "startup_s")  # any kind of driver
 SYMBOL_KEYS = {"address", "type", "dir", "safe", "driver", "channel", "description", "hmi_writable"}
 
 
@@ -59,9 +63,49 @@ class _Reader:
             if not isinstance(spec, dict) or spec.get("kind") not in DRIVER_KINDS:
                 self.problem(line, path, f"expected {{kind: {' | '.join(DRIVER_KINDS)}, ...}}")
                 continue
-            params = {k: v for k, v in spec.items() if k != "kind"}
-            out[str(name)] = DriverSpec(str(name), str(spec["kind"]), MappingProxyType(params), line)
+            params = {k: v for k, v in spec.items() if k != "kind" and k not in POLICY_KEYS}
+            policy = self.policy(spec, path)
+            out[str(name)] = DriverSpec(str(name), str(spec["kind"]), MappingProxyType(params),
+                                        line, policy)
         return out
+
+    def policy(self, spec: dict[Any, Any], path: str) -> FaultPolicy:
+        """The device fault policy keys of one driver; defaults for any that is bad."""
+        default = FaultPolicy()
+        on_failure = self._on_failure(spec, path)
+        hold_scans = spec.get("hold_scans", 0)
+        if "hold_scans" in spec and (not _is_int(hold_scans) or hold_scans < 1):
+            self.problem(line_of(spec, "hold_scans"), f"{path}.hold_scans",
+                         f"hold_scans must be an integer >= 1, got {hold_scans!r}")
+            hold_scans = 0
+        elif on_failure is OnFailure.HOLD and "hold_scans" not in spec:
+            self.problem(line_of(spec, "on_failure"), f"{path}.on_failure",
+                         "on_failure: hold needs hold_scans: N (scans to hold the last inputs)")
+        elif on_failure is OnFailure.FAULT and "hold_scans" in spec:
+            self.problem(line_of(spec, "hold_scans"), f"{path}.hold_scans",
+                         "hold_scans needs on_failure: hold (fault faults at once)")
+            hold_scans = 0
+        auto = spec.get("auto_recover", default.auto_recover)
+        if not isinstance(auto, bool):
+            self.problem(line_of(spec, "auto_recover"), f"{path}.auto_recover",
+                         f"auto_recover must be true or false{trap_hint(auto)}")
+            auto = default.auto_recover
+        startup = spec.get("startup_s", default.startup_s)
+        if isinstance(startup, bool) or not isinstance(startup, int | float) or startup < 0:
+            self.problem(line_of(spec, "startup_s"), f"{path}.startup_s",
+                         f"startup_s must be a number of seconds >= 0, got {startup!r}")
+            startup = default.startup_s
+        return FaultPolicy(on_failure, int(hold_scans), auto, float(startup))
+
+    def _on_failure(self, spec: dict[Any, Any], path: str) -> OnFailure:
+        value = spec.get("on_failure", OnFailure.FAULT.value)
+        try:
+            return OnFailure(value)
+        except ValueError:
+            choices = " or ".join(f.value for f in OnFailure)
+            self.problem(line_of(spec, "on_failure"), f"{path}.on_failure",
+                         f"on_failure {value!r}: expected {choices}")
+            return OnFailure.FAULT
 
     def symbol(self, name: str, spec: Any, line: int, drivers: dict[str, DriverSpec],
                image: ProcessImage) -> Symbol | None:
@@ -147,6 +191,10 @@ class _Reader:
                 continue
             out[str(name)] = EventSpec(str(name), kind, sym.name, threshold, hysteresis, line)
         return out
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def parse_io_image(text: str, filename: str) -> IoImage:

@@ -125,7 +125,7 @@ class _Parser:
         if top:
             self.spec.name = str(data.get("program", data.get("net", Path(self.file).stem)))
             if "io_image" in data:
-                self.spec.io_image = (str(data["io_image"]), self.where(data, "io_image", "io_image"))
+                self.io_image(data)
         for name, line in self.named(data, "events"):
             self.spec.events.append((self.prefix + name, Where(self.file, line, f"events.{name}")))
         places = data.get("places", YMap())
@@ -146,6 +146,15 @@ class _Parser:
         else:
             self.problem(line_of(data, "transitions"), "transitions",
                          "expected a mapping of transition: {...}")
+
+    def io_image(self, data: YMap) -> None:
+        ref, where = data["io_image"], self.where(data, "io_image", "io_image")
+        if not isinstance(ref, str) or not ref.strip():
+            # str() of a mapping or list would name a file that cannot exist
+            self.problem(where.line, "io_image",
+                         f"expected the file name of a symbols file, not {repr(ref)[:40]}")
+            return
+        self.spec.io_image = (ref, where)
 
     def named(self, data: YMap, key: str) -> list[tuple[str, int]]:
         value = data.get(key, YList())

@@ -76,26 +76,67 @@ _Loader.add_constructor("tag:yaml.org,2002:map", _mapping)  # type: ignore[arg-t
 _Loader.add_constructor("tag:yaml.org,2002:seq", _sequence)  # type: ignore[arg-type]
 
 
+MAX_EXPANDED_VALUES = 100_000  # the example programs have a few hundred
+
+
 def load_yaml(text: str, filename: str) -> tuple[Any, list[Problem]]:
     """Parse `text`. Returns (data, problems); data is None when the text does not parse."""
     try:
-        loader = _Loader(text)  # the reader rejects control characters right here
+        loader = _Loader(text)  # the reader rejects control characters in the first chunk
     except yaml.YAMLError as exc:
-        return None, [Problem(filename, 1, "", f"YAML error: {exc}")]
+        return None, [_unreadable(exc, text, filename)]
     loader.problems = []
     loader.filename = filename
     try:
         data = loader.get_single_data()
+    except RecursionError:  # PyYAML composes recursively: `[[[[...` a thousand deep
+        return None, [Problem(filename, 1, "", "YAML error: nesting too deep")]
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark is not None else 1
         reason = exc.problem or str(exc)
         return None, [Problem(filename, line, "", f"YAML syntax error: {reason}")]
-    except yaml.YAMLError as exc:
-        return None, [Problem(filename, 1, "", f"YAML error: {exc}")]
+    except yaml.YAMLError as exc:  # the reader checks later chunks while parsing
+        return None, [_unreadable(exc, text, filename)]
     finally:
         loader.dispose()
+    expanded = _expanded_size(data)
+    if expanded > MAX_EXPANDED_VALUES:
+        # Aliases share one object: `&a [x, x]`, `&b [*a, *a]`, ... is small text and tiny
+        # memory, but anything that walks it walks 10**9 values (a "billion laughs").
+        return None, [Problem(filename, 1, "", f"YAML error: more than {MAX_EXPANDED_VALUES} "
+                              "values once aliases are expanded")]
     return data, loader.problems
+
+
+def _expanded_size(data: Any) -> int:
+    """How many values a walk of `data` visits, every alias expanded; computed once per
+    shared object, so it costs the document's real size. Saturates past the limit."""
+    sizes: dict[int, int] = {}
+    stack: list[tuple[Any, bool]] = [(data, False)]
+    while stack:
+        value, children_done = stack.pop()
+        if not isinstance(value, dict | list) or id(value) in sizes:
+            continue
+        children = [*value.keys(), *value.values()] if isinstance(value, dict) else value
+        if children_done:
+            total = 1 + sum(sizes.get(id(c), 1) for c in children)
+            sizes[id(value)] = min(total, MAX_EXPANDED_VALUES + 1)
+            continue
+        stack.append((value, True))
+        stack.extend((c, False) for c in children)
+    return sizes.get(id(data), 1)
+
+
+def _unreadable(exc: yaml.YAMLError, text: str, filename: str) -> Problem:
+    """One located line for an error without a mark (PyYAML's reader gives a position
+    and a multi-line message)."""
+    if isinstance(exc, yaml.reader.ReaderError):
+        line = text.count("\n", 0, max(exc.position, 0)) + 1
+        char = exc.character if isinstance(exc.character, int) else ord(exc.character)
+        return Problem(filename, line, "", f"YAML error: character U+{char:04X} is not allowed "
+                       "in YAML")
+    return Problem(filename, 1, "", "YAML error: " + " ".join(str(exc).split()))
 
 
 def line_of(container: Any, key: Any, default: int = 0) -> int:

@@ -1,8 +1,10 @@
 """The communication process: Modbus TCP slave and HTTP API on one asyncio loop.
 
 Owns: starting both services against the published snapshot (shared memory) and the command
-channel, and stopping them. A crash here never stops the scan: it is another process.
-Does not know: the scan loop's internals.
+channel, and stopping them; which Modbus writes are allowed (`modbus_writes`: open, the
+running program's HMI-writable symbols, or none). A crash here never stops the scan: it is
+another process.
+Does not know: the scan loop's internals, Modbus framing, the register map's layout.
 """
 
 from __future__ import annotations
@@ -11,17 +13,30 @@ import asyncio
 import logging
 import os
 import signal
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.synchronize import Event
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Final, Literal, Protocol, get_args
 
-from softplc.core.image import ImageSizes
-from softplc.core.snapshot import HmiWrite
+from softplc.core.image import Address, AddressError, ImageSizes, parse_address
+from softplc.core.snapshot import HmiWrite, SnapshotSource
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.shm import SnapshotReader
 
+if TYPE_CHECKING:
+    from softplc.hmi.server import ModbusSlave
+
 log = logging.getLogger("softplc.comm")
+
+# "open": OpenPLC's behaviour, every coil and holding register (outputs and memory);
+# "symbols": only the addresses of the running program's out/memory symbols that are not
+# declared `hmi_writable: false`; "none": the slave is read-only. Inputs are never writable.
+ModbusWrites = Literal["open", "symbols", "none"]
+MODBUS_WRITES: Final[tuple[str, ...]] = get_args(ModbusWrites)
+RECHECK_S: Final = 0.001  # one program check per write request, not per written address
 
 
 @dataclass(frozen=True, slots=True)
@@ -30,23 +45,84 @@ class CommConfig:
     api: tuple[str, int] | None = ("127.0.0.1", 8080)
     state_dir: str = "state"
     sizes: ImageSizes = ImageSizes()
-    modbus_read_only: bool = False
+    modbus_writes: ModbusWrites = "open"
+
+    def __post_init__(self) -> None:
+        if self.modbus_writes not in MODBUS_WRITES:
+            raise ValueError(f"modbus_writes must be one of {', '.join(MODBUS_WRITES)}, "
+                             f"not {self.modbus_writes!r}")
+
+
+def _writable_addresses(document: dict[str, Any]) -> frozenset[Address]:
+    """Every image location of a symbol the board marks as HMI-writable (bits one by one)."""
+    allowed: set[Address] = set()
+    for entry in (document.get("symbols") or {}).values():
+        if not isinstance(entry, dict) or entry.get("direction") == "in":
+            continue
+        if entry.get("hmi_writable", True) is not True:
+            continue
+        try:
+            allowed.add(parse_address(str(entry.get("address"))))
+        except AddressError:
+            continue
+    return frozenset(allowed)
+
+
+class ProgramWritable:
+    """The Writable predicate of `modbus_writes="symbols"`: follows downloads. The snapshot
+    says which program runs (its hash, every scan); the board (refreshed about every 50 ms)
+    lists its symbols. While the board still describes another program, nothing is
+    writable: a stale list must not open an address of the old program."""
+
+    def __init__(self, read_board: Callable[[], dict[str, Any]], source: SnapshotSource) -> None:
+        self._read_board = read_board
+        self._source = source
+        self._program_hash: str | None = None
+        self._allowed: frozenset[Address] = frozenset()
+        self._checked_s = float("-inf")
+
+    def __call__(self, address: Address) -> bool:
+        return address in self._current()
+
+    def _current(self) -> frozenset[Address]:
+        now_s = time.monotonic()
+        if now_s - self._checked_s < RECHECK_S:
+            return self._allowed
+        self._checked_s = now_s
+        running = self._source.latest().status.program_hash
+        if running != self._program_hash:
+            document = self._read_board()
+            fresh = bool(running) and document.get("program_hash") == running
+            self._allowed = _writable_addresses(document) if fresh else frozenset()
+            self._program_hash = running if fresh else None
+        return self._allowed
+
+
+class _Service(Protocol):
+    async def stop(self) -> None: ...
+
+
+def modbus_slave(config: CommConfig, source: SnapshotSource, sink: Callable[[HmiWrite], None],
+                 read_board: Callable[[], dict[str, Any]]) -> ModbusSlave:
+    """The HMI slave of `config` (not started), with its write policy."""
+    from softplc.hmi.server import ModbusSlave
+
+    if config.modbus is None:
+        raise ValueError("Modbus is off in this configuration")
+    host, port = config.modbus
+    writable = (ProgramWritable(read_board, source) if config.modbus_writes == "symbols"
+                else None)
+    return ModbusSlave(source, sink, sizes=config.sizes, host=host, port=port,
+                       writable=writable, read_only=config.modbus_writes == "none")
 
 
 async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name: str,
                  ready: Event, stop: Event) -> None:
     reader = SnapshotReader.attach(shm_name, config.sizes)
     board = StatusBoard.attach(board_name)
-    services = []
+    services: list[_Service] = []
     if config.modbus is not None:
-        from softplc.hmi.server import ModbusSlave
-
-        def sink(write: HmiWrite) -> None:
-            channel.send_hmi_write(write)
-
-        host, port = config.modbus
-        slave = ModbusSlave(reader, sink, sizes=config.sizes, host=host, port=port,
-                            read_only=config.modbus_read_only)
+        slave = modbus_slave(config, reader, channel.send_hmi_write, board.read)
         await slave.start()
         services.append(slave)
     if config.api is not None:

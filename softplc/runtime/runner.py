@@ -1,22 +1,25 @@
 """One scan with its devices: read inputs through the drivers, scan, write outputs, trace.
 
-Owns: opening the drivers an io image declares, the per-scan sequence around core.scan, and
-the trace record of each scan. Used by the real-time loop and by virtual-time simulation.
+Owns: opening the drivers an io image declares, the per-scan sequence around core.scan (with
+the device fault policy of core/faults.py fed from the drivers' health), and the trace
+record of each scan. Used by the real-time loop and by virtual-time simulation.
 Does not know: which clock drives it, processes, sockets.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
+from softplc.core.faults import DeviceMonitor
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
 from softplc.core.scan import Plc, ProgramCommand, ScanResult, scan
 from softplc.core.snapshot import HmiWrite
-from softplc.core.symbols import IoImage
-from softplc.devices.driver import Driver, Health
+from softplc.core.symbols import FaultPolicy, IoImage
+from softplc.devices.driver import Diagnosed, Driver, Health
 from softplc.runtime.trace import TraceWriter, image_digest, input_changes
 
 
@@ -51,22 +54,34 @@ class ScanRunner:
         self._last_inputs: ProcessImage | None = None
         self._digest = ""
         self.fired_counts: dict[str, int] = {}
+        self.devices = DeviceMonitor()
+        self._policies_of: CompiledNet | None = None
+        self._policy_map: dict[str, FaultPolicy] = {}
 
     def set_drivers(self, drivers: Sequence[Driver]) -> None:
         for driver in self.drivers:
             driver.close()
         self.drivers = list(drivers)
+        self.devices.forget()
         self.inputs = ProcessImage(self.plc.image.sizes)
         self._last_inputs = None
 
     def health(self) -> dict[str, Health]:
         return {d.name: d.health() for d in self.drivers}
 
+    def device_report(self) -> dict[str, dict[str, object]]:
+        """Per driver: the fault policy's verdict, scans without an answer, and why."""
+        return self.devices.report()
+
     def step(self, now_ns: int, commands: Sequence[ProgramCommand] = (),
              hmi: Sequence[HmiWrite] = (), timing: dict[str, int] | None = None) -> ScanResult:
         for driver in self.drivers:
             driver.read_inputs(self.inputs, now_ns)
+        before = self._check_devices(now_ns) if self.drivers else []
         result = scan(self.plc, self.inputs, now_ns, commands, hmi)
+        after = self.devices.after_scan(self.plc, now_ns) if self.drivers else []
+        if before or after:
+            result = replace(result, events=(*before, *result.events, *after), outputs_changed=True)
         for driver in self.drivers:
             driver.write_outputs(result.outputs, now_ns)
         for name in result.fired:
@@ -78,6 +93,26 @@ class ScanRunner:
         else:
             self.inputs.copy_into(self._last_inputs)
         return result
+
+    def _check_devices(self, now_ns: int) -> list[str]:
+        # Health after read_inputs: the inputs this scan uses are the ones it judges.
+        answering = {d.name: d.health() is Health.OK for d in self.drivers}
+        return self.devices.before_scan(self.plc, answering, self._policies(), self._why, now_ns)
+
+    def _policies(self) -> Mapping[str, FaultPolicy]:
+        net = self.plc.net
+        if net is None:
+            return {}
+        if self._policies_of is not net:  # once per program, not once per scan
+            self._policies_of = net
+            self._policy_map = {name: spec.policy for name, spec in net.io.drivers.items()}
+        return self._policy_map
+
+    def _why(self, name: str) -> str:
+        driver = next(d for d in self.drivers if d.name == name)
+        if isinstance(driver, Diagnosed):
+            return driver.problem() or driver.health().value
+        return driver.health().value
 
     def _record(self, now_ns: int, commands: Sequence[ProgramCommand],
                 hmi: Sequence[HmiWrite], result: ScanResult) -> dict[str, Any]:
@@ -106,6 +141,7 @@ class ScanRunner:
     def close(self) -> None:
         for driver in self.drivers:
             driver.close()
+        self.devices.forget()  # a closed device is not a failed one; reopened, it boots again
         if self.trace is not None:
             self.trace.close()
 

@@ -175,6 +175,8 @@ def test_a_yaml_boolean_compiles_as_true_or_false() -> None:
         ("w * 9223372036854775807", OverflowError),  # results are bounded to +-2**63
         ("-9223372036854775807 - w", OverflowError),
         ("'a' < 1", TypeError),
+        ("'%s' % w", TypeError),  # %-formatting never runs: text is refused before the op
+        ("'{}' * w", TypeError),
     ],
 )
 def test_run_time_errors_raise_and_the_engine_takes_them_as_false(text: str, error: type) -> None:
@@ -323,6 +325,52 @@ ESCAPES: list[tuple[str, str]] = [
     ("-" * 1999 + "1", "expression too complex (4000 nodes, at most 400)"),
     ("+".join(["w"] * 300), "expression too complex"),
     ("1" * (MAX_TEXT + 1), f"expression longer than {MAX_TEXT} characters"),
+    # Unicode names are NFKC-normalised by the parser: fullwidth letters are plain names.
+    ("\uff45\uff56\uff41\uff4c('1')", NOT_CALLABLE),
+    ("\uff3f\uff3fimport\uff3f\uff3f('os')", "syntax error: invalid character"),
+    # format-string tricks reach attributes through str.format / %
+    ("'{0.__class__}'.format(a)", NOT_CALLABLE),
+    ("'{}'.format", NO_ATTRIBUTE),
+    ("'%(x)s' % {'x': 1}", "a dict is not allowed in an expression"),
+    ("f'{a!r}'", "an f-string is not allowed in an expression"),
+    ("f'{a:{b}}'", "an f-string is not allowed in an expression"),
+    ("rf'{a}'", "an f-string is not allowed in an expression"),
+    # lambda defaults, generator frames, code objects, bound builtins
+    ("(lambda x=__import__('os'): x)()", NOT_CALLABLE),
+    ("(lambda: 1).__code__", NO_ATTRIBUTE),
+    ("(x for x in ()).gi_frame", NO_ATTRIBUTE),
+    ("abs.__self__", NO_ATTRIBUTE),
+    ("min(a, b).__class__", NO_ATTRIBUTE),
+    ("True.__class__", NO_ATTRIBUTE),
+    ("[].__class__", NO_ATTRIBUTE),
+    ("{}.get", NO_ATTRIBUTE),
+    ("a.__dict__", NO_ATTRIBUTE),
+    ("a.__getattribute__('x')", NOT_CALLABLE),
+    ("tok.__globals__", "field '__globals__' is not allowed (no leading underscore)"),
+    ("tok.id.__class__.__subclasses__()", NOT_CALLABLE),
+    ("tok.id.real", NO_ATTRIBUTE),
+    ("super()", NOT_CALLABLE),
+    ("setattr(a, 'x', 1)", NOT_CALLABLE),
+    ("locals()", NOT_CALLABLE),
+    ("print(1)", NOT_CALLABLE),
+    ("__debug__", "name '__debug__' is not allowed (no leading underscore)"),
+    ("__loader__", "name '__loader__' is not allowed (no leading underscore)"),
+    ("type", "unknown name 'type': not a symbol, event or token variable"),
+    ("object", "unknown name 'object': not a symbol, event or token variable"),
+    # yield/await and scope tricks inside otherwise valid expressions
+    ("(yield)", "yield is not allowed in an expression"),
+    ("(yield from a)", "YieldFrom is not allowed in an expression"),
+    ("1 if a else (yield)", "yield is not allowed in an expression"),
+    ("x if (y := 1) else 2", "assignment := is not allowed in an expression"),
+    ("[a for a in ()] if a else 1", "a comprehension is not allowed in an expression"),
+    ("[*a]", "a list is not allowed in an expression"),
+    ("{**a}", "a dict is not allowed in an expression"),
+    ("(a, *b)", "a tuple is not allowed in an expression"),
+    ("a[::-1]", "subscript [] is not allowed in an expression"),
+    ("a @ b", "operator MatMult is not allowed"),
+    ("rb'x'", "constant b'x' is not allowed: use integers, true/false or 'text'"),
+    ("9" * 100, "integer 9999"),
+    ("not " * 199 + "a", "expression too complex (401 nodes, at most 400)"),
 ]
 
 
@@ -360,6 +408,10 @@ def payloads(sentinel: Path) -> list[str]:
         f"().__class__.__base__.__subclasses__()[0]({s})",
         f"2 ** 10 ** 10 ** 10 and open({s}, 'w')",
         f"__import__('subprocess').run(['touch', {s}])",
+        f"\uff4f\uff50\uff45\uff4e({s}, 'w')",
+        f"'{{0.__init__.__globals__}}'.format(open({s}, 'w'))",
+        f"(lambda f=open({s}, 'w'): f)()",
+        f"min(w, 1) if (f := open({s}, 'w')) else 0",
     ]
 
 

@@ -1,0 +1,172 @@
+"""`softplc bench`: run the benchmark sections, write JSON, plots and BENCHMARKS.md.
+
+Owns: which sections run in which mode, the headline keys that runs are compared by (dotted
+names such as `engine.vs_snakes_1k`), the targets they are reported against, and the machine
+description. Every headline figure is a ratio against a baseline measured in the same run.
+Does not know: how a section measures (engine.py, scanbench.py, modbusbench.py, ...).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from softplc.bench.measure import Progress
+
+SECTIONS = ("engine", "scan", "modbus", "online_change", "memory")
+
+
+@dataclass(frozen=True, slots=True)
+class Target:
+    key: str  # dotted: section.key
+    op: str  # ">=", "<=", "=="
+    bound: float
+    meaning: str
+
+    def met(self, value: float | None) -> bool | None:
+        if value is None:
+            return None
+        if self.op == ">=":
+            return value >= self.bound
+        if self.op == "<=":
+            return value <= self.bound
+        return value == self.bound
+
+
+TARGETS = (
+    Target("engine.vs_snakes_1k", ">=", 100, "SNAKES round time / ours, 1,000 transitions"),
+    Target("engine.scale_10k_over_10", "<=", 3, "our round time at 10,000 / at 10 transitions, "
+           "same number of firing transitions"),
+    Target("scan.p99_ratio_loaded_over_floor_1ms", "<=", 2, "p99 lateness at 1 ms, loaded "
+           "(4 Modbus clients + HTTP poll) / empty-loop floor"),
+    Target("scan.overruns_loaded_1ms", "==", 0, "overruns at 1 ms, loaded"),
+    Target("modbus.throughput_ratio_vs_pymodbus_4c", ">=", 0.9, "our slave's requests/s / "
+           "plain pymodbus server's, 4 clients, FC3 x 100 registers"),
+    Target("online_change.missed_scans", "==", 0, "scans missed by an online change "
+           "(worst of 10 and 10,000 transitions)"),
+)
+HEADLINE = (*(t.key for t in TARGETS), "memory.rss_mb")
+
+
+def _section_runner(name: str) -> Callable[[bool, Progress], dict[str, Any]]:
+    if name == "engine":
+        from softplc.bench import engine
+
+        return lambda quick, progress: engine.run(quick, progress)
+    if name == "scan":
+        from softplc.bench import scanbench
+
+        return lambda quick, progress: scanbench.run(quick, progress)
+    if name == "modbus":
+        from softplc.bench import modbusbench
+
+        return lambda quick, progress: modbusbench.run(quick, progress)
+    if name == "online_change":
+        from softplc.bench import onlinebench
+
+        return lambda quick, progress: onlinebench.run(quick, progress)
+    from softplc.bench import memorybench
+
+    return lambda quick, progress: memorybench.run(quick, progress)
+
+
+def machine() -> dict[str, Any]:
+    """What the figures were measured on: they mean little without it."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem_gb = None
+    try:
+        mem_gb = round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)
+    except (ValueError, OSError):
+        pass
+    versions = {}
+    for package in ("softplc", "numpy", "pymodbus", "aiohttp", "snakes", "matplotlib"):
+        try:
+            versions[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            versions[package] = None
+    return {"cpu": cpu, "cores": os.cpu_count(), "memory_gb": mem_gb,
+            "os": f"{platform.system()} {platform.release()}",
+            "python": platform.python_version(), "versions": versions,
+            "load_average": list(os.getloadavg())}
+
+
+def lookup(results: dict[str, Any], dotted: str) -> Any:
+    section, key = dotted.split(".", 1)
+    value = results.get("sections", {}).get(section, {})
+    return value.get(key) if isinstance(value, dict) else None
+
+
+def run_sections(names: list[str], quick: bool, progress: Progress,
+                 runner: Callable[[str], Callable[[bool, Progress], dict[str, Any]]] = _section_runner
+                 ) -> dict[str, Any]:
+    """Every named section, each timed; a section that fails is recorded, the rest go on."""
+    results: dict[str, Any] = {"mode": "quick" if quick else "full", "machine": machine(),
+                               "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+                               "sections": {}, "seconds": {}}
+    for name in names:
+        progress(f"{name}: starting")
+        began = time.monotonic()
+        try:
+            results["sections"][name] = runner(name)(quick, progress)
+        except Exception as exc:  # a broken section must not lose the others' figures
+            results["sections"][name] = {"error": f"{type(exc).__name__}: {exc}",
+                                         "traceback": traceback.format_exc()}
+            progress(f"{name}: FAILED ({type(exc).__name__}: {exc})")
+        results["seconds"][name] = round(time.monotonic() - began, 1)
+    results["machine"]["load_average_end"] = list(os.getloadavg())
+    results["headline"] = {key: lookup(results, key) for key in HEADLINE}
+    results["targets"] = [{"key": t.key, "target": f"{t.op} {t.bound:g}", "meaning": t.meaning,
+                           "value": results["headline"][t.key],
+                           "met": t.met(results["headline"][t.key])} for t in TARGETS]
+    return results
+
+
+def main(args: argparse.Namespace) -> int:
+    names = list(SECTIONS)
+    if getattr(args, "only", None):
+        names = [n.strip() for n in args.only.split(",") if n.strip()]
+        unknown = [n for n in names if n not in SECTIONS]
+        if unknown:
+            print(f"softplc bench: unknown section(s) {', '.join(unknown)}; "
+                  f"expected some of {', '.join(SECTIONS)}", file=sys.stderr)
+            return 2
+    progress = Progress(quiet=getattr(args, "quiet", False))
+    results = run_sections(names, args.quick, progress)
+    results["command"] = "softplc bench" + (" --quick" if args.quick else "") + (
+        f" --only {','.join(names)}" if names != list(SECTIONS) else "")
+    progress.done()
+    if args.plots:
+        from softplc.bench.report import write_plots
+
+        results["plots"] = write_plots(results, Path(args.plots))
+    if args.json_file:
+        Path(args.json_file).write_text(json.dumps(results, indent=1, default=str) + "\n")
+    if getattr(args, "markdown", None):
+        from softplc.bench.report import write_markdown
+
+        write_markdown(results, Path(args.markdown))
+    from softplc.bench.report import headline_table
+
+    print(headline_table(results))
+    failed = [n for n, s in results["sections"].items() if "error" in s]
+    if failed:
+        print(f"softplc bench: section(s) failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,346 @@
+"""A live runtime for the benchmarks: the scan and communication processes of `softplc run`,
+with every scan's lateness recorded, and the empty loop of the same scheduler (the floor).
+
+Owns: RecordingStats (every scan's time, lateness, execution time and skipped slots in
+preallocated arrays), RecordingLoop (a ScanLoop that also notes each net it loads), the
+bench scan process (the production one plus a results pipe), the floor process, LiveRuntime
+(start both processes as the supervisor does, stop them even on error) and free ports.
+Does not know: what load is put on the runtime, or how figures are reported.
+"""
+
+from __future__ import annotations
+
+import itertools
+import multiprocessing as mp
+import os
+import signal
+import socket
+import tempfile
+import time
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from multiprocessing.synchronize import Event
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from softplc.core.image import ImageSizes
+from softplc.runtime.board import StatusBoard
+from softplc.runtime.channel import Channel
+from softplc.runtime.clock import MonotonicClock
+from softplc.runtime.comm import CommConfig, comm_process_main
+from softplc.runtime.loop import LoopConfig, ScanLoop, scan_process_main
+from softplc.runtime.shm import SnapshotWriter
+from softplc.runtime.stats import TimingStats
+from softplc.runtime.supervisor import SHM_PREFIX, die_with_parent
+
+ROOT = Path(__file__).resolve().parents[2]  # the checkout: programs/ and io_images/
+TRANSPORT = ROOT / "programs" / "transport.yaml"
+_CTX = mp.get_context("spawn")  # as the supervisor: no state inherited from the harness
+_NAMES = itertools.count()
+# The production watchdog (10 periods) faults the PLC when this shared, noisy machine
+# preempts the scan process for 10 ms: a faulted PLC stops running its net, and the rest of
+# the run would measure an idle loop. The benchmark counts such scans as overruns instead.
+BENCH_WATCHDOG = 1000.0
+
+
+def free_port() -> int:
+    """A port on 127.0.0.1 that was free a moment ago (the comm process needs a number)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def rss_kib(pid: int) -> int:
+    """Resident memory of `pid` (VmRSS of /proc/PID/status), 0 if it is gone."""
+    try:
+        with open(f"/proc/{pid}/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return 0
+
+
+def cpu_s(pid: int) -> float:
+    """User + system CPU seconds `pid` has used so far (/proc/PID/stat)."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii") as stat:
+            fields = stat.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+@dataclass(slots=True)
+class ScanRecord:
+    """Every recorded scan: when it was recorded (ns, monotonic, system-wide), its lateness
+    and execution time (ns) and the slots it skipped; plus the nets loaded on the way."""
+
+    at_ns: npt.NDArray[np.int64]
+    late_ns: npt.NDArray[np.int64]
+    exec_ns: npt.NDArray[np.int64]
+    missed: npt.NDArray[np.int64]
+    changes: list[dict[str, Any]] = field(default_factory=list)
+
+    def window(self, t0_ns: int, t1_ns: int) -> ScanRecord:
+        keep = (self.at_ns >= t0_ns) & (self.at_ns < t1_ns)
+        return ScanRecord(self.at_ns[keep], self.late_ns[keep], self.exec_ns[keep],
+                          self.missed[keep])
+
+    def concat(self, other: ScanRecord) -> ScanRecord:
+        return ScanRecord(np.concatenate((self.at_ns, other.at_ns)),
+                          np.concatenate((self.late_ns, other.late_ns)),
+                          np.concatenate((self.exec_ns, other.exec_ns)),
+                          np.concatenate((self.missed, other.missed)))
+
+
+class RecordingStats(TimingStats):
+    """TimingStats that also keeps every scan, up to `capacity`, for histograms and windows."""
+
+    __slots__ = ("_clock", "_counted", "at_ns", "count", "exec_ns_all", "late_ns_all", "missed")
+
+    def __init__(self, capacity: int, window: int = 1000) -> None:
+        super().__init__(window)
+        self._clock = MonotonicClock()
+        self.at_ns = np.zeros(capacity, dtype=np.int64)
+        self.late_ns_all = np.zeros(capacity, dtype=np.int64)
+        self.exec_ns_all = np.zeros(capacity, dtype=np.int64)
+        self.missed = np.zeros(capacity, dtype=np.int64)
+        self.count = 0
+        self._counted = 0
+
+    def record(self, exec_ns: int, lateness_ns: int, *, overrun: bool = False) -> None:
+        self._settle()
+        i = self.count
+        if i < len(self.at_ns):
+            self.at_ns[i] = self._clock.now_ns()
+            self.late_ns_all[i] = lateness_ns
+            self.exec_ns_all[i] = exec_ns
+            self.missed[i] = 1 if overrun else 0
+            self.count = i + 1
+        super().record(exec_ns, lateness_ns, overrun=overrun)
+        self._counted = self.overruns
+
+    def _settle(self) -> None:
+        # The loop adds the slots skipped beyond the first to `overruns` after record():
+        # they belong to the previous scan.
+        if self.overruns != self._counted and 0 < self.count <= len(self.missed):
+            self.missed[self.count - 1] += self.overruns - self._counted
+        self._counted = self.overruns
+
+    def as_record(self, changes: list[dict[str, Any]]) -> ScanRecord:
+        self._settle()
+        n = self.count
+        return ScanRecord(self.at_ns[:n].copy(), self.late_ns_all[:n].copy(),
+                          self.exec_ns_all[:n].copy(), self.missed[:n].copy(), changes)
+
+
+class RecordingLoop(ScanLoop):
+    """The production scan loop, recording every scan and each net it loads."""
+
+    def __init__(self, config: LoopConfig, channel: Channel | None,
+                 writer: SnapshotWriter | None, board: StatusBoard | None, capacity: int) -> None:
+        super().__init__(config, channel, writer, board=board)
+        self.stats: RecordingStats = RecordingStats(capacity)
+        self.summary = self.stats.summary()
+        self.changes: list[dict[str, Any]] = []
+
+    def scan_once(self, now_ns: int) -> bool:
+        before = self.runner.plc.net
+        handled = super().scan_once(now_ns)
+        net = self.runner.plc.net
+        if net is not None and net is not before:
+            # The first scan of the new net is this one: core.scan fires it after the download.
+            self.changes.append({"index": self.stats.count, "reached_ns": now_ns,
+                                 "done_ns": self.clock.now_ns(), "program_hash": net.program_hash,
+                                 "transitions": len(net.transitions)})
+        return handled
+
+
+def bench_scan_main(config: LoopConfig, channel: Channel, shm_name: str, board_name: str,
+                    ready: Event, stop: Event, results: Connection, capacity: int) -> None:
+    """scan_process_main with a RecordingLoop; the record goes to `results` at the end."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    die_with_parent()
+    writer = SnapshotWriter.create(config.sizes, name=shm_name)
+    board = StatusBoard.create(board_name)
+    try:
+        loop = RecordingLoop(config, channel, writer, board, capacity)
+        writer.publish(loop.runner.plc.image, loop.status())
+        board.publish(loop.document())
+        ready.set()
+        loop.run(stop)
+        results.send(loop.stats.as_record(loop.changes))
+    finally:
+        writer.close()
+        writer.unlink()
+        board.close()
+
+
+def floor_main(period_ns: int, duration_s: float, results: Connection) -> None:
+    """The floor: ScanLoop.run's deadline arithmetic on the same clock, with no scan at all."""
+    die_with_parent()
+    clock = MonotonicClock()
+    stats = RecordingStats(int(duration_s * 1e9 / period_ns) + 16)
+    start = clock.now_ns()
+    end = start + int(duration_s * 1e9)
+    k = 0
+    while True:
+        deadline = start + k * period_ns
+        if deadline >= end:
+            break
+        reached = clock.wait_until(deadline)
+        done = clock.now_ns()
+        k += 1
+        missed = max(0, (done - start) // period_ns - k + 1) if done > start + k * period_ns else 0
+        k += missed
+        stats.record(done - reached, reached - deadline, overrun=missed > 0)
+        if missed > 1:
+            stats.overruns += missed - 1
+    results.send(stats.as_record([]))
+
+
+def run_floor(period_ns: int, duration_s: float) -> ScanRecord:
+    """The floor loop in its own process, like the scan; its record."""
+    receiver, sender = _CTX.Pipe(duplex=False)
+    proc = _CTX.Process(target=floor_main, args=(period_ns, duration_s, sender),
+                        name="softplc-bench-floor")
+    proc.start()
+    try:
+        if not receiver.poll(duration_s + 60):
+            raise RuntimeError("the floor process sent no record")
+        record: ScanRecord = receiver.recv()
+        return record
+    finally:
+        proc.join(5)
+        if proc.is_alive():
+            proc.kill()
+            proc.join(5)
+
+
+class LiveRuntime:
+    """Scan process + communication process (Modbus slave and HTTP API on loopback), started
+    as `softplc run` starts them. `record=True` runs the RecordingLoop (lateness of every
+    scan, returned by stop()); `record=False` runs the production scan process unchanged."""
+
+    def __init__(self, program: Path | None = TRANSPORT, *, period_ns: int = 1_000_000,
+                 start: bool = True, plant: str | None = "transport", record: bool = True,
+                 capacity_s: float = 120.0, api: bool = True, modbus: bool = True,
+                 watchdog: float = BENCH_WATCHDOG) -> None:
+        self.sizes = ImageSizes()
+        self.period_ns = period_ns
+        self.record = record
+        self.capacity = int(capacity_s * 1e9 / period_ns) + 1024
+        self.loop_config = LoopConfig(
+            program=str(program) if program else None, start=start, period_ns=period_ns,
+            plant=plant, root=str(ROOT), sizes=self.sizes, watchdog=watchdog)
+        self.modbus_port = free_port() if modbus else None
+        self.api_port = free_port() if api else None
+        self._state_dir = tempfile.TemporaryDirectory(prefix="softplc-bench-")
+        self.comm_config = CommConfig(
+            modbus=("127.0.0.1", self.modbus_port) if self.modbus_port else None,
+            api=("127.0.0.1", self.api_port) if self.api_port else None,
+            state_dir=self._state_dir.name, sizes=self.sizes)
+        tag = f"{SHM_PREFIX}{os.getpid()}_bench{next(_NAMES)}"
+        self.shm_name, self.board_name = f"{tag}_image", f"{tag}_board"
+        self.channel = Channel(ctx=_CTX)
+        self.stop_scan, self.stop_comm = _CTX.Event(), _CTX.Event()
+        self._receiver, self._sender = _CTX.Pipe(duplex=False)
+        self.scan: Any = None
+        self.comm: Any = None
+        self.board: StatusBoard | None = None
+        self._stopped = False
+        self._record: ScanRecord | None = None
+
+    @property
+    def api_url(self) -> str:
+        return f"http://127.0.0.1:{self.api_port}"
+
+    def start(self, timeout_s: float = 60.0) -> None:
+        ready = _CTX.Event()
+        common = (self.loop_config, self.channel, self.shm_name, self.board_name, ready,
+                  self.stop_scan)
+        if self.record:
+            self.scan = _CTX.Process(target=bench_scan_main, name="softplc-scan",
+                                     args=(*common, self._sender, self.capacity))
+        else:
+            self.scan = _CTX.Process(target=scan_process_main, name="softplc-scan", args=common)
+        self.scan.start()
+        if not ready.wait(timeout_s):
+            raise RuntimeError(f"the scan process did not start within {timeout_s} s")
+        self.board = StatusBoard.attach(self.board_name)
+        if self.comm_config.modbus is None and self.comm_config.api is None:
+            return
+        ready = _CTX.Event()
+        self.comm = _CTX.Process(
+            target=comm_process_main, name="softplc-comm",
+            args=(self.comm_config, self.channel, self.shm_name, self.board_name, ready,
+                  self.stop_comm))
+        self.comm.start()
+        deadline = time.monotonic() + timeout_s
+        while not ready.wait(0.1):
+            if not self.comm.is_alive() or time.monotonic() > deadline:
+                raise RuntimeError("the communication process did not start")
+
+    def status(self) -> dict[str, Any]:
+        assert self.board is not None
+        return self.board.read()
+
+    def wait_for_state(self, state: str, timeout_s: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        seen = None
+        while time.monotonic() < deadline:
+            seen = self.status().get("state")
+            if seen == state:
+                return
+            if not self.scan.is_alive():
+                raise RuntimeError("the scan process died")
+            time.sleep(0.05)
+        raise RuntimeError(f"the PLC did not reach {state} within {timeout_s} s (it is {seen})")
+
+    def stop(self) -> ScanRecord | None:
+        """Stop both processes (comm first, as the supervisor does); the record, if any.
+        Calling it again returns the same record."""
+        if self._stopped:
+            return self._record
+        self._stopped = True
+        record: ScanRecord | None = None
+        self.stop_comm.set()
+        _end(self.comm)
+        self.stop_scan.set()
+        if self.scan is not None and self.record and self._receiver.poll(30):
+            record = self._receiver.recv()
+        _end(self.scan)
+        if self.board is not None:
+            self.board.close()
+            self.board = None
+        self._state_dir.cleanup()
+        self._record = record
+        return record
+
+    def __enter__(self) -> LiveRuntime:
+        try:
+            self.start()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.stop()
+
+
+def _end(proc: Any) -> None:
+    if proc is None:
+        return
+    proc.join(15)
+    if proc.is_alive():
+        proc.kill()
+        proc.join(5)

@@ -1,0 +1,176 @@
+"""Benchmark section `online_change`: time from an online-change download (HTTP API POST, as
+`softplc download --online` sends it) to the first scan of the new net, and the scans missed
+meanwhile, for a 10-transition and a 10,000-transition net, PLC running at 1 ms.
+
+Owns: the generated ring nets (one program name, so every download is an online change of
+the running program with its marking carried over by place name) and the section's keys.
+Does not know: how the scan process compiles or swaps nets (runtime/loop.py, core/scan.py).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Any
+
+from softplc.api.client import ApiClient, ApiError, ApiUnreachable
+from softplc.bench.live import ROOT, LiveRuntime, ScanRecord
+from softplc.bench.measure import Progress, figures
+from softplc.core.image import ProcessImage
+from softplc.core.lifecycle import Command
+from softplc.core.scan import Plc, ProgramCommand, scan
+from softplc.core.snapshot import CommandRequest
+from softplc.program.compiler import compile_text
+
+PROGRAM = "online_bench"
+FILE_NAME = "online_bench.yaml"  # resolved under the runtime's programs/ directory
+_SETUP_IDS = iter(range(1_000_000, 2_000_000))  # far from the API's ids (1, 2, ...)
+
+
+def ring_program(transitions: int, variant: int) -> str:
+    """A ring of `transitions` unguarded transitions and places p0.., one token in p0.
+    Variants differ by an unconnected place, so each download is a real change; the places
+    of a smaller ring are a prefix of a larger one, so any change carries the token over."""
+    lines = [f"program: {PROGRAM}", "io_image: ../io_images/transport.yaml", "places:",
+             "  p0: {tokens: 1}"]
+    lines += [f"  p{i}: {{}}" for i in range(1, transitions)]
+    if variant:
+        lines.append(f"  spare{variant}: {{}}")
+    lines.append("transitions:")
+    lines += [f"  t{i}: {{from: [p{i}], to: [p{(i + 1) % transitions}]}}"
+              for i in range(transitions)]
+    return "\n".join(lines) + "\n"
+
+
+def _command(runtime: LiveRuntime, command: Command, text: str | None = None) -> None:
+    """Set-up commands go through the channel with a long timeout: a big net compiles for
+    longer than the API waits, and set-up is not what is measured."""
+    reply = runtime.channel.send_command(
+        CommandRequest(next(_SETUP_IDS), command, program_text=text, program_path=FILE_NAME),
+        timeout_s=600)
+    if not reply.ok:
+        raise RuntimeError(f"{command.value} refused: {reply.message}")
+
+
+def _download_online(runtime: LiveRuntime, api: ApiClient, text: str,
+                     timeout_s: float) -> dict[str, Any]:
+    before = runtime.status().get("program_hash")
+    t_request = time.monotonic_ns()
+    try:
+        outcome = api.download_text(text, online=True, name=FILE_NAME)["message"]
+    except (ApiError, ApiUnreachable) as exc:
+        outcome = f"error: {exc}"
+    t_reply = time.monotonic_ns()
+    deadline = time.monotonic() + timeout_s
+    # The swap shows on the status board even when the API gave up waiting (503).
+    while runtime.status().get("program_hash") == before:
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the online change did not happen within {timeout_s} s")
+        time.sleep(0.02)
+    return {"t_request_ns": t_request, "t_reply_ns": t_reply, "api": str(outcome)}
+
+
+def _evaluate(request: dict[str, Any], record: ScanRecord, period_ns: int) -> dict[str, Any]:
+    change = next(c for c in record.changes if c["done_ns"] > request["t_request_ns"])
+    i = min(change["index"], record.at_ns.size - 1)  # beyond the capacity: the last kept
+    t0 = request["t_request_ns"]
+    span = (record.at_ns >= t0) & (record.at_ns <= record.at_ns[i])
+    return {
+        "request_to_first_scan_ms": (change["done_ns"] - t0) / 1e6,
+        "request_to_reply_ms": (request["t_reply_ns"] - t0) / 1e6,
+        # Every slot skipped from the request to the first scan of the new net (noise of a
+        # shared machine included), and those the swap scan itself skipped (the compile).
+        "missed_scans": int(record.missed[span].sum()),
+        "swap_scan_missed": int(record.missed[i]),
+        "swap_scan_exec_ms": int(record.exec_ns[i]) / 1e6,  # compile + swap + first scan
+        "transitions": change["transitions"], "api": request["api"],
+    }
+
+
+def split_cost_ms(old_transitions: int, new_transitions: int) -> dict[str, float]:
+    """Where the swap scan's time goes, measured in this process: compiling the new net
+    (text to CompiledNet, what loop.py does at the scan boundary) and the swap alone (what
+    the scan would still do if it were handed a compiled net: core.scan's online change)."""
+    filename = str(ROOT / "programs" / FILE_NAME)
+    old = compile_text(ring_program(old_transitions, 0), filename, ROOT)
+    began = time.perf_counter_ns()
+    new = compile_text(ring_program(new_transitions, 1), filename, ROOT)
+    compiled = time.perf_counter_ns()
+    plc = Plc.empty(ProcessImage(old.io.sizes))
+    inputs = ProcessImage(old.io.sizes)
+    scan(plc, inputs, 0, [ProgramCommand(Command.DOWNLOAD, old), ProgramCommand(Command.START)])
+    swap_began = time.perf_counter_ns()
+    scan(plc, inputs, 1_000_000, [ProgramCommand(Command.DOWNLOAD, new, online=True)])
+    swapped = time.perf_counter_ns()
+    if plc.net is not new:
+        raise RuntimeError("the online change was refused")
+    return {"compile_ms": (compiled - began) / 1e6,
+            "swap_and_scan_ms": (swapped - swap_began) / 1e6}
+
+
+def _drive(runtime: LiveRuntime, sizes: tuple[int, ...], counts: dict[int, int],
+           settle_s: float, timeout_s: float,
+           progress: Progress) -> list[tuple[int, int, dict[str, Any]]]:
+    """The smallest net running, then the online changes: (from size, to size, timings)."""
+    _command(runtime, Command.DOWNLOAD, ring_program(min(sizes), 0))
+    _command(runtime, Command.START)
+    runtime.wait_for_state("RUNNING")
+    api = ApiClient(runtime.api_url, timeout_s=timeout_s)
+    requests = []
+    variant, running = 0, min(sizes)
+    for n in sizes:
+        for k in range(counts[n]):
+            variant = 1 - variant
+            progress(f"online_change: download online, {n} transitions ({k + 1}/{counts[n]})")
+            time.sleep(settle_s)
+            requests.append((running, n, _download_online(
+                runtime, api, ring_program(n, variant), timeout_s)))
+            running = n
+    time.sleep(settle_s)
+    return requests
+
+
+def _by_size(changes: list[dict[str, Any]], sizes: tuple[int, ...], split_limit: int,
+             progress: Progress) -> dict[str, Any]:
+    by_size: dict[str, Any] = {}
+    for n in sizes:
+        mine = [c for c in changes if c["size"] == n]
+        latency = figures([c["request_to_first_scan_ms"] for c in mine])
+        by_size[str(n)] = {"changes": len(mine), "request_to_first_scan_ms": {
+            "median": latency.median, "max": latency.max},
+            "missed_scans": max(c["missed_scans"] for c in mine)}
+        if n <= split_limit:
+            progress(f"online_change: compile vs swap cost in-process, {n} transitions")
+            by_size[str(n)]["split"] = split_cost_ms(min(sizes), n)
+    return by_size
+
+
+def run(quick: bool, progress: Progress, *, sizes: tuple[int, ...] = (10, 10_000),
+        repeats: dict[int, int] | None = None, period_ms: int = 1,
+        settle_s: float = 0.3, timeout_s: float = 600.0,
+        split_up_to: int | None = None) -> dict[str, Any]:
+    """Online changes into nets of each size (the first from the smallest net running);
+    key `missed_scans` (max over sizes). `split_up_to`: sizes up to this also get
+    split_cost_ms (quick: 1,000; full: all), which compiles each net once more here."""
+    split_limit = split_up_to if split_up_to is not None else (1000 if quick else max(sizes))
+    counts = repeats or {n: (3 if n <= 1000 else 1) if quick else (10 if n <= 1000 else 3)
+                         for n in sizes}
+    period_ns = period_ms * 1_000_000
+    load_before = os.getloadavg()
+    runtime = LiveRuntime(program=None, start=False, plant=None, period_ns=period_ns,
+                          modbus=False, capacity_s=300 + 30 * sum(counts.values()))
+    try:
+        progress("online_change: starting the runtime")
+        runtime.start()
+        requests = _drive(runtime, sizes, counts, settle_s, timeout_s, progress)
+        record = runtime.stop()
+    finally:
+        runtime.stop()
+    assert record is not None
+    changes = [{"size": n, "from_transitions": old, **_evaluate(r, record, period_ns)}
+               for old, n, r in requests]
+    by_size = _by_size(changes, sizes, split_limit, progress)
+    return {"period_ms": period_ms, "via": "HTTP API POST /api/v1/program?online=true",
+            "load_average_1m": [load_before[0], os.getloadavg()[0]],
+            "changes": changes, "by_size": by_size,
+            "missed_scans": max(v["missed_scans"] for v in by_size.values())}
