@@ -28,5 +28,13 @@ lint: setup
 bench: setup
 	$(VENV)/bin/softplc bench --json bench.json --plots docs/bench --markdown BENCHMARKS.md
 
+# Long fuzz run (about 25 min): the same fuzz tests as `make test` at 50x the cases; what
+# was tried is appended to fuzz-report.jsonl (figures quoted in RELIABILITY.md).
+FUZZ_SCALE ?= 50
+fuzz: setup
+	rm -f fuzz-report.jsonl
+	SOFTPLC_FUZZ_SCALE=$(FUZZ_SCALE) SOFTPLC_FUZZ_REPORT=fuzz-report.jsonl \
+		$(PY) -m pytest tests/fuzz -q -p no:cacheprovider
+
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache .hypothesis
