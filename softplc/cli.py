@@ -78,9 +78,10 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     try:
-        from softplc.bench.harness import main as bench_main  # type: ignore[import-not-found]
-    except ImportError:
-        print("softplc bench: the benchmark harness is not built yet (issue 6)", file=sys.stderr)
+        from softplc.bench.harness import main as bench_main
+    except ImportError as exc:  # matplotlib and snakes come with the `bench` extra
+        print(f"softplc bench: {exc}; install the bench extra: pip install -e '.[bench]'",
+              file=sys.stderr)
         return 2
     result: int = bench_main(args)
     return result
@@ -117,8 +118,16 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--api", type=_endpoint, default=("127.0.0.1", 8080),
                      help="HTTP API HOST:PORT, or off (127.0.0.1:8080)")
     run.add_argument("--plant", help="plant model for sim drivers (transport, drilling)")
-    run.add_argument("--start", action="store_true", help="start the program at once")
-    run.add_argument("--state-dir", default="state", help="retain and token directory (./state)")
+    run.add_argument("--start", action="store_true",
+                     help="start the program at once: warm from a valid snapshot of the same "
+                     "program in --state-dir, else cold from the initial marking")
+    run.add_argument("--state-dir", default="state",
+                     help="retain snapshots, their lock and the API token (./state)")
+    run.add_argument("--retain-interval", type=_duration, default=1_000_000_000,
+                     help="write a retain snapshot this often; 0: only on stop (1s)")
+    run.add_argument("--warm-start", choices=("run", "stop"), default="run",
+                     help="warm restart of a program that was RUNNING: resume it (run) or "
+                     "restore it and wait STOPPED for `softplc resume` (stop) (run)")
     run.add_argument("--trace", help="record every scan to this JSON Lines file")
     run.add_argument("--seed", type=int, default=0, help="plant seed (0)")
     run.add_argument("--watchdog", type=float, default=10.0,
@@ -143,9 +152,13 @@ def build_parser() -> argparse.ArgumentParser:
     rep.set_defaults(func=cmd_replay)
 
     bench = sub.add_parser("bench", help="benchmarks of the engine, scan timing and Modbus")
-    bench.add_argument("--quick", action="store_true")
-    bench.add_argument("--json", dest="json_file")
-    bench.add_argument("--plots")
+    bench.add_argument("--quick", action="store_true", help="small sizes, short runs (< 2 min)")
+    bench.add_argument("--json", dest="json_file", help="write every figure to this JSON file")
+    bench.add_argument("--plots", help="write PNG plots into this directory")
+    bench.add_argument("--markdown", help="write the report (e.g. BENCHMARKS.md)")
+    bench.add_argument("--only", help="comma-separated sections: engine, scan, modbus, "
+                       "online_change, memory")
+    bench.add_argument("--quiet", action="store_true", help="no progress display")
     bench.set_defaults(func=cmd_bench)
 
     try:

@@ -121,7 +121,8 @@ def format_status(status: dict[str, Any]) -> str:
         f"state       {status.get('state', '?')}"
         + (f" (fault code {status['fault_code']})" if status.get("fault_code") else ""),
         f"program     {program}" + (f"  hash {digest[:12]}" if digest else ""),
-        f"start mode  {status.get('start_mode', '?')}",
+        f"start mode  {status.get('start_mode', '?')}"
+        + (f" ({status['start_reason']})" if status.get("start_reason") else ""),
         f"scans       {status.get('scan_count', 0)}, period {_us(status.get('period_us'))}",
         f"execution   median {_us(timing.get('exec_median_us'))}, "
         f"p99 {_us(timing.get('exec_p99_us'))}, max {_us(timing.get('exec_max_us'))}",

@@ -4,6 +4,7 @@ Owns: absolute deadlines on the monotonic clock, skipped slots counted as overru
 watchdog (execution time over period x sensitivity -> FAULTED, safe outputs), commands and
 HMI writes drained at the scan boundary (downloads compiled here, before the scan, so a bad
 program never reaches the PLC), the snapshot published to shared memory after every scan,
+retain captures at scan boundaries (written by retain.py's thread), the cold or warm start,
 and safe outputs on shutdown.
 Does not know: Modbus, HTTP (the communication process), terminals (the CLI).
 """
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import threading
 from collections import deque
 from collections.abc import Sequence
@@ -22,6 +24,7 @@ from typing import Any
 
 from softplc.core.image import ImageSizes
 from softplc.core.lifecycle import Command, PlcState
+from softplc.core.net import CompiledNet
 from softplc.core.problems import ProgramError
 from softplc.core.scan import FAULT_WATCHDOG, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
@@ -29,6 +32,18 @@ from softplc.program.compiler import compile_file, compile_text
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.clock import Clock, MonotonicClock
+from softplc.runtime.retain import (
+    ContinuedClock,
+    Loaded,
+    RetainStore,
+    RetainWriter,
+    StartDecision,
+    StateDirBusy,
+    capture,
+    decide,
+    load_plant,
+    restore,
+)
 from softplc.runtime.runner import ScanRunner, open_drivers
 from softplc.runtime.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
@@ -47,6 +62,9 @@ class LoopConfig:
     root: str | None = None  # downloads may only reference files under this directory
     sizes: ImageSizes = ImageSizes()
     max_scans: int | None = None  # stop after this many (tests, benchmarks)
+    state_dir: str | None = None  # retain snapshots live here; None: no retain, always cold
+    retain_interval_ns: int = 1_000_000_000  # 0: only on stop
+    warm_start: str = "run"  # a warm restart of a RUNNING snapshot: "run" resumes, "stop" waits
 
 
 class ScanLoop:
@@ -62,17 +80,69 @@ class ScanLoop:
         self.events: deque[dict[str, Any]] = deque(maxlen=256)
         self.event_seq = 0
         self.start_mode = "cold"
-        self.clock = clock or MonotonicClock()
+        self.start_reason = "retain off (no state directory)"
+        self.clock: Clock = clock or MonotonicClock()
         self.stats = TimingStats()
         self.summary = self.stats.summary()  # refreshed every board_every scans, not every scan
         self.runner = ScanRunner(Plc.empty(), [], TraceWriter(config.trace) if config.trace else None)
         self.pending: list[ProgramCommand] = []
         self._driver_specs: tuple[object, ...] = ()
-        if config.program:
-            net = compile_file(config.program)  # a bad startup program: the CLI reports it
+        self.retain: RetainWriter | None = None
+        self._retained_ns = 0
+        net = compile_file(config.program) if config.program else None  # the CLI reports errors
+        decision = StartDecision("cold", self.start_reason)
+        if config.state_dir is not None:
+            store = RetainStore.open(config.state_dir)  # StateDirBusy: another runtime has it
+            decision = decide(store, net)
+            self.retain = RetainWriter(store)
+        self.start_mode, self.start_reason = decision.mode, decision.reason
+        if net is not None and decision.snapshot is not None:
+            self._warm(net, decision.snapshot)
+        elif net is not None:
             self.pending.append(ProgramCommand(Command.DOWNLOAD, net, id=0))
             if config.start:
                 self.pending.append(ProgramCommand(Command.START, id=0))
+
+    # -- retain -----------------------------------------------------------------------------
+
+    def _warm(self, net: CompiledNet, snap: Loaded) -> None:
+        """Download `net`, open its devices and put the snapshot in; on a snapshot that does
+        not fit after all (same hash, unusable content) fall back to a cold start."""
+        payload = snap.payload
+        resume = self.config.start and self.config.warm_start == "run"
+        plc = self.runner.plc
+        plc.apply(ProgramCommand(Command.DOWNLOAD, net), payload["now_ns"])
+        try:
+            state = restore(plc, payload, resume)
+            plants = {name: load_plant(blob)
+                      for name, blob in payload.get("field_simulation_only", {}).items()}
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError, EOFError) as exc:
+            self.runner.plc = Plc.empty(self.runner.plc.image)
+            self.pending = [ProgramCommand(Command.DOWNLOAD, net, id=0)]
+            if self.config.start:
+                self.pending.append(ProgramCommand(Command.START, id=0))
+            self.start_mode = "cold"
+            self.start_reason = f"snapshot {snap.path.name} unusable ({type(exc).__name__}: {exc})"
+            return
+        self._after(())  # the program's devices, opened before the first scan
+        for driver in self.runner.drivers:
+            if driver.name in plants and hasattr(driver, "plant"):
+                driver.plant = plants[driver.name]  # simulation only: the field side
+        self.clock = ContinuedClock(self.clock, payload["now_ns"])
+        self._retained_ns = payload["now_ns"]
+        self.start_reason += f" -> {state.name}"
+
+    def _sim_plants(self) -> dict[str, object]:
+        return {d.name: d.plant for d in self.runner.drivers if hasattr(d, "plant")}
+
+    def _retain(self, now_ns: int, due: bool) -> None:
+        """At a scan boundary: hand a consistent copy to the writer thread when due."""
+        if self.retain is None or not due:
+            return
+        cap = capture(self.runner.plc, now_ns, self._sim_plants())
+        if cap is not None:
+            self.retain.submit(cap)
+            self._retained_ns = now_ns
 
     # -- commands ---------------------------------------------------------------------------
 
@@ -149,13 +219,18 @@ class ScanLoop:
         net = plc.net
         symbols = {} if net is None else {
             s.name: {"address": str(s.address), "type": s.type.value,
-                     "direction": s.direction.value, "value": plc.image.get(s.address)}
+                     "direction": s.direction.value, "value": plc.image.get(s.address),
+                     "hmi_writable": s.hmi_writable}
             for s in net.io.symbols.values()}
         return {
             "state": plc.state.name, "program": net.name if net else None,
             "program_hash": net.program_hash if net else None, "scan_count": plc.scan_count,
             "period_us": self.config.period_ns // 1000, "marking": plc.marking(),
-            "timing": timing, "fault_code": plc.fault_code, "start_mode": self.start_mode,
+            "timing": timing, "fault_code": plc.fault_code,
+            "fault_reason": plc.fault_reason, "devices": self.runner.device_report(),
+            "start_mode": self.start_mode,
+            "start_reason": self.start_reason,
+            "retain": self.retain.info() if self.retain else None,
             "health": {name: h.value for name, h in self.runner.health().items()},
             "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
             "symbols": symbols, "events": list(self.events),
@@ -194,6 +269,8 @@ class ScanLoop:
                 self.summary = self.stats.summary()
             if self.writer is not None:
                 self.writer.publish(self.runner.plc.image, self.status())
+            interval = self.config.retain_interval_ns
+            self._retain(reached, interval > 0 and reached - self._retained_ns >= interval)
             if self.board is not None and refresh:
                 self.board.publish(self.document())
         self.shutdown()
@@ -208,6 +285,8 @@ class ScanLoop:
         """Outputs to their safe values, written through the drivers, then close."""
         self.summary = self.stats.summary()
         plc = self.runner.plc
+        # Retained before the outputs go safe: a warm restart resumes what the program drove.
+        self._retain(self.clock.now_ns(), True)
         plc.drive_safe()
         for driver in self.runner.drivers:
             driver.write_outputs(plc.image, self.clock.now_ns())
@@ -216,6 +295,8 @@ class ScanLoop:
         if self.board is not None:
             self.board.publish(self.document())
         self.runner.close()
+        if self.retain is not None:
+            self.retain.close()  # waits for the last snapshot to be on disk
 
 
 def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board_name: str,
@@ -237,7 +318,11 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
     writer = SnapshotWriter.create(config.sizes, name=shm_name)
     board = StatusBoard.create(board_name)
     try:
-        loop = ScanLoop(config, channel, writer, board=board)
+        try:
+            loop = ScanLoop(config, channel, writer, board=board)
+        except StateDirBusy as exc:
+            print(f"softplc: {exc}", file=sys.stderr)
+            raise SystemExit(3) from None
         writer.publish(loop.runner.plc.image, loop.status())
         board.publish(loop.document())
         ready.set()

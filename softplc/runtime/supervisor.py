@@ -2,7 +2,8 @@
 live status line, and stop both on Ctrl-C or SIGTERM with outputs driven safe first.
 
 Owns: process start order, shared-memory names, restarts of a crashed communication process,
-the live status line. Does not know: what a scan does.
+the live status line, the banner (with the cold/warm start and its reason), refusing a state
+directory another runtime holds. Does not know: what a scan does, what a snapshot holds.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel, pid_alive
 from softplc.runtime.comm import CommConfig, comm_process_main
 from softplc.runtime.loop import LoopConfig, scan_process_main
+from softplc.runtime.retain import StateDirBusy, check_state_dir
 
 SHM_PREFIX = "softplc_"
 COMM_RESTARTS = 5
@@ -74,7 +76,9 @@ class Supervisor:
         self.loop_config = LoopConfig(
             program=args.program, start=args.start, period_ns=args.period, plant=args.plant,
             seed=args.seed, trace=args.trace, watchdog=args.watchdog, root=str(root),
-            sizes=self.sizes)
+            sizes=self.sizes, state_dir=args.state_dir,
+            retain_interval_ns=getattr(args, "retain_interval", 1_000_000_000),
+            warm_start=getattr(args, "warm_start", "run"))
         self.comm_config = CommConfig(modbus=args.modbus, api=args.api,
                                       state_dir=args.state_dir, sizes=self.sizes)
         self.scan: Any = None
@@ -88,8 +92,12 @@ class Supervisor:
             args=(self.loop_config, self.channel, self.shm_name, self.board_name, ready,
                   self.stop_scan))
         self.scan.start()
-        if not ready.wait(30):
-            raise RuntimeError("the scan process did not start within 30 s")
+        deadline = time.monotonic() + 30
+        while not ready.wait(0.1):
+            if not self.scan.is_alive():
+                raise RuntimeError(f"the scan process exited ({self.scan.exitcode}) at start")
+            if time.monotonic() > deadline:
+                raise RuntimeError("the scan process did not start within 30 s")
         self.start_comm()
 
     def start_comm(self) -> None:
@@ -139,6 +147,11 @@ def run(args: argparse.Namespace) -> int:
             for problem in exc.problems:
                 print(problem, file=sys.stderr)
             return 1
+    try:
+        check_state_dir(args.state_dir)  # the scan process takes the lock; fail early and clearly
+    except StateDirBusy as exc:
+        print(f"softplc: {exc}", file=sys.stderr)
+        return 1
     _remove_stale_segments()
     supervisor = Supervisor(args)
     stopping = False
@@ -155,10 +168,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"softplc: {exc}", file=sys.stderr)
         supervisor.stop()
         return 1
-    _banner(args)
+    board = StatusBoard.attach(supervisor.board_name)
+    _banner(args, board.read())
     print(f"  scan process pid {supervisor.scan.pid}, communication process pid "
           f"{supervisor.comm.pid if supervisor.comm else '-'}", flush=True)
-    board = StatusBoard.attach(supervisor.board_name)
     began = time.monotonic()
     tty = sys.stdout.isatty() and not args.quiet
     last_print = 0.0
@@ -182,9 +195,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _banner(args: argparse.Namespace) -> None:
+def _banner(args: argparse.Namespace, doc: dict[str, Any]) -> None:
     print(f"softplc running {args.program or '(no program)'}"
           f" (period {args.period / 1e6:g} ms){' started' if args.start else ''}")
+    print(f"  {doc.get('start_mode', '?')} start: {doc.get('start_reason', '?')}")
+    interval = getattr(args, "retain_interval", 0)
+    print(f"  retain in {args.state_dir}/: "
+          + (f"every {interval / 1e9:g} s and on stop" if interval else "on stop only"))
     if args.modbus:
         host, port = args.modbus
         print(f"  Modbus TCP slave on {host}:{port}; try: "
