@@ -24,6 +24,7 @@ from softplc.api import auth
 DEFAULT_URL: Final = "http://127.0.0.1:8080"
 API: Final = "/api/v1"
 _SILENCE_S: Final = 30.0  # two server heartbeats
+DOWNLOAD_TIMEOUT_S: Final = 65.0  # the server waits up to 60 s for a big compile
 
 
 class ApiError(Exception):
@@ -79,7 +80,8 @@ class ApiClient:
         query = {"online": "true" if online else "false"}
         if name:  # the server takes plain file names only
             query["name"] = re.sub(r"[^A-Za-z0-9._-]", "_", name)[:128]
-        return self._json("POST", "/program", text.encode(), "application/yaml", query)
+        return self._json("POST", "/program", text.encode(), "application/yaml", query,
+                          max(self.timeout_s, DOWNLOAD_TIMEOUT_S))
 
     def command(self, command: str) -> dict[str, Any]:
         """start, stop, resume, reset or kill: {"ok", "message", "state"}."""
@@ -154,9 +156,9 @@ class ApiClient:
     # -- transport --------------------------------------------------------------------------
 
     def _json(self, method: str, path: str, body: bytes | None = None,
-              content_type: str | None = None, query: dict[str, str] | None = None
-              ) -> dict[str, Any]:
-        with self._open(method, path, body, content_type, query) as response:
+              content_type: str | None = None, query: dict[str, str] | None = None,
+              timeout_s: float | None = None) -> dict[str, Any]:
+        with self._open(method, path, body, content_type, query, timeout_s=timeout_s) as response:
             try:
                 status, raw = response.status, response.read()
             except OSError as exc:

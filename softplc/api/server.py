@@ -39,6 +39,9 @@ DEFAULT_HOST: Final = "127.0.0.1"
 DEFAULT_PORT: Final = 8080
 MAX_BODY_BYTES: Final = 1 << 20
 COMMAND_TIMEOUT_S: Final = 8.0  # below the client's 10 s: a 503 says more than a timeout
+# A download compiles off the scan (runtime/downloads.py); a big net takes seconds. Below the
+# client's 65 s for downloads, for the same reason.
+DOWNLOAD_TIMEOUT_S: Final = 60.0
 HEARTBEAT_S: Final = 15.0
 BOARD_POLL_S: Final = 0.05  # the scan process refreshes the board about every 50 ms
 EVENT_QUEUE: Final = 1024  # per client; a slower client loses the oldest and is told
@@ -313,8 +316,10 @@ class ApiServer:
         request = CommandRequest(next(self._ids), command, program_text=text,
                                  program_path=name, online=online)
         try:
-            return await asyncio.to_thread(self._channel.send_command, request,
-                                           self.command_timeout_s)
+            timeout_s = self.command_timeout_s
+            if command is Command.DOWNLOAD:
+                timeout_s = max(timeout_s, DOWNLOAD_TIMEOUT_S)
+            return await asyncio.to_thread(self._channel.send_command, request, timeout_s)
         except (TimeoutError, ChannelFull) as exc:
             raise ApiProblem(503, str(exc), headers={"Retry-After": "1"}) from None
 

@@ -32,6 +32,7 @@ from softplc.program.compiler import compile_file, compile_text
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.clock import Clock, MonotonicClock
+from softplc.runtime.downloads import DownloadQueue
 from softplc.runtime.retain import (
     ContinuedClock,
     Loaded,
@@ -86,6 +87,7 @@ class ScanLoop:
         self.summary = self.stats.summary()  # refreshed every board_every scans, not every scan
         self.runner = ScanRunner(Plc.empty(), [], TraceWriter(config.trace) if config.trace else None)
         self.pending: list[ProgramCommand] = []
+        self.downloads = DownloadQueue(self._compile)
         self._driver_specs: tuple[object, ...] = ()
         self.retain: RetainWriter | None = None
         self._retained_ns = 0
@@ -146,30 +148,28 @@ class ScanLoop:
 
     # -- commands ---------------------------------------------------------------------------
 
-    def _translate(self, requests: Sequence[CommandRequest]) -> list[ProgramCommand]:
+    def _due_commands(self) -> list[ProgramCommand]:
+        """The drained commands whose turn has come, in arrival order: downloads compiled
+        (off the scan, runtime/downloads.py) or refused with every problem listed."""
         commands = []
-        for req in requests:
+        for item in self.downloads.take():
+            req = item.request
             if req.command is not Command.DOWNLOAD:
                 commands.append(ProgramCommand(req.command, online=req.online, id=req.id))
-                continue
-            try:
-                net = self._compile(req)
-            except ProgramError as exc:
-                self._reply(CommandReply(req.id, False, f"download refused:\n{exc}",
-                                         self.runner.plc.state))
-                continue
-            except Exception as exc:  # a compiler bug must never stop the scan
-                self._reply(CommandReply(req.id, False, "download refused: internal compiler "
-                                         f"error ({type(exc).__name__}: {exc})",
-                                         self.runner.plc.state))
-                continue
-            if net.io.sizes != self.config.sizes:
-                self._reply(CommandReply(req.id, False, "download refused: the program's image "
-                                         f"sizes {net.io.sizes} differ from the runtime's",
-                                         self.runner.plc.state))
-                continue
-            commands.append(ProgramCommand(Command.DOWNLOAD, net, req.online, req.id))
+            elif isinstance(item.error, ProgramError):
+                self._refuse(req, f"download refused:\n{item.error}")
+            elif item.error is not None:  # a compiler bug must never stop the scan
+                self._refuse(req, "download refused: internal compiler error "
+                             f"({type(item.error).__name__}: {item.error})")
+            elif item.net is not None and item.net.io.sizes != self.config.sizes:
+                self._refuse(req, "download refused: the program's image sizes "
+                             f"{item.net.io.sizes} differ from the runtime's")
+            else:
+                commands.append(ProgramCommand(Command.DOWNLOAD, item.net, req.online, req.id))
         return commands
+
+    def _refuse(self, req: CommandRequest, message: str) -> None:
+        self._reply(CommandReply(req.id, False, message, self.runner.plc.state))
 
     def _compile(self, req: CommandRequest):  # type: ignore[no-untyped-def]
         root = Path(self.config.root) if self.config.root else None
@@ -200,7 +200,8 @@ class ScanLoop:
         """One scan; True if it handled program commands (exempt from the watchdog: a
         download compiles and may open devices, which is not the program's execution time)."""
         requests, writes = self.channel.drain() if self.channel else ([], [])
-        commands = self.pending + self._translate(requests)
+        self.downloads.put(requests)
+        commands = self.pending + self._due_commands()
         self.pending = []
         result = self.runner.step(now_ns, commands, writes)
         self._after(result.replies)
@@ -208,7 +209,7 @@ class ScanLoop:
             self.event_seq += 1
             self.events.append({"seq": self.event_seq, "scan": self.runner.plc.scan_count,
                                 "t_ns": now_ns, "name": name})
-        return bool(requests) or bool(commands)
+        return bool(commands)
 
     def document(self) -> dict[str, Any]:
         """The status board: what `softplc status` and the HTTP API show."""
@@ -295,6 +296,7 @@ class ScanLoop:
         if self.board is not None:
             self.board.publish(self.document())
         self.runner.close()
+        self.downloads.close()
         if self.retain is not None:
             self.retain.close()  # waits for the last snapshot to be on disk
 

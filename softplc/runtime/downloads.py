@@ -1,0 +1,94 @@
+"""Downloads compiled off the scan: one worker thread in the scan process.
+
+Owns: compiling downloaded programs on a background thread in arrival order, holding the
+commands that arrived after a download until it is decided (commands apply in the order they
+were sent), and a short GIL switch interval while a compile runs, so that the scan thread
+gets the interpreter back within a fraction of a period.
+Does not know: the PLC, the lifecycle, the channel, what compiling means.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections import deque
+from collections.abc import Callable, Iterable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+
+from softplc.core.lifecycle import Command
+from softplc.core.net import CompiledNet
+from softplc.core.snapshot import CommandRequest
+
+# While a compile runs, a waiting scan thread gets the GIL back after at most this long (the
+# interpreter's default is 5 ms: five missed scans at a 1 ms period).
+COMPILE_SWITCH_INTERVAL_S = 0.0002
+
+
+@dataclass(frozen=True, slots=True)
+class Decided:
+    """A request whose turn has come: `net` for a compiled download, `error` for a refused
+    one, neither for any other command."""
+
+    request: CommandRequest
+    net: CompiledNet | None = None
+    error: BaseException | None = None
+
+
+class DownloadQueue:
+    """`put()` what the channel drained; `take()` at each scan boundary what may apply now."""
+
+    def __init__(self, compile_program: Callable[[CommandRequest], CompiledNet],
+                 switch_interval_s: float = COMPILE_SWITCH_INTERVAL_S) -> None:
+        self._compile = compile_program
+        self._switch_interval_s = switch_interval_s
+        self._default_interval_s = sys.getswitchinterval()
+        self._queue: deque[tuple[CommandRequest, Future[CompiledNet] | None]] = deque()
+        self._executor: ThreadPoolExecutor | None = None
+        self._compiling = 0
+
+    def put(self, requests: Iterable[CommandRequest]) -> None:
+        for request in requests:
+            future = None
+            if request.command is Command.DOWNLOAD:
+                future = self._pool().submit(self._compile, request)
+                self._compiling += 1
+                sys.setswitchinterval(self._switch_interval_s)
+            self._queue.append((request, future))
+
+    def take(self) -> list[Decided]:
+        """The requests at the head of the queue that are decided, in arrival order; stops
+        at the first download still compiling."""
+        decided: list[Decided] = []
+        while self._queue:
+            request, future = self._queue[0]
+            if future is not None and not future.done():
+                break
+            self._queue.popleft()
+            if future is None:
+                decided.append(Decided(request))
+                continue
+            self._compiling -= 1
+            error = future.exception()
+            decided.append(Decided(request, error=error) if error is not None
+                           else Decided(request, net=future.result()))
+        if self._compiling == 0:
+            sys.setswitchinterval(self._default_interval_s)
+        return decided
+
+    @property
+    def waiting(self) -> int:
+        """Requests not yet handed out (a download compiling and what queued behind it)."""
+        return len(self._queue)
+
+    def _pool(self) -> ThreadPoolExecutor:
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="compile")
+        return self._executor
+
+    def close(self) -> None:
+        """Drop what is queued; a compile in progress finishes on its own and is discarded."""
+        self._queue.clear()
+        if self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)
+            self._executor = None
+        sys.setswitchinterval(self._default_interval_s)

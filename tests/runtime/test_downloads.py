@@ -1,0 +1,110 @@
+"""Downloads compile off the scan (runtime/downloads.py): the scan goes on while a program
+compiles, commands apply in the order they were sent, refusals keep every problem, and the
+GIL switch interval is short only while a compile runs."""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from pathlib import Path
+
+from softplc.core.lifecycle import Command
+from softplc.core.net import CompiledNet
+from softplc.core.problems import ProgramError
+from softplc.core.snapshot import CommandRequest
+from softplc.program.compiler import compile_file, compile_text
+from softplc.runtime.downloads import COMPILE_SWITCH_INTERVAL_S, Decided, DownloadQueue
+
+ROOT = Path(__file__).resolve().parents[2]
+TRANSPORT = ROOT / "programs" / "transport.yaml"
+
+
+def gated_compiler(gate: threading.Event):  # type: ignore[no-untyped-def]
+    """The real compiler, held until `gate` opens (a big program takes seconds)."""
+
+    def compile_program(request: CommandRequest) -> CompiledNet:
+        assert gate.wait(10)
+        return compile_text(request.program_text or "", str(TRANSPORT), ROOT)
+
+    return compile_program
+
+
+def take_until(queue: DownloadQueue, count: int, timeout_s: float = 10.0) -> list[Decided]:
+    decided: list[Decided] = []
+    deadline = time.monotonic() + timeout_s
+    while len(decided) < count and time.monotonic() < deadline:
+        decided += queue.take()
+        time.sleep(0.001)
+    return decided
+
+
+def test_commands_behind_a_compiling_download_wait_and_keep_their_order() -> None:
+    gate = threading.Event()
+    queue = DownloadQueue(gated_compiler(gate))
+    text = TRANSPORT.read_text()
+    queue.put([CommandRequest(1, Command.STOP), CommandRequest(2, Command.DOWNLOAD,
+                                                               program_text=text),
+               CommandRequest(3, Command.START)])
+    try:
+        first = queue.take()
+        assert [d.request.id for d in first] == [1]  # before the download: at once
+        assert queue.take() == [] and queue.waiting == 2  # START waits for the download
+        assert abs(sys.getswitchinterval() - COMPILE_SWITCH_INTERVAL_S) < 1e-6
+        gate.set()
+        rest = take_until(queue, 2)
+        assert [d.request.id for d in rest] == [2, 3]
+        assert rest[0].net is not None and rest[0].net.name == compile_file(TRANSPORT).name
+        assert rest[1].net is None and rest[1].error is None
+        assert sys.getswitchinterval() > 10 * COMPILE_SWITCH_INTERVAL_S
+    finally:
+        gate.set()
+        queue.close()
+
+
+def test_a_refused_download_carries_the_compiler_problems() -> None:
+    queue = DownloadQueue(lambda req: compile_text(req.program_text or "", "bad.yaml", ROOT))
+    queue.put([CommandRequest(5, Command.DOWNLOAD, program_text="program: x\nplaces: [\n")])
+    try:
+        (decided,) = take_until(queue, 1)
+        assert isinstance(decided.error, ProgramError)
+        assert "bad.yaml:" in str(decided.error)
+    finally:
+        queue.close()
+
+
+def test_the_scan_loop_keeps_scanning_while_a_download_compiles(tmp_path: Path) -> None:
+    from softplc.runtime.channel import Channel
+    from softplc.runtime.clock import VirtualClock
+    from softplc.runtime.loop import LoopConfig, ScanLoop
+
+    gate = threading.Event()
+    channel = Channel()
+    loop = ScanLoop(LoopConfig(program=str(TRANSPORT), start=True, root=str(ROOT)), channel,
+                    None, VirtualClock(0))
+    loop.downloads = DownloadQueue(gated_compiler(gate))
+    replies = []
+    sender = threading.Thread(target=lambda: replies.append(channel.send_command(
+        CommandRequest(9, Command.DOWNLOAD, program_text=TRANSPORT.read_text(), online=True),
+        timeout_s=20)))
+    sender.start()
+    try:
+        deadline = time.monotonic() + 10
+        while loop.downloads.waiting == 0 and time.monotonic() < deadline:
+            loop.scan_once(loop.clock.now_ns())
+            loop.clock.advance(10_000_000)
+        before = loop.runner.plc.scan_count
+        for _ in range(20):  # the compile is held: the PLC goes on scanning its program
+            loop.scan_once(loop.clock.now_ns())
+            loop.clock.advance(10_000_000)
+        assert loop.runner.plc.scan_count == before + 20 and not replies
+        gate.set()
+        while not replies and time.monotonic() < deadline:
+            loop.scan_once(loop.clock.now_ns())
+            loop.clock.advance(10_000_000)
+            sender.join(0.001)
+        assert replies and replies[0].ok, replies
+    finally:
+        gate.set()
+        sender.join(10)
+        loop.shutdown()
