@@ -77,6 +77,7 @@ class ProgramSpec:
     events: list[tuple[str, Where]] = field(default_factory=list)
     subnets: list[str] = field(default_factory=list)
     texts: list[str] = field(default_factory=list)  # every file's text, for the program hash
+    place_names: set[str] = field(default_factory=set)  # of `places`, for lookups
 
 
 class _Parser:
@@ -199,6 +200,7 @@ class _Parser:
         self.spec.places.append(PlaceSpec(self.prefix + name, tokens,
                                           records if coloured else None, coloured,
                                           capacity, outputs, where))
+        self.spec.place_names.add(self.prefix + name)
 
     def outputs(self, data: YMap, where: Where) -> tuple[tuple[str, Value, Where], ...]:
         raw = data.get("outputs")
@@ -357,7 +359,7 @@ class _Parser:
         """A parameter value names a symbol, or a place of the instantiating net (prefixed)."""
         if value in self.params:
             return str(self.params[value])
-        if any(p.name == self.prefix + value for p in self.spec.places):
+        if self.prefix + value in self.spec.place_names:
             return self.prefix + value
         return value
 
@@ -365,6 +367,8 @@ class _Parser:
 def resolve(base: Path, ref: str, root: Path | None) -> Path | str:
     """A referenced file, relative to the referring file. With `root`, it must stay inside
     (programs downloaded over the network may not read arbitrary files)."""
+    if "\0" in ref:  # the OS refuses such names: a located problem, never a ValueError
+        return f"file name {ref!r} contains a NUL character"
     path = Path(ref)
     if root is not None and path.is_absolute():
         return f"absolute path {ref!r} is not allowed here"

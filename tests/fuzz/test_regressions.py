@@ -110,3 +110,16 @@ def test_deep_nesting_is_a_problem_not_a_recursion_error() -> None:
     """Found: `a: [[[[...` 5000 deep raised RecursionError out of compile_text."""
     assert problems("a: " + "[" * 5000 + "]" * 5000) == [
         f"{DRILLING}:1: YAML error: nesting too deep"]
+
+
+def test_a_nul_character_in_a_subnet_file_name_is_a_located_problem() -> None:
+    """make fuzz (scale 50) found: `net: "a\\0b"` raised ValueError from the path resolver."""
+    root = Path(__file__).resolve().parents[2]
+    text = ('program: p\nio_image: ../io_images/transport.yaml\n'
+            'subnets:\n  c1: {net: "nets/con\\0veyor.yaml"}\n')
+    try:
+        compile_text(text, str(root / "programs" / "p.yaml"), root)
+    except ProgramError as exc:
+        assert "NUL character" in str(exc) and "p.yaml:4" in str(exc), str(exc)
+    else:
+        raise AssertionError("a NUL in a file name was accepted")
