@@ -128,6 +128,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--warm-start", choices=("run", "stop"), default="run",
                      help="warm restart of a program that was RUNNING: resume it (run) or "
                      "restore it and wait STOPPED for `softplc resume` (stop) (run)")
+    run.add_argument("--modbus-writes", choices=("open", "symbols", "none"), default="open",
+                     help="Modbus writes allowed: open (outputs and memory, as OpenPLC), "
+                     "symbols (only the running program's output and memory symbols not declared "
+                     "hmi_writable: false), none (open)")
     run.add_argument("--trace", help="record every scan to this JSON Lines file")
     run.add_argument("--seed", type=int, default=0, help="plant seed (0)")
     run.add_argument("--watchdog", type=float, default=10.0,

@@ -80,7 +80,8 @@ class Supervisor:
             retain_interval_ns=getattr(args, "retain_interval", 1_000_000_000),
             warm_start=getattr(args, "warm_start", "run"))
         self.comm_config = CommConfig(modbus=args.modbus, api=args.api,
-                                      state_dir=args.state_dir, sizes=self.sizes)
+                                      state_dir=args.state_dir, sizes=self.sizes,
+                                      modbus_writes=getattr(args, "modbus_writes", "open"))
         self.scan: Any = None
         self.comm: Any = None
         self.comm_restarts = 0

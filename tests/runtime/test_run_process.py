@@ -155,3 +155,27 @@ def test_mbpoll_reads_the_live_image_and_status_block(
     assert wait_for(lambda: "[1024]: \t4321" in mbpoll("-t", "4", "-r", "1024", "-c", "1"))
     proc.send_signal(signal.SIGTERM)
     proc.communicate(timeout=30)
+
+
+def test_run_with_modbus_writes_none_refuses_every_write(tmp_path: Path) -> None:
+    """`--modbus-writes none` reaches the slave: a write is refused with exception 02 and the
+    image keeps its value, while reads go on."""
+    port = free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "softplc.cli", "run", "programs/transport.yaml", "--start",
+         "--modbus", f"127.0.0.1:{port}", "--api", "off", "--state-dir", str(tmp_path),
+         "--quiet", "--modbus-writes", "none"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        client = connect(port)
+        try:
+            wait_for(lambda: status_block(client)[STATUS_STATE] == PlcState.RUNNING)
+            reply = client.write_coil(800, True, device_id=1)
+            assert reply.isError() and reply.exception_code == 2
+            time.sleep(0.1)
+            assert client.read_coils(800, count=1, device_id=1).bits[0] is False
+        finally:
+            client.close()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=30)
