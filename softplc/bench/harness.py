@@ -9,6 +9,7 @@ Does not know: how a section measures (engine.py, scanbench.py, modbusbench.py, 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -45,15 +46,31 @@ class Target:
 
 TARGETS = (
     Target("engine.vs_snakes_1k", ">=", 100, "SNAKES round time / ours, 1,000 transitions"),
-    Target("engine.scale_10k_over_10", "<=", 3, "our round time at 10,000 / at 10 transitions, "
-           "same number of firing transitions"),
-    Target("scan.p99_ratio_loaded_over_floor_1ms", "<=", 2, "p99 lateness at 1 ms, loaded "
-           "(4 Modbus clients + HTTP poll) / empty-loop floor"),
+    Target(
+        "engine.scale_10k_over_10",
+        "<=",
+        3,
+        "our round time at 10,000 / at 10 transitions, same number of firing transitions",
+    ),
+    Target(
+        "scan.p99_ratio_loaded_over_floor_1ms",
+        "<=",
+        2,
+        "p99 lateness at 1 ms, loaded (4 Modbus clients + HTTP poll) / empty-loop floor",
+    ),
     Target("scan.overruns_loaded_1ms", "==", 0, "overruns at 1 ms, loaded"),
-    Target("modbus.throughput_ratio_vs_pymodbus_4c", ">=", 0.9, "our slave's requests/s / "
-           "plain pymodbus server's, 4 clients, FC3 x 100 registers"),
-    Target("online_change.missed_scans", "==", 0, "scans missed by an online change "
-           "(worst of 10 and 10,000 transitions)"),
+    Target(
+        "modbus.throughput_ratio_vs_pymodbus_4c",
+        ">=",
+        0.9,
+        "our slave's requests/s / plain pymodbus server's, 4 clients, FC3 x 100 registers",
+    ),
+    Target(
+        "online_change.missed_scans",
+        "==",
+        0,
+        "scans missed by an online change (worst of 10 and 10,000 transitions)",
+    ),
 )
 HEADLINE = (*(t.key for t in TARGETS), "memory.rss_mb")
 
@@ -91,20 +108,23 @@ def machine() -> dict[str, Any]:
     except OSError:
         pass
     mem_gb = None
-    try:
+    with contextlib.suppress(ValueError, OSError):
         mem_gb = round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)
-    except (ValueError, OSError):
-        pass
-    versions = {}
+    versions: dict[str, str | None] = {}
     for package in ("softplc", "numpy", "pymodbus", "aiohttp", "snakes", "matplotlib"):
         try:
             versions[package] = metadata.version(package)
         except metadata.PackageNotFoundError:
             versions[package] = None
-    return {"cpu": cpu, "cores": os.cpu_count(), "memory_gb": mem_gb,
-            "os": f"{platform.system()} {platform.release()}",
-            "python": platform.python_version(), "versions": versions,
-            "load_average": list(os.getloadavg())}
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "memory_gb": mem_gb,
+        "os": f"{platform.system()} {platform.release()}",
+        "python": platform.python_version(),
+        "versions": versions,
+        "load_average": list(os.getloadavg()),
+    }
 
 
 def lookup(results: dict[str, Any], dotted: str) -> Any:
@@ -113,28 +133,44 @@ def lookup(results: dict[str, Any], dotted: str) -> Any:
     return value.get(key) if isinstance(value, dict) else None
 
 
-def run_sections(names: list[str], quick: bool, progress: Progress,
-                 runner: Callable[[str], Callable[[bool, Progress], dict[str, Any]]] = _section_runner
-                 ) -> dict[str, Any]:
+SectionRunner = Callable[[str], Callable[[bool, Progress], dict[str, Any]]]
+
+
+def run_sections(
+    names: list[str], quick: bool, progress: Progress, runner: SectionRunner = _section_runner
+) -> dict[str, Any]:
     """Every named section, each timed; a section that fails is recorded, the rest go on."""
-    results: dict[str, Any] = {"mode": "quick" if quick else "full", "machine": machine(),
-                               "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-                               "sections": {}, "seconds": {}}
+    results: dict[str, Any] = {
+        "mode": "quick" if quick else "full",
+        "machine": machine(),
+        "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "sections": {},
+        "seconds": {},
+    }
     for name in names:
         progress(f"{name}: starting")
         began = time.monotonic()
         try:
             results["sections"][name] = runner(name)(quick, progress)
         except Exception as exc:  # a broken section must not lose the others' figures
-            results["sections"][name] = {"error": f"{type(exc).__name__}: {exc}",
-                                         "traceback": traceback.format_exc()}
+            results["sections"][name] = {
+                "error": f"{type(exc).__name__}: {exc}",
+                "traceback": traceback.format_exc(),
+            }
             progress(f"{name}: FAILED ({type(exc).__name__}: {exc})")
         results["seconds"][name] = round(time.monotonic() - began, 1)
     results["machine"]["load_average_end"] = list(os.getloadavg())
     results["headline"] = {key: lookup(results, key) for key in HEADLINE}
-    results["targets"] = [{"key": t.key, "target": f"{t.op} {t.bound:g}", "meaning": t.meaning,
-                           "value": results["headline"][t.key],
-                           "met": t.met(results["headline"][t.key])} for t in TARGETS]
+    results["targets"] = [
+        {
+            "key": t.key,
+            "target": f"{t.op} {t.bound:g}",
+            "meaning": t.meaning,
+            "value": results["headline"][t.key],
+            "met": t.met(results["headline"][t.key]),
+        }
+        for t in TARGETS
+    ]
     return results
 
 
@@ -144,13 +180,19 @@ def main(args: argparse.Namespace) -> int:
         names = [n.strip() for n in args.only.split(",") if n.strip()]
         unknown = [n for n in names if n not in SECTIONS]
         if unknown:
-            print(f"softplc bench: unknown section(s) {', '.join(unknown)}; "
-                  f"expected some of {', '.join(SECTIONS)}", file=sys.stderr)
+            print(
+                f"softplc bench: unknown section(s) {', '.join(unknown)}; "
+                f"expected some of {', '.join(SECTIONS)}",
+                file=sys.stderr,
+            )
             return 2
     progress = Progress(quiet=getattr(args, "quiet", False))
     results = run_sections(names, args.quick, progress)
-    results["command"] = "softplc bench" + (" --quick" if args.quick else "") + (
-        f" --only {','.join(names)}" if names != list(SECTIONS) else "")
+    results["command"] = (
+        "softplc bench"
+        + (" --quick" if args.quick else "")
+        + (f" --only {','.join(names)}" if names != list(SECTIONS) else "")
+    )
     progress.done()
     if args.plots:
         from softplc.bench.report import write_plots

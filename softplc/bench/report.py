@@ -30,8 +30,9 @@ def _verdict(met: bool | None) -> str:
 def headline_table(results: dict[str, Any]) -> str:
     lines = [f"{'key':42} {'value':>10}  {'target':>8}  verdict"]
     for row in results["targets"]:
-        lines.append(f"{row['key']:42} {_fmt(row['value']):>10}  {row['target']:>8}  "
-                     f"{_verdict(row['met'])}")
+        lines.append(
+            f"{row['key']:42} {_fmt(row['value']):>10}  {row['target']:>8}  {_verdict(row['met'])}"
+        )
     rss = results["headline"].get("memory.rss_mb")
     lines.append(f"{'memory.rss_mb':42} {_fmt(rss):>10}  {'':>8}  (reported)")
     return "\n".join(lines)
@@ -48,29 +49,54 @@ def _us(figures: Any, key: str) -> Any:
 
 
 def _engine_tables(section: dict[str, Any]) -> list[str]:
-    out = [f"Ratios use the {section.get('key_family')} family: {section.get('key_note')}. "
-           f"All engines reached the same steps and marking before timing: "
-           f"{_fmt(section.get('all_agreed'))}.", ""]
+    out = [
+        f"Ratios use the {section.get('key_family')} family: {section.get('key_note')}. "
+        f"All engines reached the same steps and marking before timing: "
+        f"{_fmt(section.get('all_agreed'))}.",
+        "",
+    ]
     for family, data in section.get("families", {}).items():
         out += [f"**{family}**: {data.get('description', '')}", ""]
         rows = []
         for r in data.get("rows", []):
             if "skipped" in r:
-                rows.append([r.get("n_transitions"), r.get("engine"), r["skipped"], "", "", "",
-                             ""])
+                rows.append([r.get("n_transitions"), r.get("engine"), r["skipped"], "", "", "", ""])
                 continue
-            rows.append([r.get("n_transitions"), r.get("engine"),
-                         _us(r.get("round_us"), "median"), _us(r.get("round_us"), "p99"),
-                         r.get("firings_per_round"), r.get("firings_per_s"), r.get("memory_mb")])
-        out += _table(["transitions", "engine", "µs/round median", "µs/round p99",
-                       "firings/round", "firings/s", "memory MB"], rows) + [""]
+            rows.append(
+                [
+                    r.get("n_transitions"),
+                    r.get("engine"),
+                    _us(r.get("round_us"), "median"),
+                    _us(r.get("round_us"), "p99"),
+                    r.get("firings_per_round"),
+                    r.get("firings_per_s"),
+                    r.get("memory_mb"),
+                ]
+            )
+        out += [
+            *_table(
+                [
+                    "transitions",
+                    "engine",
+                    "µs/round median",
+                    "µs/round p99",
+                    "firings/round",
+                    "firings/s",
+                    "memory MB",
+                ],
+                rows,
+            ),
+            "",
+        ]
     for key in ("vs_snakes", "vs_snakes_incremental", "vs_reference"):
         ratios = section.get(key, {})
         sizes = sorted({int(n) for per in ratios.values() for n in per})
         if sizes:
             out += [f"**{key}** (their median round time / ours)", ""]
-            out += _table(["family", *map(str, sizes)],
-                          [[f, *(per.get(str(n)) for n in sizes)] for f, per in ratios.items()])
+            out += _table(
+                ["family", *map(str, sizes)],
+                [[f, *(per.get(str(n)) for n in sizes)] for f, per in ratios.items()],
+            )
             out += [""]
     return out
 
@@ -79,11 +105,38 @@ def _scan_tables(section: dict[str, Any]) -> list[str]:
     rows = []
     for name, c in section.get("configs", {}).items():
         late, exe, load = c.get("lateness_us", {}), c.get("exec_us", {}), c.get("load") or {}
-        rows.append([name, c.get("scans"), c.get("overruns"), late.get("p50"), late.get("p99"),
-                     late.get("p999"), late.get("max"), exe.get("median"), exe.get("p99"),
-                     load.get("requests_per_s")])
-    return _table(["run", "scans", "overruns", "late p50 µs", "late p99 µs", "late p999 µs",
-                   "late max µs", "exec median µs", "exec p99 µs", "Modbus req/s"], rows) + [""]
+        rows.append(
+            [
+                name,
+                c.get("scans"),
+                c.get("overruns"),
+                late.get("p50"),
+                late.get("p99"),
+                late.get("p999"),
+                late.get("max"),
+                exe.get("median"),
+                exe.get("p99"),
+                load.get("requests_per_s"),
+            ]
+        )
+    return [
+        *_table(
+            [
+                "run",
+                "scans",
+                "overruns",
+                "late p50 µs",
+                "late p99 µs",
+                "late p999 µs",
+                "late max µs",
+                "exec median µs",
+                "exec p99 µs",
+                "Modbus req/s",
+            ],
+            rows,
+        ),
+        "",
+    ]
 
 
 def _modbus_tables(section: dict[str, Any]) -> list[str]:
@@ -91,35 +144,77 @@ def _modbus_tables(section: dict[str, Any]) -> list[str]:
     for name, run in section.items():
         if isinstance(run, dict) and "requests_per_s" in run:
             lat = run.get("latency_us", {})
-            rows.append([name, run.get("requests"), run.get("requests_per_s"), lat.get("p50"),
-                         lat.get("p99"), run.get("server_cpu_us_per_request"), run.get("errors")])
-    return _table(["server and clients", "requests", "requests/s", "latency p50 µs",
-                   "latency p99 µs", "server CPU µs/request", "errors"], rows) + [""]
+            rows.append(
+                [
+                    name,
+                    run.get("requests"),
+                    run.get("requests_per_s"),
+                    lat.get("p50"),
+                    lat.get("p99"),
+                    run.get("server_cpu_us_per_request"),
+                    run.get("errors"),
+                ]
+            )
+    return [
+        *_table(
+            [
+                "server and clients",
+                "requests",
+                "requests/s",
+                "latency p50 µs",
+                "latency p99 µs",
+                "server CPU µs/request",
+                "errors",
+            ],
+            rows,
+        ),
+        "",
+    ]
 
 
 def _online_tables(section: dict[str, Any]) -> list[str]:
-    rows = [[c.get("transitions"), c.get("request_to_first_scan_ms"), c.get("missed_scans"),
-             c.get("swap_scan_exec_ms")] for c in section.get("changes", [])]
-    return _table(["transitions", "request to first scan ms", "missed scans",
-                   "swap scan ms"], rows) + [""]
+    rows = [
+        [
+            c.get("transitions"),
+            c.get("request_to_first_scan_ms"),
+            c.get("missed_scans"),
+            c.get("swap_scan_exec_ms"),
+        ]
+        for c in section.get("changes", [])
+    ]
+    return [
+        *_table(["transitions", "request to first scan ms", "missed scans", "swap scan ms"], rows),
+        "",
+    ]
 
 
 def _memory_tables(section: dict[str, Any]) -> list[str]:
     start, end = section.get("start_mb", {}), section.get("end_mb", {})
-    return _table(["process", "RSS at start MB", "RSS at end MB"],
-                  [[p, start.get(p), end.get(p)] for p in ("scan", "comm", "total")]) + [""]
+    return [
+        *_table(
+            ["process", "RSS at start MB", "RSS at end MB"],
+            [[p, start.get(p), end.get(p)] for p in ("scan", "comm", "total")],
+        ),
+        "",
+    ]
 
 
-_DETAIL = {"engine": _engine_tables, "scan": _scan_tables, "modbus": _modbus_tables,
-           "online_change": _online_tables, "memory": _memory_tables}
+_DETAIL = {
+    "engine": _engine_tables,
+    "scan": _scan_tables,
+    "modbus": _modbus_tables,
+    "online_change": _online_tables,
+    "memory": _memory_tables,
+}
 
 
 def _section_tables(name: str, section: dict[str, Any]) -> list[str]:
     if "error" in section:
         return [f"**This section failed:** `{section['error']}`", ""]
-    scalars = {k: v for k, v in section.items()
-               if isinstance(v, (int, float, str, bool)) or v is None}
-    out = _table(["figure", "value"], [[k, v] for k, v in scalars.items()]) + [""]
+    scalars = {
+        k: v for k, v in section.items() if isinstance(v, (int, float, str, bool)) or v is None
+    }
+    out = [*_table(["figure", "value"], [[k, v] for k, v in scalars.items()]), ""]
     return out + _DETAIL[name](section) if name in _DETAIL else out
 
 
@@ -144,11 +239,20 @@ def write_markdown(results: dict[str, Any], path: Path) -> None:
         "## Headline figures and targets",
         "",
     ]
-    rows = [[t["key"], t["value"], t["target"], _verdict(t["met"]), t["meaning"]]
-            for t in results["targets"]]
-    rows.append(["memory.rss_mb", results["headline"].get("memory.rss_mb"), "", "reported",
-                 "resident memory of the scan and communication processes after the soak"])
-    lines += _table(["key", "value", "target", "verdict", "meaning"], rows) + [""]
+    rows = [
+        [t["key"], t["value"], t["target"], _verdict(t["met"]), t["meaning"]]
+        for t in results["targets"]
+    ]
+    rows.append(
+        [
+            "memory.rss_mb",
+            results["headline"].get("memory.rss_mb"),
+            "",
+            "reported",
+            "resident memory of the scan and communication processes after the soak",
+        ]
+    )
+    lines += [*_table(["key", "value", "target", "verdict", "meaning"], rows), ""]
     notes = results.get("notes")
     if notes:
         lines += ["## Where a target is missed", ""] + [f"- {n}" for n in notes] + [""]
@@ -174,19 +278,20 @@ def write_plots(results: dict[str, Any], directory: Path) -> list[str]:
     engine = results["sections"].get("engine", {})
     families = engine.get("families", {}) if isinstance(engine, dict) else {}
     if families:
-        fig, axes = plt.subplots(1, len(families), figsize=(4 * len(families), 4), sharey=True,
-                                 squeeze=False)
+        fig, axes = plt.subplots(
+            1, len(families), figsize=(4 * len(families), 4), sharey=True, squeeze=False
+        )
         for ax, (family, data) in zip(axes[0], families.items(), strict=True):
             series: dict[str, list[tuple[float, float]]] = {}
             for r in data.get("rows", []):
                 median = _us(r.get("round_us"), "median")
                 if isinstance(median, (int, float)) and median > 0:
-                    series.setdefault(str(r.get("engine")), []).append(
-                        (r["n_transitions"], median))
+                    series.setdefault(str(r.get("engine")), []).append((r["n_transitions"], median))
             for engine_name, points in sorted(series.items()):
                 points.sort()
-                ax.plot([p[0] for p in points], [p[1] for p in points], marker="o",
-                        label=engine_name)
+                ax.plot(
+                    [p[0] for p in points], [p[1] for p in points], marker="o", label=engine_name
+                )
             ax.set(xscale="log", yscale="log", xlabel="transitions", title=family)
             ax.grid(True, which="both", alpha=0.3)
             ax.legend(fontsize=7)
@@ -202,13 +307,17 @@ def write_plots(results: dict[str, Any], directory: Path) -> list[str]:
                 continue
             edges, counts = h["edges_us"], h["counts"]
             ax.stairs(counts, edges, label=name.rsplit("_", 1)[0])
-        ax.set(xscale="symlog", yscale="log", xlabel="lateness (µs, logarithmic above 1)",
-               ylabel="scans",
-               title=f"Scan lateness at {period} period")
+        ax.set(
+            xscale="symlog",
+            yscale="log",
+            xlabel="lateness (µs, logarithmic above 1)",
+            ylabel="scans",
+            title=f"Scan lateness at {period} period",
+        )
         ax.legend()
         ax.grid(True, alpha=0.3)
         written.append(_save(fig, directory / f"lateness_{period}.png"))
-    for path in written:
+    for _path in written:
         plt.close("all")
     return written
 

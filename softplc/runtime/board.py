@@ -11,6 +11,7 @@ richer and slower (JSON), so the scan loop refreshes it every few scans only.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import struct
 from multiprocessing import shared_memory
@@ -74,7 +75,5 @@ class StatusBoard:
     def close(self) -> None:
         self._shm.close()
         if self._owner:
-            try:
+            with contextlib.suppress(FileNotFoundError):
                 self._shm.unlink()
-            except FileNotFoundError:
-                pass

@@ -57,7 +57,7 @@ def test_reconfiguration_by_online_change_keeps_the_runtime() -> None:
     loop.run()
     plc = loop.runner.plc
     assert plc.state.name == "RUNNING" and plc.net is drilling
-    report = [d for d in loop.runner.drivers][0].plant.report()  # type: ignore[attr-defined]
+    report = next(iter(loop.runner.drivers)).plant.report()  # type: ignore[attr-defined]
     assert report.parts_drilled >= 1 and report.faults == ()
 
 
