@@ -13,14 +13,19 @@ changed (or taking its edge, which also "changes back" one scan later).
 from __future__ import annotations
 
 import itertools
-from collections.abc import Collection, Iterable, Mapping
+from collections.abc import Collection, Iterable, Mapping, MutableSequence
 from dataclasses import dataclass
+from types import MappingProxyType
 
 from softplc.core.expr import Compiled, EvalContext, Value
-from softplc.core.net import ActionKind, Busy, CompiledNet, NetState, Token, Transition
+from softplc.core.net import ActionKind, Busy, CompiledNet, IntArray, NetState, Token, Transition
 
 MAX_BINDINGS = 1000  # coloured binding search bound per transition and round
 MAX_DIAGNOSTICS = 100
+_NO_TOKENS: Mapping[str, Token] = MappingProxyType({})
+# How a transition's enabledness is computed (Engine._enable_kind): its input and test arcs
+# only; those and inhibitors, guard or a busy check; or the general path (colour, capacity).
+_ARCS, _ARCS_GUARD, _GENERAL = "arcs", "arcs+guard", "general"
 
 
 @dataclass(frozen=True, slots=True)
@@ -32,6 +37,15 @@ class Step:
     writes: tuple[tuple[str, int], ...]  # (symbol, value) in order: last writer wins
     emitted: tuple[str, ...]
     changed_places: frozenset[int]
+
+
+def _counts(marking: IntArray) -> MutableSequence[int]:
+    """Plain-int element access to the marking, sharing its memory: indexing the numpy array
+    costs ~3x more and yields numpy scalars (bench: engine scaling)."""
+    try:
+        return memoryview(marking)  # type: ignore[arg-type, return-value]
+    except TypeError:  # not a buffer (a list given by a caller): use it as it is
+        return marking  # type: ignore[return-value]
 
 
 class _Bound:
@@ -59,10 +73,12 @@ class _Bound:
 class Engine:
     """Runs rounds of one compiled net over its NetState (mutated in place)."""
 
-    def __init__(self, net: CompiledNet, state: NetState | None = None) -> None:
+    def __init__(self, net: CompiledNet, state: NetState | None = None,
+                 plain_paths: bool = True) -> None:
+        """`plain_paths=False` sends every transition down the general path: the same rounds,
+        slower (tests compare the two)."""
         self.net = net
         self.state = state if state is not None else NetState.initial(net)
-        self._rank = net.rank
         # Transitions that put tokens on a place with a capacity: only these need the check.
         self._capped = frozenset(t.index for t in net.transitions
                                  if any(net.capacity[o.place] >= 0 for o in t.post))
@@ -75,11 +91,50 @@ class Engine:
         self._remoore: set[str] = set()  # place-driven outputs an action overwrote
         self._outputs_pending = True  # rewrite every place-driven output this round
         self.diagnostics: list[str] = []
+        self._tables(net, plain_paths)
+        self._marr = self.state.marking
+        self._m = _counts(self._marr)
+
+    def _tables(self, net: CompiledNet, plain_paths: bool) -> None:
+        """Flat per-transition tables for the hot loops (bench: engine scaling). A "simple"
+        transition (no colour, no capacity on its output places) is checked inline, and fired
+        inline if it also has no duration and no action, decided here once per transition,
+        so one timed or coloured transition does not slow down the rest."""
+        ts = net.transitions
+        rank = [0] * len(ts)
+        for r, ti in enumerate(net.order):
+            rank[ti] = r
+        # Identity order (no priorities): sorting the indices themselves is the same order.
+        self._rank_key = None if net.order == tuple(range(len(ts))) else rank.__getitem__
+        self._pre = [tuple((a.place, a.weight) for a in t.pre) for t in ts]
+        self._need = [pre + tuple(t.test) for pre, t in zip(self._pre, ts, strict=True)]
+        self._inhibit = [tuple(t.inhibit) for t in ts]
+        self._guards = [t.guard for t in ts]
+        coloured = [bool(c) for c in net.coloured]
+        simple = [plain_paths and not t.coloured and t.index not in self._capped
+                  and not any(coloured[o.place] for o in t.post) for t in ts]
+        self._simple = simple
+        self._enable_kind = [(_ARCS if t.guard is None and not t.inhibit else _ARCS_GUARD)
+                             if s else _GENERAL for s, t in zip(simple, ts, strict=True)]
+        self._plain_fire = [s and t.duration_ns == 0 and not t.actions
+                            for s, t in zip(simple, ts, strict=True)]
+        self._post = [tuple((o.place, o.weight) for o in t.post) for t in ts]
+        self._delays = [t.delay_ns for t in ts]
+        self._any_coloured = any(t.coloured for t in ts)
+        self._any_actions = any(t.actions for t in ts)
+        self._output_places = frozenset(net.place_outputs)
 
     # -- enabling ---------------------------------------------------------------------------
 
+    def _view(self) -> MutableSequence[int]:
+        """The marking as plain ints; re-bound when the state or its array was replaced."""
+        if self.state.marking is not self._marr:
+            self._marr = self.state.marking
+            self._m = _counts(self._marr)
+        return self._m
+
     def marking_enabled(self, t: Transition) -> bool:
-        m, st = self.state.marking, self.state
+        m, st = self._view(), self.state
         if t.index in st.busy:
             return False
         # Plain loops, not any(<generator>): this runs for every re-checked transition of
@@ -96,7 +151,7 @@ class Engine:
         return t.index not in self._capped or self._fits_capacity(t, {})
 
     def _fits_capacity(self, t: Transition, delta: Mapping[int, int]) -> bool:
-        cap, m = self.net.capacity, self.state.marking
+        cap, m = self.net.capacity, self._view()
         for arc in t.post:
             if cap[arc.place] < 0:
                 continue
@@ -148,34 +203,71 @@ class Engine:
             self._fresh = False
         else:
             todo: set[int] = set()
+            touching = net.touching
             for p in self._dirty_places:
-                todo.update(net.touching[p])
-            for name in itertools.chain(changed, self._dirty_edges):
-                todo.update(net.guard_deps.get(name, ()))
+                todo.update(touching[p])
+            if changed or self._dirty_edges:
+                for name in itertools.chain(changed, self._dirty_edges):
+                    todo.update(net.guard_deps.get(name, ()))
             todo.update(self._recheck)
-            todo.update(t for t in self._ready if net.transitions[t].coloured)
+            if self._any_coloured:
+                todo.update(t for t in self._ready if net.transitions[t].coloured)
             dirty = todo
         self._dirty_places = set()
         self._recheck = set()
-        self._dirty_edges = {n for n in changed if n in net.edge_deps}
+        self._dirty_edges = {n for n in changed if n in net.edge_deps} if changed else set()
+        self._recompute(dirty, ctx, now_ns)
+
+    def _recompute(self, dirty: Iterable[int], ctx: EvalContext, now_ns: int) -> None:
+        """Enabledness of the `dirty` transitions on the round-start marking: the cost every
+        changed place pays every round, so a transition whose arcs alone decide is checked
+        inline."""
+        m, st, kinds, need = self._view(), self.state, self._enable_kind, self._need
+        busy, since, ready = st.busy, st.enabled_since, self._ready
         for ti in dirty:
-            t = net.transitions[ti]
-            ok = self.marking_enabled(t) and (
-                self._bind(t, ctx, {}) is not None
-                if t.coloured
-                else self._guard(t.guard, ctx, t.name)
-            )
-            if ok:
-                self._ready.add(ti)
-                self.state.enabled_since.setdefault(ti, now_ns)
+            kind = kinds[ti]
+            if kind is _ARCS and not busy:
+                ok = True
+                for p, w in need[ti]:
+                    if m[p] < w:
+                        ok = False
+                        break
+            elif kind is _GENERAL:
+                t = self.net.transitions[ti]
+                ok = self.marking_enabled(t) and (
+                    self._bind(t, ctx, {}) is not None
+                    if t.coloured
+                    else self._guard(t.guard, ctx, t.name)
+                )
             else:
-                self._ready.discard(ti)
-                self.state.enabled_since.pop(ti, None)
+                ok = self._plain_enabled(ti, ctx)
+            if ok:
+                ready.add(ti)
+                since.setdefault(ti, now_ns)
+            else:
+                ready.discard(ti)
+                since.pop(ti, None)
+
+    def _plain_enabled(self, ti: int, ctx: EvalContext) -> bool:
+        """marking_enabled and the guard for an uncoloured transition without capacity, in
+        the same order (busy, pre and test arcs, inhibitors, guard)."""
+        m = self._m
+        if ti in self.state.busy:
+            return False
+        for p, w in self._need[ti]:
+            if m[p] < w:
+                return False
+        for p, w in self._inhibit[ti]:
+            if m[p] >= w:
+                return False
+        guard = self._guards[ti]
+        return guard is None or self._guard(guard, ctx, self.net.transitions[ti].name)
 
     def candidates(self, now_ns: int) -> list[int]:
-        since, ts = self.state.enabled_since, self.net.transitions
-        ready = (t for t in self._ready if now_ns - since.get(t, now_ns) >= ts[t].delay_ns)
-        return sorted(ready, key=self._rank.__getitem__)
+        since, delays = self.state.enabled_since, self._delays
+        ready = [t for t in self._ready if now_ns - since.get(t, now_ns) >= delays[t]]
+        ready.sort(key=self._rank_key)
+        return ready
 
     # -- the round --------------------------------------------------------------------------
 
@@ -198,28 +290,37 @@ class Engine:
     def _select(
         self, cands: list[int], ctx: EvalContext
     ) -> tuple[list[int], dict[int, dict[str, tuple[int, int]]]]:
-        m, ts = self.state.marking, self.net.transitions
+        m, ts, pre, simple = self._view(), self.net.transitions, self._pre, self._simple
         residual: dict[int, int] = {}
         delta: dict[int, int] = {}
+        track = bool(self._capped)  # only a capacity check reads delta
         taken: dict[int, set[int]] = {}  # coloured place -> token positions taken this round
         selected: list[int] = []
         bindings: dict[int, dict[str, tuple[int, int]]] = {}
         for ti in cands:
-            t = ts[ti]
-            if any(residual.get(a.place, int(m[a.place])) < a.weight for a in t.pre):
+            arcs, fits = pre[ti], True
+            for p, w in arcs:  # inline, not any(): a generator costs more than the test
+                if residual.get(p, m[p]) < w:
+                    fits = False
+                    break
+            if not fits:
                 continue
-            if not self._fits_capacity(t, delta):
-                continue
-            if t.coloured:
-                binding = self._bind(t, ctx, taken)
-                if binding is None:
+            if not simple[ti]:
+                t = ts[ti]
+                if not self._fits_capacity(t, delta):
                     continue
-                bindings[ti] = self._take(t, binding, taken)
-            for a in t.pre:
-                residual[a.place] = residual.get(a.place, int(m[a.place])) - a.weight
-                delta[a.place] = delta.get(a.place, 0) - a.weight
-            for o in t.post:
-                delta[o.place] = delta.get(o.place, 0) + o.weight
+                if t.coloured:
+                    binding = self._bind(t, ctx, taken)
+                    if binding is None:
+                        continue
+                    bindings[ti] = self._take(t, binding, taken)
+            for p, w in arcs:
+                residual[p] = residual.get(p, m[p]) - w
+            if track:
+                for p, w in arcs:
+                    delta[p] = delta.get(p, 0) - w
+                for o in ts[ti].post:
+                    delta[o.place] = delta.get(o.place, 0) + o.weight
             selected.append(ti)
         return selected, bindings
 
@@ -228,13 +329,13 @@ class Engine:
         """Reserve the bound tokens, and for plain arcs from coloured places the oldest
         free ones (recorded under keys "#place#n"), so no other transition takes them."""
         positions = dict(binding)
-        for var, (place, index) in binding.items():
+        for place, index in binding.values():
             taken.setdefault(place, set()).add(index)
         for a in t.pre:
             if a.var is None and self.net.coloured[a.place]:
                 used = taken.setdefault(a.place, set())
                 free = (i for i in range(len(self.state.tokens.get(a.place, []))) if i not in used)
-                for n, index in zip(range(a.weight), free):
+                for n, index in zip(range(a.weight), free, strict=False):
                     used.add(index)
                     positions[f"#{a.place}#{n}"] = (a.place, index)
         return positions
@@ -246,27 +347,56 @@ class Engine:
         ctx: EvalContext,
         now_ns: int,
     ) -> Step:
-        st, ts = self.state, self.net.transitions
+        st, ts, m = self.state, self.net.transitions, self._view()
         changed: set[int] = set()
-        envs = {ti: {v: st.tokens[p][i] for v, (p, i) in bindings.get(ti, {}).items()
-                     if not v.startswith("#")} for ti in selected}
-        doomed: dict[int, set[int]] = {}
+        envs = {ti: {v: st.tokens[p][i] for v, (p, i) in binding.items()
+                     if not v.startswith("#")} for ti, binding in bindings.items()
+                } if bindings else {}
+        pre = self._pre
         for ti in selected:  # all consumptions
-            for a in ts[ti].pre:
-                st.marking[a.place] -= a.weight
-                changed.add(a.place)
-            for place, index in bindings.get(ti, {}).values():
-                doomed.setdefault(place, set()).add(index)
-        for place, indexes in doomed.items():
-            st.tokens[place] = [tok for i, tok in enumerate(st.tokens[place]) if i not in indexes]
+            for p, w in pre[ti]:
+                m[p] -= w
+                changed.add(p)
+        if bindings:
+            self._remove_taken(selected, bindings)
+        completed = sorted(t for t, b in st.busy.items() if b.end_ns <= now_ns) if st.busy else []
+        if completed or not all(map(self._plain_fire.__getitem__, selected)):
+            busy_changed = self._produce_all(selected, completed, envs, ctx, now_ns, changed)
+        else:  # only plain firings: the same productions, in the same order, without records
+            busy_changed = set()
+            post, since, ready = self._post, st.enabled_since, self._ready
+            for ti in selected:
+                for p, w in post[ti]:
+                    m[p] += w
+                    changed.add(p)
+                since.pop(ti, None)
+                ready.discard(ti)
+        for ti in busy_changed:  # a busy transition is disabled; re-check it next round
+            self._dirty_places.update(a.place for a in ts[ti].pre)
+        self._recheck.update(selected)
+        self._recheck.update(completed)
+        self._dirty_places |= changed
+        writes = self._outputs(changed, busy_changed)
+        emitted: list[str] = []
+        for ti in selected if self._any_actions else ():  # actions, in step order
+            if ts[ti].actions:
+                self._actions(ts[ti], _Bound(ctx, envs.get(ti, _NO_TOKENS)), writes, emitted)
+        return Step(tuple(selected), tuple(completed), tuple(writes), tuple(emitted),
+                    frozenset(changed))
+
+    def _produce_all(self, selected: list[int], completed: list[int],
+                     envs: Mapping[int, Mapping[str, Token]], ctx: EvalContext, now_ns: int,
+                     changed: set[int]) -> set[int]:
+        """Ended three-phase firings produce, then the step's transitions in step order (or
+        start their duration). Returns the transitions whose busy status changed."""
+        st, ts, m = self.state, self.net.transitions, self._view()
         productions: list[tuple[int, int, Token | None]] = []
-        completed = sorted(t for t, b in st.busy.items() if b.end_ns <= now_ns)
         for ti in completed:
             productions.extend(st.busy.pop(ti).produce)
         busy_changed = set(completed)
         for ti in selected:
             t = ts[ti]
-            produce = self._produce(t, _Bound(ctx, envs[ti]))
+            produce = self._produce(t, _Bound(ctx, envs.get(ti, _NO_TOKENS)))
             if t.duration_ns > 0:
                 st.busy[ti] = Busy(now_ns + t.duration_ns, produce)
                 busy_changed.add(ti)
@@ -275,21 +405,23 @@ class Engine:
             st.enabled_since.pop(ti, None)
             self._ready.discard(ti)
         for place, count, record in productions:  # all productions
-            st.marking[place] += count
+            m[place] += count
             if record is not None:
                 st.tokens.setdefault(place, []).append(record)
             changed.add(place)
-        for ti in busy_changed:  # a busy transition is disabled; re-check it next round
-            self._dirty_places.update(a.place for a in ts[ti].pre)
-        self._recheck.update(selected)
-        self._recheck.update(completed)
-        self._dirty_places |= changed
-        writes = self._outputs(changed, busy_changed)
-        emitted: list[str] = []
-        for ti in selected:  # actions, in step order
-            self._actions(ts[ti], _Bound(ctx, envs[ti]), writes, emitted)
-        return Step(tuple(selected), tuple(completed), tuple(writes), tuple(emitted),
-                    frozenset(changed))
+        return busy_changed
+
+    def _remove_taken(self, selected: list[int],
+                      bindings: Mapping[int, Mapping[str, tuple[int, int]]]) -> None:
+        """Drop the coloured tokens the step's bindings took (positions in the round-start
+        token lists)."""
+        doomed: dict[int, set[int]] = {}
+        for ti in selected:
+            for place, index in bindings.get(ti, {}).values():
+                doomed.setdefault(place, set()).add(index)
+        tokens = self.state.tokens
+        for place, indexes in doomed.items():
+            tokens[place] = [tok for i, tok in enumerate(tokens[place]) if i not in indexes]
 
     def _produce(self, t: Transition, ctx: _Bound) -> tuple[tuple[int, int, Token | None], ...]:
         out: list[tuple[int, int, Token | None]] = []
@@ -323,8 +455,9 @@ class Engine:
         net, st = self.net, self.state
         writes: list[tuple[str, int]] = []
         symbols: set[str] = set()
-        if (not self._pulsed and not changed and not busy_changed and not self._remoore
-                and not self._outputs_pending):
+        # Nothing to rewrite unless a changed place drives an output: the common round.
+        if (not self._pulsed and not busy_changed and not self._remoore
+                and not self._outputs_pending and self._output_places.isdisjoint(changed)):
             return writes
         for sym in sorted(self._pulsed):
             if sym in net.moore_drivers or sym in net.busy_drivers:
