@@ -9,7 +9,7 @@ Does not know: devices, clocks, the scan.
 from __future__ import annotations
 
 import hashlib
-from collections import defaultdict
+from collections import ChainMap, defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
@@ -65,6 +65,7 @@ class _Compiler:
         for ev in [*io.events, *self.events]:
             names[ev] = NameKind.EVENT
         self.names = names
+        self.scope = Scope(names)  # shared by every expression that binds no token
 
     def problem(self, where: Where, message: str, path: str | None = None) -> None:
         self.problems.append(Problem(where.file, where.line, path or where.path, message))
@@ -83,10 +84,11 @@ class _Compiler:
                 self.problem(where, f"event {name!r} clashes with a symbol or io event")
 
     def expr(self, text: str, where: Where, tokens: set[str]) -> Compiled | None:
-        names = dict(self.names)
-        names.update({t: NameKind.TOKEN for t in tokens})
+        # A view, not a copy of every symbol per expression: tokens shadow symbols.
+        scope = Scope(ChainMap(dict.fromkeys(tokens, NameKind.TOKEN), self.names)) if tokens \
+            else self.scope
         try:
-            return compile_expr(text, Scope(names))
+            return compile_expr(text, scope)
         except ExprError as exc:
             self.problem(where, f"{exc.message} in {text!r}")
             return None
@@ -222,12 +224,12 @@ def _build(spec: ProgramSpec, io: IoImage, c: _Compiler) -> CompiledNet:
     guard_deps: dict[str, set[int]] = defaultdict(set)
     edge_deps: dict[str, set[int]] = defaultdict(set)
     busy_drivers: dict[str, list[tuple[int, int]]] = defaultdict(list)
-    capacity = np.array([-1 if p.capacity is None else p.capacity for p in spec.places], np.int64)
+    bounded = [p.capacity is not None for p in spec.places]
     for t in transitions:
-        for p in [a.place for a in t.pre] + [q for q, _ in t.test + t.inhibit]:
-            touching[p].add(t.index)
+        for place in [a.place for a in t.pre] + [q for q, _ in t.test + t.inhibit]:
+            touching[place].add(t.index)
         for o in t.post:
-            if capacity[o.place] >= 0:
+            if bounded[o.place]:
                 touching[o.place].add(t.index)
         exprs = [t.guard] if t.guard else []
         for name in (n for e in exprs for n in e.reads):
@@ -247,7 +249,9 @@ def _build(spec: ProgramSpec, io: IoImage, c: _Compiler) -> CompiledNet:
     digest = hashlib.sha256()
     for text in [*spec.texts, _io_text(io)]:
         digest.update(text.encode())
-    order = tuple(sorted(range(len(transitions)), key=lambda i: (-transitions[i].priority, i)))
+    # Highest priority first; the sort is stable, so declaration order breaks ties.
+    order = tuple(sorted(range(len(transitions)), key=[-t.priority for t in transitions].__getitem__))
+    capacity = np.array([-1 if p.capacity is None else p.capacity for p in spec.places], np.int64)
     return CompiledNet(
         spec.name, spec.file, digest.hexdigest(), io,
         tuple(p.name for p in spec.places), MappingProxyType(dict(c.places)),
