@@ -19,9 +19,11 @@ from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
 from softplc.core.snapshot import CommandRequest
 
-# While a compile runs, a waiting scan thread gets the GIL back after at most this long (the
-# interpreter's default is 5 ms: five missed scans at a 1 ms period).
-COMPILE_SWITCH_INTERVAL_S = 0.0002
+# While a compile runs, a waiting scan thread gets the GIL back after at most this long. The
+# scan thread gives the GIL up at every blocking call and waits this long to get it back:
+# measured with a 1 ms loop beside a compiling thread (2 s each, same run), overruns were
+# 1048 at the default 5 ms, 136 at 200 µs, 42 at 50 µs, and 48 with no compile at all.
+COMPILE_SWITCH_INTERVAL_S = 0.00005
 
 
 @dataclass(frozen=True, slots=True)
