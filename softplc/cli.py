@@ -132,6 +132,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="Modbus writes allowed: open (outputs and memory, as OpenPLC), "
                      "symbols (only the running program's output and memory symbols not declared "
                      "hmi_writable: false), none (open)")
+    run.add_argument("--rt-priority", type=int, metavar="1..99",
+                     help="run the scan process with this SCHED_FIFO priority (needs root or "
+                     "CAP_SYS_NICE; refused: normal scheduling, said in status)")
+    run.add_argument("--scan-cpu", type=int, metavar="N", help="pin the scan process to CPU N")
     run.add_argument("--trace", help="record every scan to this JSON Lines file")
     run.add_argument("--seed", type=int, default=0, help="plant seed (0)")
     run.add_argument("--watchdog", type=float, default=10.0,

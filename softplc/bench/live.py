@@ -33,6 +33,7 @@ from softplc.runtime.channel import Channel
 from softplc.runtime.clock import MonotonicClock
 from softplc.runtime.comm import CommConfig, comm_process_main
 from softplc.runtime.loop import LoopConfig, ScanLoop, scan_process_main
+from softplc.runtime.realtime import NORMAL, Realtime, apply
 from softplc.runtime.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
 from softplc.runtime.supervisor import SHM_PREFIX, die_with_parent
@@ -168,10 +169,12 @@ def bench_scan_main(config: LoopConfig, channel: Channel, shm_name: str, board_n
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     die_with_parent()
+    realtime = apply(config.realtime)
     writer = SnapshotWriter.create(config.sizes, name=shm_name)
     board = StatusBoard.create(board_name)
     try:
         loop = RecordingLoop(config, channel, writer, board, capacity)
+        loop.realtime = realtime
         writer.publish(loop.runner.plc.image, loop.status())
         board.publish(loop.document())
         ready.set()
@@ -183,9 +186,12 @@ def bench_scan_main(config: LoopConfig, channel: Channel, shm_name: str, board_n
         board.close()
 
 
-def floor_main(period_ns: int, duration_s: float, results: Connection) -> None:
-    """The floor: ScanLoop.run's deadline arithmetic on the same clock, with no scan at all."""
+def floor_main(period_ns: int, duration_s: float, results: Connection,
+               realtime: Realtime = NORMAL) -> None:
+    """The floor: ScanLoop.run's deadline arithmetic on the same clock, with no scan at all,
+    scheduled as the scan is."""
     die_with_parent()
+    apply(realtime)
     clock = MonotonicClock()
     stats = RecordingStats(int(duration_s * 1e9 / period_ns) + 16)
     start = clock.now_ns()
@@ -206,10 +212,10 @@ def floor_main(period_ns: int, duration_s: float, results: Connection) -> None:
     results.send(stats.as_record([]))
 
 
-def run_floor(period_ns: int, duration_s: float) -> ScanRecord:
+def run_floor(period_ns: int, duration_s: float, realtime: Realtime = NORMAL) -> ScanRecord:
     """The floor loop in its own process, like the scan; its record."""
     receiver, sender = _CTX.Pipe(duplex=False)
-    proc = _CTX.Process(target=floor_main, args=(period_ns, duration_s, sender),
+    proc = _CTX.Process(target=floor_main, args=(period_ns, duration_s, sender, realtime),
                         name="softplc-bench-floor")
     proc.start()
     try:
@@ -232,14 +238,14 @@ class LiveRuntime:
     def __init__(self, program: Path | None = TRANSPORT, *, period_ns: int = 1_000_000,
                  start: bool = True, plant: str | None = "transport", record: bool = True,
                  capacity_s: float = 120.0, api: bool = True, modbus: bool = True,
-                 watchdog: float = BENCH_WATCHDOG) -> None:
+                 watchdog: float = BENCH_WATCHDOG, realtime: Realtime = NORMAL) -> None:
         self.sizes = ImageSizes()
         self.period_ns = period_ns
         self.record = record
         self.capacity = int(capacity_s * 1e9 / period_ns) + 1024
         self.loop_config = LoopConfig(
             program=str(program) if program else None, start=start, period_ns=period_ns,
-            plant=plant, root=str(ROOT), sizes=self.sizes, watchdog=watchdog)
+            plant=plant, root=str(ROOT), sizes=self.sizes, watchdog=watchdog, realtime=realtime)
         self.modbus_port = free_port() if modbus else None
         self.api_port = free_port() if api else None
         self._state_dir = tempfile.TemporaryDirectory(prefix="softplc-bench-")

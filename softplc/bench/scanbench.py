@@ -18,6 +18,7 @@ import numpy as np
 from softplc.bench.live import LiveRuntime, ScanRecord, run_floor
 from softplc.bench.load import LoadJob, LoadWorker
 from softplc.bench.measure import Progress, figures, ratio
+from softplc.runtime.realtime import Realtime, recommended
 
 # One set of bin edges for every histogram (µs, logarithmic): runs can be overlaid.
 HISTOGRAM_EDGES_US = [0.0, *np.geomspace(1.0, 100_000.0, 51).round(3).tolist()]
@@ -45,17 +46,19 @@ def window_figures(record: ScanRecord) -> dict[str, Any]:
 
 def _measure_period(period_ms: int, duration_s: float, worker: LoadWorker, clients: int,
                     http_interval_s: float, progress: Progress,
-                    out: dict[str, Any], hists: dict[str, Any]) -> None:
+                    out: dict[str, Any], hists: dict[str, Any], realtime: Realtime) -> None:
     period_ns = period_ms * 1_000_000
     progress(f"scan: floor (empty loop) at {period_ms} ms, {duration_s:g} s")
-    floor = run_floor(period_ns, duration_s)
+    floor = run_floor(period_ns, duration_s, realtime)
     out[f"floor_{period_ms}ms"] = window_figures(floor)
     hists[f"floor_{period_ms}ms"] = histogram(floor.late_ns)
-    runtime = LiveRuntime(period_ns=period_ns, capacity_s=2 * duration_s + 60)
+    runtime = LiveRuntime(period_ns=period_ns, capacity_s=2 * duration_s + 60,
+                          realtime=realtime)
     try:
         progress(f"scan: transport at {period_ms} ms, starting the runtime")
         runtime.start()
         runtime.wait_for_state("RUNNING")
+        obtained = runtime.status().get("realtime", "?")  # what the scan process was granted
         time.sleep(SETTLE_S)
         progress(f"scan: transport at {period_ms} ms, idle, {duration_s:g} s")
         idle_from = time.monotonic_ns()
@@ -71,30 +74,35 @@ def _measure_period(period_ms: int, duration_s: float, worker: LoadWorker, clien
     assert record is not None
     idle = record.window(idle_from, idle_to)
     loaded = record.window(load["t0_ns"], load["t1_ns"])
-    out[f"idle_{period_ms}ms"] = window_figures(idle)
-    out[f"loaded_{period_ms}ms"] = {**window_figures(loaded), "load": load}
+    out[f"idle_{period_ms}ms"] = {**window_figures(idle), "realtime": obtained}
+    out[f"loaded_{period_ms}ms"] = {**window_figures(loaded), "load": load,
+                                    "realtime": obtained}
     hists[f"idle_{period_ms}ms"] = histogram(idle.late_ns)
     hists[f"loaded_{period_ms}ms"] = histogram(loaded.late_ns)
 
 
 def run(quick: bool, progress: Progress, *, duration_s: float | None = None,
         periods_ms: tuple[int, ...] = (1, 10), clients: int = 4,
-        http_interval_s: float = 0.01) -> dict[str, Any]:
-    """Floor, idle and loaded runs per period; keys `p99_ratio_loaded_over_floor_1ms` and
+        http_interval_s: float = 0.01, realtime: Realtime | None = None) -> dict[str, Any]:
+    """Floor, idle and loaded runs per period, the scan and the floor both scheduled as
+    `realtime` says (default: SCHED_FIFO on a CPU of its own, as docs/realtime.md
+    recommends; `Realtime()` for normal scheduling); keys `p99_ratio_loaded_over_floor_1ms` and
     `overruns_loaded_1ms` (and the same for every period measured)."""
     duration = duration_s if duration_s is not None else (1.0 if quick else 30.0)
+    realtime = recommended() if realtime is None else realtime
     configs: dict[str, Any] = {}
     hists: dict[str, Any] = {}
     load_before = os.getloadavg()
     with LoadWorker() as worker:
         for period_ms in periods_ms:
             _measure_period(period_ms, duration, worker, clients, http_interval_s, progress,
-                            configs, hists)
+                            configs, hists, realtime)
     result: dict[str, Any] = {
         "duration_s": duration, "clients": clients, "http_interval_s": http_interval_s,
         "program": "programs/transport.yaml (plant transport, started)",
         "load_average_1m": [load_before[0], os.getloadavg()[0]],
         "configs": configs, "histograms": hists,
+        "realtime": f"priority {realtime.priority}, cpu {realtime.cpu}",
     }
     for period_ms in periods_ms:
         floor_p99 = configs[f"floor_{period_ms}ms"]["lateness_us"]["p99"]

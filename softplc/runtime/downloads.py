@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
 from softplc.core.snapshot import CommandRequest
+from softplc.runtime.realtime import background_thread
 
 # While a compile runs, a waiting scan thread gets the GIL back after at most this long. The
 # scan thread gives the GIL up at every blocking call and waits this long to get it back:
@@ -84,7 +85,8 @@ class DownloadQueue:
 
     def _pool(self) -> ThreadPoolExecutor:
         if self._executor is None:
-            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="compile")
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="compile",
+                                                initializer=background_thread)
         return self._executor
 
     def close(self) -> None:

@@ -33,6 +33,7 @@ from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.clock import Clock, MonotonicClock
 from softplc.runtime.downloads import DownloadQueue
+from softplc.runtime.realtime import NORMAL, Realtime, apply
 from softplc.runtime.retain import (
     ContinuedClock,
     Loaded,
@@ -66,6 +67,7 @@ class LoopConfig:
     state_dir: str | None = None  # retain snapshots live here; None: no retain, always cold
     retain_interval_ns: int = 1_000_000_000  # 0: only on stop
     warm_start: str = "run"  # a warm restart of a RUNNING snapshot: "run" resumes, "stop" waits
+    realtime: Realtime = NORMAL  # SCHED_FIFO priority and CPU of the scan process
 
 
 class ScanLoop:
@@ -82,6 +84,7 @@ class ScanLoop:
         self.event_seq = 0
         self.start_mode = "cold"
         self.start_reason = "retain off (no state directory)"
+        self.realtime = "normal scheduling"  # what scan_process_main obtained
         self.clock: Clock = clock or MonotonicClock()
         self.stats = TimingStats()
         self.summary = self.stats.summary()  # refreshed every board_every scans, not every scan
@@ -230,7 +233,7 @@ class ScanLoop:
             "timing": timing, "fault_code": plc.fault_code,
             "fault_reason": plc.fault_reason, "devices": self.runner.device_report(),
             "start_mode": self.start_mode,
-            "start_reason": self.start_reason,
+            "start_reason": self.start_reason, "realtime": self.realtime,
             "retain": self.retain.info() if self.retain else None,
             "health": {name: h.value for name, h in self.runner.health().items()},
             "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
@@ -317,11 +320,13 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
                 stop.set()
 
     threading.Thread(target=watch_parent, name="watch-parent", daemon=True).start()
+    realtime = apply(config.realtime)  # after the watcher: it keeps normal scheduling
     writer = SnapshotWriter.create(config.sizes, name=shm_name)
     board = StatusBoard.create(board_name)
     try:
         try:
             loop = ScanLoop(config, channel, writer, board=board)
+            loop.realtime = realtime
         except StateDirBusy as exc:
             print(f"softplc: {exc}", file=sys.stderr)
             raise SystemExit(3) from None

@@ -38,6 +38,7 @@ from softplc.core.lifecycle import PlcState
 from softplc.core.net import Busy, CompiledNet, NetState
 from softplc.core.scan import Plc
 from softplc.runtime.clock import Clock
+from softplc.runtime.realtime import background_thread
 
 FORMAT = 1
 PREFIX, SUFFIX = "retain-", ".json"
@@ -387,6 +388,7 @@ class RetainWriter:
         self.store.close()
 
     def _run(self) -> None:
+        background_thread()
         while True:
             with self._cond:
                 while self._pending is None and not self._closing:

@@ -24,6 +24,7 @@ from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel, pid_alive
 from softplc.runtime.comm import CommConfig, comm_process_main
 from softplc.runtime.loop import LoopConfig, scan_process_main
+from softplc.runtime.realtime import Realtime
 from softplc.runtime.retain import StateDirBusy, check_state_dir
 
 SHM_PREFIX = "softplc_"
@@ -78,7 +79,8 @@ class Supervisor:
             seed=args.seed, trace=args.trace, watchdog=args.watchdog, root=str(root),
             sizes=self.sizes, state_dir=args.state_dir,
             retain_interval_ns=getattr(args, "retain_interval", 1_000_000_000),
-            warm_start=getattr(args, "warm_start", "run"))
+            warm_start=getattr(args, "warm_start", "run"),
+            realtime=Realtime(getattr(args, "rt_priority", None), getattr(args, "scan_cpu", None)))
         self.comm_config = CommConfig(modbus=args.modbus, api=args.api,
                                       state_dir=args.state_dir, sizes=self.sizes,
                                       modbus_writes=getattr(args, "modbus_writes", "open"))
@@ -154,7 +156,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"softplc: {exc}", file=sys.stderr)
         return 1
     _remove_stale_segments()
-    supervisor = Supervisor(args)
+    try:
+        supervisor = Supervisor(args)
+    except ValueError as exc:  # --rt-priority or --scan-cpu out of range
+        print(f"softplc: {exc}", file=sys.stderr)
+        return 2
     stopping = False
 
     def on_signal(signum: int, frame: object) -> None:
@@ -171,8 +177,9 @@ def run(args: argparse.Namespace) -> int:
         return 1
     board = StatusBoard.attach(supervisor.board_name)
     _banner(args, board.read())
-    print(f"  scan process pid {supervisor.scan.pid}, communication process pid "
-          f"{supervisor.comm.pid if supervisor.comm else '-'}", flush=True)
+    print(f"  scan process pid {supervisor.scan.pid} ({board.read().get('realtime', '?')}), "
+          f"communication process pid {supervisor.comm.pid if supervisor.comm else '-'}",
+          flush=True)
     began = time.monotonic()
     tty = sys.stdout.isatty() and not args.quiet
     last_print = 0.0

@@ -1,0 +1,64 @@
+"""Real-time scheduling of the scan process: SCHED_FIFO priority and a CPU of its own.
+
+Owns: applying a priority and CPU pinning to the calling process and saying what it got.
+What soft PLCs on Linux do (CODESYS, OpenPLC's RT patches): a FIFO priority lets the scan
+preempt Modbus, HTTP and everything else on its CPU the moment its deadline comes. Refusal
+(no CAP_SYS_NICE, a container) is reported, never fatal: the PLC runs at normal priority.
+Does not know: the scan loop.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True, slots=True)
+class Realtime:
+    priority: int | None = None  # SCHED_FIFO 1..99; None: normal scheduling
+    cpu: int | None = None  # pin the scan to this CPU; None: any CPU
+
+    def __post_init__(self) -> None:
+        if self.priority is not None and not 1 <= self.priority <= 99:
+            raise ValueError(f"a SCHED_FIFO priority is 1..99, got {self.priority}")
+        if self.cpu is not None and self.cpu not in os.sched_getaffinity(0):
+            raise ValueError(f"CPU {self.cpu} is not available; this process may use "
+                             f"{sorted(os.sched_getaffinity(0))}")
+
+
+NORMAL = Realtime()
+
+
+def apply(rt: Realtime) -> str:
+    """Apply `rt` to the calling process; what it runs with now, in words."""
+    said = []
+    if rt.cpu is not None:
+        try:
+            os.sched_setaffinity(0, {rt.cpu})
+            said.append(f"pinned to CPU {rt.cpu}")
+        except OSError as exc:
+            said.append(f"CPU pinning refused ({exc.strerror})")
+    if rt.priority is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt.priority))
+            said.insert(0, f"SCHED_FIFO priority {rt.priority}")
+        except OSError as exc:
+            said.insert(0, f"normal scheduling (SCHED_FIFO refused: {exc.strerror})")
+    return ", ".join(said) or "normal scheduling"
+
+
+def recommended() -> Realtime:
+    """The benchmark's and the docs' deployment: FIFO 50 on the last CPU, if there are two."""
+    cpus = sorted(os.sched_getaffinity(0))
+    return Realtime(priority=50, cpu=cpus[-1] if len(cpus) > 1 else None)
+
+
+def background_thread() -> None:
+    """In a helper thread of the scan process (compiler, retain writer): back to normal
+    scheduling on any CPU. Linux threads inherit the creator's policy and CPU, and a FIFO
+    helper on the scan's CPU would not yield to the scan when its deadline comes."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        os.sched_setaffinity(0, range(os.cpu_count() or 1))
+    except OSError:
+        pass  # still the process's own policy: only as good as the scan's

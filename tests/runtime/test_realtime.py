@@ -1,0 +1,70 @@
+"""Real-time scheduling of the scan process: what is asked is what is reported, helper
+threads go back to normal scheduling, and bad settings are refused up front. Each check runs
+in a child process so that this test process keeps its own scheduling."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import threading
+from multiprocessing.connection import Connection
+
+import pytest
+
+from softplc.runtime.realtime import Realtime, apply, background_thread
+
+
+def probe(rt: Realtime, out: Connection) -> None:
+    said = apply(rt)
+    seen: dict[str, object] = {}
+
+    def helper() -> None:
+        background_thread()
+        seen["helper_policy"] = os.sched_getscheduler(0)
+        seen["helper_cpus"] = sorted(os.sched_getaffinity(0))
+
+    thread = threading.Thread(target=helper)
+    thread.start()
+    thread.join()
+    out.send({"said": said, "policy": os.sched_getscheduler(0),
+              "priority": os.sched_getparam(0).sched_priority,
+              "cpus": sorted(os.sched_getaffinity(0)), **seen})
+
+
+def run_probe(rt: Realtime) -> dict[str, object]:
+    ctx = mp.get_context("spawn")
+    receiver, sender = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=probe, args=(rt, sender))
+    proc.start()
+    try:
+        assert receiver.poll(30)
+        result: dict[str, object] = receiver.recv()
+        return result
+    finally:
+        proc.join(10)
+
+
+def test_fifo_priority_and_cpu_are_applied_or_the_refusal_is_reported() -> None:
+    cpu = max(os.sched_getaffinity(0))
+    got = run_probe(Realtime(priority=50, cpu=cpu))
+    if got["policy"] == os.SCHED_FIFO:
+        assert got["priority"] == 50
+        assert str(got["said"]).startswith("SCHED_FIFO priority 50")
+    else:  # no CAP_SYS_NICE here: said so, and the PLC runs anyway
+        assert "SCHED_FIFO refused" in str(got["said"])
+    assert got["cpus"] == [cpu] and f"pinned to CPU {cpu}" in str(got["said"])
+    # the compiler and retain threads must not compete with the scan as FIFO on its CPU
+    assert got["helper_policy"] == os.SCHED_OTHER
+    assert len(got["helper_cpus"]) == os.cpu_count()  # type: ignore[arg-type]
+
+
+def test_normal_scheduling_changes_nothing() -> None:
+    got = run_probe(Realtime())
+    assert got["said"] == "normal scheduling" and got["policy"] == os.SCHED_OTHER
+
+
+@pytest.mark.parametrize("kwargs", [{"priority": 0}, {"priority": 100},
+                                    {"cpu": 10_000}])
+def test_bad_settings_are_refused_with_the_allowed_range(kwargs: dict[str, int]) -> None:
+    with pytest.raises(ValueError, match="1..99|not available"):
+        Realtime(**kwargs)
