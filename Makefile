@@ -28,7 +28,7 @@ lint: setup
 bench: setup
 	$(VENV)/bin/softplc bench --json bench.json --plots docs/bench --markdown BENCHMARKS.md
 
-# Long fuzz run (about 25 min): the same fuzz tests as `make test` at 50x the cases; what
+# Long fuzz run (about 10 min here): the same fuzz tests as `make test` at 50x the cases; what
 # was tried is appended to fuzz-report.jsonl (figures quoted in RELIABILITY.md).
 FUZZ_SCALE ?= 50
 fuzz: setup

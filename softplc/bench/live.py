@@ -33,7 +33,7 @@ from softplc.runtime.channel import Channel
 from softplc.runtime.clock import MonotonicClock
 from softplc.runtime.comm import CommConfig, comm_process_main
 from softplc.runtime.loop import LoopConfig, ScanLoop, scan_process_main
-from softplc.runtime.realtime import NORMAL, Realtime, apply
+from softplc.runtime.realtime import NORMAL, Realtime, apply, keep_off_scan_cpu
 from softplc.runtime.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
 from softplc.runtime.supervisor import SHM_PREFIX, die_with_parent
@@ -289,6 +289,7 @@ class LiveRuntime:
             args=(self.comm_config, self.channel, self.shm_name, self.board_name, ready,
                   self.stop_comm))
         self.comm.start()
+        keep_off_scan_cpu(self.comm.pid, self.loop_config.realtime)
         deadline = time.monotonic() + timeout_s
         while not ready.wait(0.1):
             if not self.comm.is_alive() or time.monotonic() > deadline:

@@ -18,7 +18,7 @@ import numpy as np
 from softplc.bench.live import LiveRuntime, ScanRecord, run_floor
 from softplc.bench.load import LoadJob, LoadWorker
 from softplc.bench.measure import Progress, figures, ratio
-from softplc.runtime.realtime import Realtime, recommended
+from softplc.runtime.realtime import Realtime, keep_off_scan_cpu, recommended
 
 # One set of bin edges for every histogram (µs, logarithmic): runs can be overlaid.
 HISTOGRAM_EDGES_US = [0.0, *np.geomspace(1.0, 100_000.0, 51).round(3).tolist()]
@@ -94,6 +94,7 @@ def run(quick: bool, progress: Progress, *, duration_s: float | None = None,
     hists: dict[str, Any] = {}
     load_before = os.getloadavg()
     with LoadWorker() as worker:
+        keep_off_scan_cpu(worker.pid, realtime)  # the HMI load runs beside the PLC, as it would
         for period_ms in periods_ms:
             _measure_period(period_ms, duration, worker, clients, http_interval_s, progress,
                             configs, hists, realtime)

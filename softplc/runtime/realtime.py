@@ -9,6 +9,7 @@ Does not know: the scan loop.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import dataclass
 
@@ -62,3 +63,14 @@ def background_thread() -> None:
         os.sched_setaffinity(0, range(os.cpu_count() or 1))
     except OSError:
         pass  # still the process's own policy: only as good as the scan's
+
+
+def keep_off_scan_cpu(pid: int, rt: Realtime) -> None:
+    """Another process of the runtime (communication, HMI load): on every CPU but the scan's,
+    so its work and the network stack's soft interrupts it causes stay off that CPU."""
+    if rt.cpu is None:
+        return
+    others = set(os.sched_getaffinity(0)) - {rt.cpu}
+    if others:  # on failure (process gone, not allowed) it shares the CPU, as unpinned
+        with contextlib.suppress(OSError):
+            os.sched_setaffinity(pid, others)

@@ -24,7 +24,7 @@ from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel, pid_alive
 from softplc.runtime.comm import CommConfig, comm_process_main
 from softplc.runtime.loop import LoopConfig, scan_process_main
-from softplc.runtime.realtime import Realtime
+from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
 from softplc.runtime.retain import StateDirBusy, check_state_dir
 
 SHM_PREFIX = "softplc_"
@@ -112,6 +112,7 @@ class Supervisor:
             args=(self.comm_config, self.channel, self.shm_name, self.board_name, ready,
                   self.stop_comm))
         self.comm.start()
+        keep_off_scan_cpu(self.comm.pid, self.loop_config.realtime)
         deadline = time.monotonic() + 30
         while not ready.wait(0.1):
             if not self.comm.is_alive() or time.monotonic() > deadline:
