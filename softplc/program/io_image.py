@@ -140,7 +140,7 @@ class _Reader:
                       driver, str(spec.get("channel", name)),
                       spec.get("hmi_writable", True) is True, line)
 
-    def _type(self, spec: YMap, path: str, natural: SymType) -> SymType:
+    def _type(self, spec: dict[Any, Any], path: str, natural: SymType) -> SymType:
         declared = spec.get("type", natural.value)
         if declared not in ("bool", "word"):
             self.problem(line_of(spec, "type"), f"{path}.type",
@@ -151,7 +151,7 @@ class _Reader:
                          f"type {declared} does not fit a {natural.value} address")
         return natural
 
-    def _safe(self, spec: YMap, path: str, sym_type: SymType) -> int:
+    def _safe(self, spec: dict[Any, Any], path: str, sym_type: SymType) -> int:
         value = spec.get("safe", 0)
         line = line_of(spec, "safe")
         if sym_type is SymType.BOOL:
