@@ -357,8 +357,8 @@ def explain(results: dict[str, Any]) -> list[str]:
             "1 ms period leaves too little slack for the steal spikes: idle "
             f"{_fmt(idle.get('overruns'))} and loaded {_fmt(loaded.get('overruns'))} overruns. "
             "What would close it: an isolated core (isolcpus, nohz_full) on real hardware, "
-            "and a cheaper scan (the Python engine is ~40 µs of it; the rest is the simulated "
-            "plant, the status copy and the drivers). At 10 ms the same machine shows "
+            "and a cheaper scan (engine, simulated plant, status copy and drivers are all "
+            "Python). At 10 ms the same machine shows "
             f"{_fmt(_get(results, 'scan', 'configs', 'loaded_10ms', 'overruns'))} loaded "
             "overruns.")
     if "online_change.missed_scans" in missed:
