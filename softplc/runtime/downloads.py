@@ -62,6 +62,7 @@ class DownloadQueue:
         """The requests at the head of the queue that are decided, in arrival order; stops
         at the first download still compiling."""
         decided: list[Decided] = []
+        finished = False
         while self._queue:
             request, future = self._queue[0]
             if future is not None and not future.done():
@@ -71,10 +72,11 @@ class DownloadQueue:
                 decided.append(Decided(request))
                 continue
             self._compiling -= 1
+            finished = True
             error = future.exception()
             decided.append(Decided(request, error=error) if error is not None
                            else Decided(request, net=future.result()))
-        if self._compiling == 0:
+        if finished and self._compiling == 0:  # not on every scan: only when the last one ends
             sys.setswitchinterval(self._default_interval_s)
         return decided
 

@@ -2,8 +2,9 @@
 
 Owns: absolute deadlines on the monotonic clock, skipped slots counted as overruns, the
 watchdog (execution time over period x sensitivity -> FAULTED, safe outputs), commands and
-HMI writes drained at the scan boundary (downloads compiled here, before the scan, so a bad
-program never reaches the PLC), the snapshot published to shared memory after every scan,
+HMI writes drained at the scan boundary (downloads compiled off the scan by downloads.py and
+applied at the first boundary after, so a bad program never reaches the PLC), the snapshot
+published to shared memory after every scan,
 retain captures at scan boundaries (written by retain.py's thread), the cold or warm start,
 and safe outputs on shutdown.
 Does not know: Modbus, HTTP (the communication process), terminals (the CLI).
@@ -104,11 +105,15 @@ class ScanLoop:
         if net is not None and decision.snapshot is not None:
             self._warm(net, decision.snapshot)
         elif net is not None:
-            self.pending.append(ProgramCommand(Command.DOWNLOAD, net, id=0))
-            if config.start:
-                self.pending.append(ProgramCommand(Command.START, id=0))
+            self._cold(net)
 
     # -- retain -----------------------------------------------------------------------------
+
+    def _cold(self, net: CompiledNet) -> None:
+        """Download `net` (and start it, if asked) on the first scan, from its initial marking."""
+        self.pending = [ProgramCommand(Command.DOWNLOAD, net, id=0)]
+        if self.config.start:
+            self.pending.append(ProgramCommand(Command.START, id=0))
 
     def _warm(self, net: CompiledNet, snap: Loaded) -> None:
         """Download `net`, open its devices and put the snapshot in; on a snapshot that does
@@ -123,9 +128,7 @@ class ScanLoop:
                       for name, blob in payload.get("field_simulation_only", {}).items()}
         except (KeyError, TypeError, ValueError, IndexError, AttributeError, EOFError) as exc:
             self.runner.plc = Plc.empty(self.runner.plc.image)
-            self.pending = [ProgramCommand(Command.DOWNLOAD, net, id=0)]
-            if self.config.start:
-                self.pending.append(ProgramCommand(Command.START, id=0))
+            self._cold(net)
             self.start_mode = "cold"
             self.start_reason = f"snapshot {snap.path.name} unusable ({type(exc).__name__}: {exc})"
             return
@@ -200,8 +203,8 @@ class ScanLoop:
     # -- the loop ---------------------------------------------------------------------------
 
     def scan_once(self, now_ns: int) -> bool:
-        """One scan; True if it handled program commands (exempt from the watchdog: a
-        download compiles and may open devices, which is not the program's execution time)."""
+        """One scan; True if it applied program commands (exempt from the watchdog: a
+        download swaps the net and may open devices, not the program's execution time)."""
         requests, writes = self.channel.drain() if self.channel else ([], [])
         self.downloads.put(requests)
         commands = self.pending + self._due_commands()
