@@ -30,7 +30,7 @@ import numpy.typing as npt
 from softplc.core.image import ImageSizes
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
-from softplc.runtime.clock import MonotonicClock
+from softplc.runtime.clock import MonotonicClock, Schedule
 from softplc.runtime.comm import CommConfig, comm_process_main
 from softplc.runtime.loop import LoopConfig, ScanLoop, scan_process_main
 from softplc.runtime.realtime import NORMAL, Realtime, apply, keep_off_scan_cpu
@@ -103,7 +103,7 @@ class ScanRecord:
 class RecordingStats(TimingStats):
     """TimingStats that also keeps every scan, up to `capacity`, for histograms and windows."""
 
-    __slots__ = ("_clock", "_counted", "at_ns", "count", "exec_ns_all", "late_ns_all", "missed")
+    __slots__ = ("_clock", "at_ns", "count", "exec_ns_all", "late_ns_all", "missed")
 
     def __init__(self, capacity: int, window: int = 1000) -> None:
         super().__init__(window)
@@ -113,29 +113,19 @@ class RecordingStats(TimingStats):
         self.exec_ns_all = np.zeros(capacity, dtype=np.int64)
         self.missed = np.zeros(capacity, dtype=np.int64)
         self.count = 0
-        self._counted = 0
 
-    def record(self, exec_ns: int, lateness_ns: int, *, overrun: bool = False) -> None:
-        self._settle()
+    def record(self, exec_ns: int, lateness_ns: int, *, overrun: bool = False,
+               skipped: int = 0) -> None:
         i = self.count
         if i < len(self.at_ns):
             self.at_ns[i] = self._clock.now_ns()
             self.late_ns_all[i] = lateness_ns
             self.exec_ns_all[i] = exec_ns
-            self.missed[i] = 1 if overrun else 0
+            self.missed[i] = max(skipped, 1 if overrun else 0)
             self.count = i + 1
-        super().record(exec_ns, lateness_ns, overrun=overrun)
-        self._counted = self.overruns
-
-    def _settle(self) -> None:
-        # The loop adds the slots skipped beyond the first to `overruns` after record():
-        # they belong to the previous scan.
-        if self.overruns != self._counted and 0 < self.count <= len(self.missed):
-            self.missed[self.count - 1] += self.overruns - self._counted
-        self._counted = self.overruns
+        super().record(exec_ns, lateness_ns, overrun=overrun, skipped=skipped)
 
     def as_record(self, changes: list[dict[str, Any]]) -> ScanRecord:
-        self._settle()
         n = self.count
         return ScanRecord(self.at_ns[:n].copy(), self.late_ns_all[:n].copy(),
                           self.exec_ns_all[:n].copy(), self.missed[:n].copy(), changes)
@@ -194,21 +184,12 @@ def floor_main(period_ns: int, duration_s: float, results: Connection,
     apply(realtime)
     clock = MonotonicClock()
     stats = RecordingStats(int(duration_s * 1e9 / period_ns) + 16)
-    start = clock.now_ns()
-    end = start + int(duration_s * 1e9)
-    k = 0
-    while True:
-        deadline = start + k * period_ns
-        if deadline >= end:
-            break
-        reached = clock.wait_until(deadline)
+    schedule = Schedule(clock, period_ns)
+    end = schedule.start_ns + int(duration_s * 1e9)
+    while (deadline := schedule.deadline_ns) < end:
+        reached = schedule.wait()
         done = clock.now_ns()
-        k += 1
-        missed = max(0, (done - start) // period_ns - k + 1) if done > start + k * period_ns else 0
-        k += missed
-        stats.record(done - reached, reached - deadline, overrun=missed > 0)
-        if missed > 1:
-            stats.overruns += missed - 1
+        stats.record(done - reached, reached - deadline, skipped=schedule.advance(done))
     results.send(stats.as_record([]))
 
 

@@ -1,7 +1,8 @@
 """Time for the runtime: the real monotonic clock, a virtual clock, and duration parsing.
 
 Owns: the Clock protocol, MonotonicClock (the only place in softplc that reads the real
-clock), VirtualClock (jumps to each deadline; simulation and tests), parse_duration_ns.
+clock), VirtualClock (jumps to each deadline; simulation and tests), Schedule (absolute
+deadlines, skipped slots), parse_duration_ns.
 Does not know: scans, programs, processes.
 """
 
@@ -52,6 +53,34 @@ class MonotonicClock:
         while now < deadline_ns:
             now = time.monotonic_ns()
         return now
+
+
+class Schedule:
+    """Absolute deadlines start + k x period on `clock`. A scan that runs past the next
+    deadline skips the slots it overlapped (counted, never caught up), so no drift builds up.
+    The scan loop and the benchmark's empty-loop floor share it: the same scheduler."""
+
+    __slots__ = ("clock", "k", "period_ns", "start_ns")
+
+    def __init__(self, clock: Clock, period_ns: int) -> None:
+        self.clock, self.period_ns = clock, period_ns
+        self.start_ns, self.k = clock.now_ns(), 0
+
+    @property
+    def deadline_ns(self) -> int:
+        return self.start_ns + self.k * self.period_ns
+
+    def wait(self) -> int:
+        """Wait for the current slot's deadline; the time reached."""
+        return self.clock.wait_until(self.deadline_ns)
+
+    def advance(self, done_ns: int) -> int:
+        """Past the slot that ended at `done_ns`; the whole slots it ran past (0: on time)."""
+        self.k += 1
+        late = done_ns - self.deadline_ns
+        skipped = late // self.period_ns + 1 if late > 0 else 0
+        self.k += skipped
+        return skipped
 
 
 class VirtualClock:

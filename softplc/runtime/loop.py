@@ -32,7 +32,7 @@ from softplc.core.snapshot import CommandReply, CommandRequest, Status
 from softplc.program.compiler import compile_file, compile_text
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
-from softplc.runtime.clock import Clock, MonotonicClock
+from softplc.runtime.clock import Clock, MonotonicClock, Schedule
 from softplc.runtime.downloads import DownloadQueue
 from softplc.runtime.realtime import NORMAL, Realtime, apply
 from softplc.runtime.retain import (
@@ -253,24 +253,18 @@ class ScanLoop:
 
     def run(self, stop: Event | None = None) -> None:
         period = self.config.period_ns
-        start = self.clock.now_ns()
-        k = 0
+        schedule = Schedule(self.clock, period)
         while (stop is None or not stop.is_set()) and (
                 self.config.max_scans is None or self.runner.plc.scan_count < self.config.max_scans):
-            deadline = start + k * period
-            reached = self.clock.wait_until(deadline)
+            deadline = schedule.deadline_ns
+            reached = schedule.wait()
             handled_commands = self.scan_once(reached)
             done = self.clock.now_ns()
             exec_ns = done - reached
             if (exec_ns > period * self.config.watchdog and not handled_commands
                     and self.runner.plc.state is PlcState.RUNNING):
                 self._watchdog()
-            k += 1
-            missed = max(0, (done - start) // period - k + 1) if done > start + k * period else 0
-            k += missed
-            self.stats.record(exec_ns, reached - deadline, overrun=missed > 0)
-            if missed > 1:
-                self.stats.overruns += missed - 1
+            self.stats.record(exec_ns, reached - deadline, skipped=schedule.advance(done))
             refresh = self.runner.plc.scan_count % self.board_every == 0
             if refresh:  # percentiles cost ~20 µs: not on every scan
                 self.summary = self.stats.summary()

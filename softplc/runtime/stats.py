@@ -62,15 +62,16 @@ class TimingStats:
     def window(self) -> int:
         return len(self._exec)
 
-    def record(self, exec_ns: int, lateness_ns: int, *, overrun: bool = False) -> None:
-        """One scan: how long it ran, how late it started, whether it missed its period."""
+    def record(self, exec_ns: int, lateness_ns: int, *, overrun: bool = False,
+               skipped: int = 0) -> None:
+        """One scan: how long it ran, how late it started, whether it missed its period
+        (`overrun`), or how many whole slots it ran past (`skipped`, each one an overrun)."""
         i = self._next
         self._exec[i] = exec_ns
         self._late[i] = lateness_ns
         self._next = i + 1 if i + 1 < len(self._exec) else 0
         self.scans += 1
-        if overrun:
-            self.overruns += 1
+        self.overruns += max(skipped, 1 if overrun else 0)
         self.last_exec_ns = exec_ns
         if exec_ns > self.max_exec_ns:
             self.max_exec_ns = exec_ns

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import pytest
 
-from softplc.runtime.clock import Clock, MonotonicClock, VirtualClock, parse_duration_ns
+from softplc.runtime.clock import (
+    Clock,
+    MonotonicClock,
+    Schedule,
+    VirtualClock,
+    parse_duration_ns,
+)
 
 
 def test_monotonic_wait_until_never_returns_before_the_deadline() -> None:
@@ -86,3 +92,13 @@ def test_parse_duration_errors(text: str, message: str) -> None:
     with pytest.raises(ValueError, match=message) as err:
         parse_duration_ns(text)
     assert repr(text) in str(err.value)
+
+
+def test_schedule_skips_the_slots_a_long_scan_ran_past_and_never_drifts() -> None:
+    clock = VirtualClock(1_000)
+    schedule = Schedule(clock, 10)
+    assert schedule.wait() == 1_000
+    assert schedule.advance(1_005) == 0 and schedule.deadline_ns == 1_010  # on time
+    assert schedule.advance(1_010) == 0 and schedule.deadline_ns == 1_020  # at the deadline
+    assert schedule.advance(1_045) == 2 and schedule.deadline_ns == 1_050  # ran past 1030, 1040
+    assert schedule.wait() == 1_050
