@@ -31,12 +31,12 @@ from softplc.core.image import ImageSizes
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.clock import MonotonicClock, Schedule
-from softplc.runtime.comm import CommConfig, comm_process_main
+from softplc.runtime.comm import CommConfig
 from softplc.runtime.loop import LoopConfig, ScanLoop, scan_process_main
-from softplc.runtime.realtime import NORMAL, Realtime, apply, keep_off_scan_cpu
+from softplc.runtime.realtime import NORMAL, Realtime, apply
 from softplc.runtime.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
-from softplc.runtime.supervisor import SHM_PREFIX, die_with_parent
+from softplc.runtime.supervisor import SHM_PREFIX, Supervisor, die_with_parent
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout: programs/ and io_images/
 TRANSPORT = ROOT / "programs" / "transport.yaml"
@@ -220,27 +220,25 @@ class LiveRuntime:
                  start: bool = True, plant: str | None = "transport", record: bool = True,
                  capacity_s: float = 120.0, api: bool = True, modbus: bool = True,
                  watchdog: float = BENCH_WATCHDOG, realtime: Realtime = NORMAL) -> None:
-        self.sizes = ImageSizes()
+        sizes = ImageSizes()
         self.period_ns = period_ns
         self.record = record
-        self.capacity = int(capacity_s * 1e9 / period_ns) + 1024
-        self.loop_config = LoopConfig(
+        loop_config = LoopConfig(
             program=str(program) if program else None, start=start, period_ns=period_ns,
-            plant=plant, root=str(ROOT), sizes=self.sizes, watchdog=watchdog, realtime=realtime)
+            plant=plant, root=str(ROOT), sizes=sizes, watchdog=watchdog, realtime=realtime)
         self.modbus_port = free_port() if modbus else None
         self.api_port = free_port() if api else None
         self._state_dir = tempfile.TemporaryDirectory(prefix="softplc-bench-")
-        self.comm_config = CommConfig(
+        comm_config = CommConfig(
             modbus=("127.0.0.1", self.modbus_port) if self.modbus_port else None,
             api=("127.0.0.1", self.api_port) if self.api_port else None,
-            state_dir=self._state_dir.name, sizes=self.sizes)
-        tag = f"{SHM_PREFIX}{os.getpid()}_bench{next(_NAMES)}"
-        self.shm_name, self.board_name = f"{tag}_image", f"{tag}_board"
-        self.channel = Channel(ctx=_CTX)
-        self.stop_scan, self.stop_comm = _CTX.Event(), _CTX.Event()
-        self._receiver, self._sender = _CTX.Pipe(duplex=False)
-        self.scan: Any = None
-        self.comm: Any = None
+            state_dir=self._state_dir.name, sizes=sizes)
+        self._receiver, sender = _CTX.Pipe(duplex=False)
+        capacity = int(capacity_s * 1e9 / period_ns) + 1024
+        self.supervisor = Supervisor(
+            loop_config, comm_config, tag=f"{SHM_PREFIX}{os.getpid()}_bench{next(_NAMES)}",
+            scan_main=bench_scan_main if record else scan_process_main,
+            scan_args=(sender, capacity) if record else ())
         self.board: StatusBoard | None = None
         self._stopped = False
         self._record: ScanRecord | None = None
@@ -249,32 +247,22 @@ class LiveRuntime:
     def api_url(self) -> str:
         return f"http://127.0.0.1:{self.api_port}"
 
+    @property
+    def channel(self) -> Channel:
+        return self.supervisor.channel
+
+    @property
+    def scan(self) -> Any:
+        return self.supervisor.scan
+
+    @property
+    def comm(self) -> Any:
+        return self.supervisor.comm
+
     def start(self, timeout_s: float = 60.0) -> None:
-        ready = _CTX.Event()
-        common = (self.loop_config, self.channel, self.shm_name, self.board_name, ready,
-                  self.stop_scan)
-        if self.record:
-            self.scan = _CTX.Process(target=bench_scan_main, name="softplc-scan",
-                                     args=(*common, self._sender, self.capacity))
-        else:
-            self.scan = _CTX.Process(target=scan_process_main, name="softplc-scan", args=common)
-        self.scan.start()
-        if not ready.wait(timeout_s):
-            raise RuntimeError(f"the scan process did not start within {timeout_s} s")
-        self.board = StatusBoard.attach(self.board_name)
-        if self.comm_config.modbus is None and self.comm_config.api is None:
-            return
-        ready = _CTX.Event()
-        self.comm = _CTX.Process(
-            target=comm_process_main, name="softplc-comm",
-            args=(self.comm_config, self.channel, self.shm_name, self.board_name, ready,
-                  self.stop_comm))
-        self.comm.start()
-        keep_off_scan_cpu(self.comm.pid, self.loop_config.realtime)
-        deadline = time.monotonic() + timeout_s
-        while not ready.wait(0.1):
-            if not self.comm.is_alive() or time.monotonic() > deadline:
-                raise RuntimeError("the communication process did not start")
+        """As `softplc run` starts: the scan process, then the communication process."""
+        self.supervisor.start(timeout_s)
+        self.board = StatusBoard.attach(self.supervisor.board_name)
 
     def status(self) -> dict[str, Any]:
         assert self.board is not None
@@ -299,9 +287,9 @@ class LiveRuntime:
             return self._record
         self._stopped = True
         record: ScanRecord | None = None
-        self.stop_comm.set()
+        self.supervisor.stop_comm.set()
         _end(self.comm)
-        self.stop_scan.set()
+        self.supervisor.stop_scan.set()
         if self.scan is not None and self.record and self._receiver.poll(30):
             record = self._receiver.recv()
         _end(self.scan)

@@ -14,6 +14,7 @@ import os
 import signal
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -64,46 +65,57 @@ def status_line(doc: dict[str, Any]) -> str:
 
 
 class Supervisor:
-    def __init__(self, args: argparse.Namespace) -> None:
-        self.args = args
+    """The scan process and the communication process of one PLC. `scan_main` and its
+    `scan_args` (after the standard ones) let the benchmark run an instrumented scan loop
+    under the same start order, names and stop events."""
+
+    def __init__(self, loop_config: LoopConfig, comm_config: CommConfig, *,
+                 scan_main: Callable[..., None] = scan_process_main,
+                 scan_args: tuple[Any, ...] = (), tag: str | None = None) -> None:
         self.ctx = mp.get_context("spawn")
         self.channel = Channel(ctx=self.ctx)
-        tag = f"{SHM_PREFIX}{os.getpid()}"
+        tag = tag or f"{SHM_PREFIX}{os.getpid()}"
         self.shm_name, self.board_name = f"{tag}_image", f"{tag}_board"
         self.stop_scan = self.ctx.Event()
         self.stop_comm = self.ctx.Event()
-        self.sizes = ImageSizes()
-        root = Path(args.program).resolve().parent.parent if args.program else Path.cwd()
-        self.loop_config = LoopConfig(
-            program=args.program, start=args.start, period_ns=args.period, plant=args.plant,
-            seed=args.seed, trace=args.trace, watchdog=args.watchdog, root=str(root),
-            sizes=self.sizes, state_dir=args.state_dir,
-            retain_interval_ns=getattr(args, "retain_interval", 1_000_000_000),
-            warm_start=getattr(args, "warm_start", "run"),
-            realtime=Realtime(getattr(args, "rt_priority", None), getattr(args, "scan_cpu", None)))
-        self.comm_config = CommConfig(modbus=args.modbus, api=args.api,
-                                      state_dir=args.state_dir, sizes=self.sizes,
-                                      modbus_writes=getattr(args, "modbus_writes", "open"))
+        self.loop_config, self.comm_config = loop_config, comm_config
+        self.scan_main, self.scan_args = scan_main, scan_args
         self.scan: Any = None
         self.comm: Any = None
         self.comm_restarts = 0
 
-    def start(self) -> None:
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> Supervisor:
+        """`softplc run`'s flags. Raises ValueError for --rt-priority / --scan-cpu."""
+        sizes = ImageSizes()
+        root = Path(args.program).resolve().parent.parent if args.program else Path.cwd()
+        loop_config = LoopConfig(
+            program=args.program, start=args.start, period_ns=args.period, plant=args.plant,
+            seed=args.seed, trace=args.trace, watchdog=args.watchdog, root=str(root),
+            sizes=sizes, state_dir=args.state_dir,
+            retain_interval_ns=getattr(args, "retain_interval", 1_000_000_000),
+            warm_start=getattr(args, "warm_start", "run"),
+            realtime=Realtime(getattr(args, "rt_priority", None), getattr(args, "scan_cpu", None)))
+        comm_config = CommConfig(modbus=args.modbus, api=args.api, state_dir=args.state_dir,
+                                 sizes=sizes, modbus_writes=getattr(args, "modbus_writes", "open"))
+        return cls(loop_config, comm_config)
+
+    def start(self, timeout_s: float = 30.0) -> None:
         ready = self.ctx.Event()
         self.scan = self.ctx.Process(
-            target=scan_process_main, name="softplc-scan",
+            target=self.scan_main, name="softplc-scan",
             args=(self.loop_config, self.channel, self.shm_name, self.board_name, ready,
-                  self.stop_scan))
+                  self.stop_scan, *self.scan_args))
         self.scan.start()
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + timeout_s
         while not ready.wait(0.1):
             if not self.scan.is_alive():
                 raise RuntimeError(f"the scan process exited ({self.scan.exitcode}) at start")
             if time.monotonic() > deadline:
-                raise RuntimeError("the scan process did not start within 30 s")
-        self.start_comm()
+                raise RuntimeError(f"the scan process did not start within {timeout_s:g} s")
+        self.start_comm(timeout_s)
 
-    def start_comm(self) -> None:
+    def start_comm(self, timeout_s: float = 30.0) -> None:
         if self.comm_config.modbus is None and self.comm_config.api is None:
             return
         ready = self.ctx.Event()
@@ -113,7 +125,7 @@ class Supervisor:
                   self.stop_comm))
         self.comm.start()
         keep_off_scan_cpu(self.comm.pid, self.loop_config.realtime)
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + timeout_s
         while not ready.wait(0.1):
             if not self.comm.is_alive() or time.monotonic() > deadline:
                 raise RuntimeError("the communication process did not start (is a port in use? "
@@ -158,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
         return 1
     _remove_stale_segments()
     try:
-        supervisor = Supervisor(args)
+        supervisor = Supervisor.from_args(args)
     except ValueError as exc:  # --rt-priority or --scan-cpu out of range
         print(f"softplc: {exc}", file=sys.stderr)
         return 2
