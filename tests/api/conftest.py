@@ -43,9 +43,10 @@ class ScanThread:
     """The scan side: a real ScanLoop whose scan_once runs every ~2 ms of real time on a
     virtual clock (10 ms per scan), publishing the snapshot and the board after each scan."""
 
-    def __init__(self, channel: Channel, writer: SnapshotWriter, board: StatusBoard) -> None:
-        self.loop = ScanLoop(LoopConfig(root=str(ROOT), period_ns=PERIOD_NS), channel, writer,
-                             board=board)
+    def __init__(self, channel: Channel, writer: SnapshotWriter, board: StatusBoard,
+                 config: LoopConfig | None = None) -> None:
+        config = config or LoopConfig(root=str(ROOT), period_ns=PERIOD_NS)
+        self.loop = ScanLoop(config, channel, writer, board=board)
         self._writer = writer
         self._board = board
         self._stop = threading.Event()
