@@ -6,7 +6,7 @@ Does not know: shared memory, sockets, Modbus function codes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 from softplc.core.image import Address, ProcessImage
@@ -24,8 +24,11 @@ class Status:
     program_hash: str = ""  # hex sha256 of the program text, "" when EMPTY
     fault_code: int = 0  # a FaultCode (core/problems.py)
     period_us: int = 0
-    published_ns: int = 0  # CLOCK_MONOTONIC when the scan process published it (0: never)
-    stale: bool = False  # set by a reader: the snapshot is older than the PLC's cycle allows
+    # About the snapshot, not the PLC (so not part of equality): CLOCK_MONOTONIC when the scan
+    # process published it (0: never), and a reader's verdict that it is older than the PLC's
+    # cycle allows (the scan process is frozen or dead).
+    published_ns: int = field(default=0, compare=False)
+    stale: bool = field(default=False, compare=False)
 
 
 @dataclass(frozen=True, slots=True)

@@ -494,8 +494,9 @@ def _describe(error: BaseException) -> str:
 
 def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: Event, stop: Event) -> None:
-    """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`."""
-    from softplc.runtime.supervisor import die_with_parent
+    """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`.
+    Exit codes: 0 stopped, 3 state directory busy, 4 cannot start (program, devices)."""
+    from softplc.runtime.procs import die_with_parent
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -505,12 +506,12 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
     def watch_parent() -> None:
         while not stop.wait(0.5):
             if os.getppid() != parent:
-                stop.set()
+                stop.set()  # the supervisor is gone: go safe and end
 
     threading.Thread(target=watch_parent, name="watch-parent", daemon=True).start()
     realtime = apply(config.realtime)  # after the watcher: it keeps normal scheduling
-    writer = SnapshotWriter.create(config.sizes, name=shm_name)
-    board = StatusBoard.create(board_name)
+    writer, own_segment = SnapshotWriter.open_or_create(config.sizes, shm_name)
+    board, own_board = StatusBoard.open_or_create(board_name)
     try:
         try:
             loop = ScanLoop(config, channel, writer, board=board)
@@ -518,11 +519,18 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
         except StateDirBusy as exc:
             print(f"softplc: {exc}", file=sys.stderr)
             raise SystemExit(3) from None
+        except (ProgramError, ValueError, OSError) as exc:
+            print(f"softplc: cannot start the scan: {exc}", file=sys.stderr)
+            raise SystemExit(4) from None
         writer.publish(loop.runner.plc.image, loop.status())
         board.publish(loop.document())
         ready.set()
         loop.run(stop)
     finally:
         writer.close()
-        writer.unlink()
-        board.close()
+        if own_segment:
+            writer.unlink()
+        if own_board:
+            board.close()
+        else:
+            board.detach()
