@@ -16,7 +16,6 @@ import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from multiprocessing.synchronize import Event
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final, Literal, Protocol, get_args
 
@@ -24,6 +23,7 @@ from softplc.core.image import Address, AddressError, ImageSizes, parse_address
 from softplc.core.snapshot import HmiWrite, SnapshotSource
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
+from softplc.runtime.procs import Flag as Event
 from softplc.runtime.shm import SnapshotReader
 
 if TYPE_CHECKING:

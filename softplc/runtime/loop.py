@@ -21,7 +21,6 @@ from collections import deque
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from multiprocessing.synchronize import Event
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +36,7 @@ from softplc.program.compiler import compile_file, compile_text
 from softplc.runtime import boot
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
+from softplc.runtime.procs import Flag as Event
 from softplc.runtime.clock import Clock, MonotonicClock, Schedule
 from softplc.runtime.downloads import DownloadQueue
 from softplc.runtime.realtime import NORMAL, Realtime, apply
@@ -149,7 +149,10 @@ class ScanLoop:
             if config.plant and (why := plant_conflict(compile_file(config.program).io,
                                                        config.plant)):
                 raise ValueError(why)
-            return compile_file(config.program), boot.from_file(config.program)
+            program = boot.from_file(config.program)
+            if config.state_dir is not None:  # the program the PLC runs is its boot program
+                boot.save(config.state_dir, program)
+            return compile_file(config.program), program
         if config.state_dir is None or not config.boot:
             return None, None
         try:

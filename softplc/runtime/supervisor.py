@@ -39,6 +39,7 @@ from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel, pid_alive
 from softplc.runtime.comm import CommConfig, comm_process_main
 from softplc.runtime.loop import LoopConfig, scan_process_main
+from softplc.runtime.procs import ReadySignal, StopFlag
 from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
 from softplc.runtime.retain import StateDirBusy, check_state_dir
 from softplc.runtime.runner import plant_conflict
@@ -105,8 +106,8 @@ class Supervisor:
         self.channel = Channel(ctx=self.ctx)
         self.tag = tag or f"{SHM_PREFIX}{os.getpid()}"
         self.shm_name, self.board_name = f"{self.tag}_image", f"{self.tag}_board"
-        self.stop_scan = self.ctx.Event()
-        self.stop_comm = self.ctx.Event()
+        self.stop_scan = StopFlag()
+        self.stop_comm = StopFlag()
         self.loop_config, self.comm_config = loop_config, comm_config
         self.scan_main, self.scan_args = scan_main, scan_args
         self.scan: Any = None
@@ -148,12 +149,13 @@ class Supervisor:
         _record_semaphores(self.tag)
 
     def start_scan(self, config: LoopConfig, timeout_s: float = 30.0) -> None:
-        ready = self.ctx.Event()
+        ready = ReadySignal(self.ctx)
         self.scan = self.ctx.Process(
             target=self.scan_main, name="softplc-scan",
             args=(config, self.channel, self.shm_name, self.board_name, ready,
                   self.stop_scan, *self.scan_args))
         self.scan.start()
+        self.stop_scan.bind(self.scan.pid)
         deadline = time.monotonic() + timeout_s
         while not ready.wait(0.05):
             if not self.scan.is_alive():
@@ -164,12 +166,13 @@ class Supervisor:
     def start_comm(self, timeout_s: float = 30.0) -> None:
         if self.comm_config.modbus is None and self.comm_config.api is None:
             return
-        ready = self.ctx.Event()
+        ready = ReadySignal(self.ctx)
         self.comm = self.ctx.Process(
             target=comm_process_main, name="softplc-comm",
             args=(self.comm_config, self.channel, self.shm_name, self.board_name, ready,
                   self.stop_comm))
         self.comm.start()
+        self.stop_comm.bind(self.comm.pid)
         keep_off_scan_cpu(self.comm.pid, self.loop_config.realtime)
         deadline = time.monotonic() + timeout_s
         while not ready.wait(0.05):
