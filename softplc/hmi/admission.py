@@ -48,8 +48,10 @@ class Limits:
         if self.max_connections < 1:
             problems.append(f"max_connections must be >= 1, got {self.max_connections}")
         if not 1 <= self.max_per_peer <= self.max_connections:
-            problems.append(f"max_per_peer must be in 1..max_connections "
-                            f"({self.max_connections}), got {self.max_per_peer}")
+            problems.append(
+                f"max_per_peer must be in 1..max_connections "
+                f"({self.max_connections}), got {self.max_per_peer}"
+            )
         if not self.idle_timeout_s > 0:
             problems.append(f"idle_timeout_s must be > 0, got {self.idle_timeout_s}")
         if not self.live_window_s > 0:
@@ -76,6 +78,16 @@ class Slot:
 
 
 @dataclass(frozen=True, slots=True)
+class ConnectionStats:
+    """Connection counts since start: what the admission rule and the idle timeout did."""
+
+    admitted: int = 0
+    evicted: int = 0  # closed to make room for a new connection
+    refused: int = 0  # every slot of the pool was live
+    idle_closed: int = 0  # no complete request within the idle timeout
+
+
+@dataclass(frozen=True, slots=True)
 class Decision:
     verdict: Verdict
     reason: str
@@ -94,12 +106,12 @@ def decide(peer: str, slots: Sequence[Slot], now_s: float, limits: Limits) -> De
     victim = _victim(pool, Counter(slot.peer for slot in slots), now_s, limits.live_window_s)
     if victim is None:
         return Decision(Verdict.REFUSE, f"{reason}: every connection is live")
-    return Decision(Verdict.EVICT, f"{reason}: evicting the connection idle longest",
-                    victim.key)
+    return Decision(Verdict.EVICT, f"{reason}: evicting the connection idle longest", victim.key)
 
 
-def _victim(pool: Iterable[Slot], per_peer: Counter[str], now_s: float,
-            live_window_s: float) -> Slot | None:
+def _victim(
+    pool: Iterable[Slot], per_peer: Counter[str], now_s: float, live_window_s: float
+) -> Slot | None:
     idle = [slot for slot in pool if not slot.is_live(now_s, live_window_s)]
     if not idle:
         return None

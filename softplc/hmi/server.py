@@ -18,7 +18,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import replace
 from types import TracebackType
 from typing import Any, cast
 
@@ -33,6 +33,7 @@ from softplc.hmi.admission import (
     DEFAULT_LIVE_WINDOW_S,
     DEFAULT_MAX_CONNECTIONS,
     DEFAULT_MAX_PER_PEER,
+    ConnectionStats,
     Limits,
     Slot,
     Verdict,
@@ -70,16 +71,6 @@ class _RateLimitedErrors:
         log.exception("%s (%d similar errors not logged)", what, self._skipped)
         self._skipped = 0
         self._next_s = now_s + self._interval_s
-
-
-@dataclass(frozen=True, slots=True)
-class ConnectionStats:
-    """Connection counts since start: what the admission rule and the idle timeout did."""
-
-    admitted: int = 0
-    evicted: int = 0  # closed to make room for a new connection
-    refused: int = 0  # every slot of the pool was live
-    idle_closed: int = 0  # no complete request within the idle timeout
 
 
 class _Connection(ModbusProtocol):
@@ -192,7 +183,7 @@ class _Connection(ModbusProtocol):
         if idle_s >= self._idle_timeout_s:
             log.info("HMI connection from %s closed: idle for %.1f s", self.peer, idle_s)
             self._idle_timer = None
-            self._owner.count(idle_closed=1)
+            self._owner.count("idle_closed")
             self.close()
             return
         remaining_s = self._idle_timeout_s - idle_s
@@ -224,32 +215,36 @@ class _Listener(ModbusTcpServer):
         return _Connection(self)
 
     def admitted(self) -> list[_Connection]:
-        return [c for c in self.active_connections.values()
-                if isinstance(c, _Connection) and c.admitted]
+        return [
+            c for c in self.active_connections.values() if isinstance(c, _Connection) and c.admitted
+        ]
 
     def admit(self, new: _Connection) -> bool:
         """Apply the admission rule to `new`; closes the evicted connection, if any."""
         slots = {c.unique_id: c for c in self.admitted() if c is not new}
-        decision = decide(new.peer, [c.slot() for c in slots.values()], self.loop.time(),
-                          self.limits)
+        decision = decide(
+            new.peer, [c.slot() for c in slots.values()], self.loop.time(), self.limits
+        )
         if decision.verdict is Verdict.REFUSE:
             log.debug("HMI connection from %s refused: %s", new.peer, decision.reason)
-            self.count(refused=1)
+            self.count("refused")
             return False
         if decision.verdict is Verdict.EVICT and decision.victim is not None:
             victim = slots[decision.victim]
-            log.debug("HMI connection from %s closed for one from %s: %s", victim.peer,
-                      new.peer, decision.reason)
-            self.count(evicted=1)
+            log.debug(
+                "HMI connection from %s closed for one from %s: %s",
+                victim.peer,
+                new.peer,
+                decision.reason,
+            )
+            self.count("evicted")
             victim.close()
-        self.count(admitted=1)
+        self.count("admitted")
         return True
 
-    def count(self, admitted: int = 0, evicted: int = 0, refused: int = 0,
-              idle_closed: int = 0) -> None:
-        s = self.stats
-        self.stats = ConnectionStats(s.admitted + admitted, s.evicted + evicted,
-                                     s.refused + refused, s.idle_closed + idle_closed)
+    def count(self, outcome: str) -> None:
+        # A new frozen value each time: another thread may read `stats` at any moment.
+        self.stats = replace(self.stats, **{outcome: getattr(self.stats, outcome) + 1})
 
 
 class ModbusSlave:
@@ -272,10 +267,12 @@ class ModbusSlave:
         idle_timeout_s: float = DEFAULT_IDLE_TIMEOUT_S,
         live_window_s: float = DEFAULT_LIVE_WINDOW_S,
     ) -> None:
-        per_peer = (min(DEFAULT_MAX_PER_PEER, max_connections)
-                    if max_per_peer is None else max_per_peer)
-        self.limits = Limits(max_connections, per_peer, idle_timeout_s,
-                             min(live_window_s, idle_timeout_s))
+        per_peer = (
+            min(DEFAULT_MAX_PER_PEER, max_connections) if max_per_peer is None else max_per_peer
+        )
+        self.limits = Limits(
+            max_connections, per_peer, idle_timeout_s, min(live_window_s, idle_timeout_s)
+        )
         self.map = RegisterMap(sizes, writable=writable, read_only=read_only)
         self._responder = Responder(self.map, source, sink)
         self.host = host
