@@ -84,8 +84,7 @@ def test_the_peer_holding_most_slots_loses_one_first() -> None:
     ("kwargs", "message"),
     [
         ({"max_connections": 0}, "max_connections must be >= 1"),
-        ({"max_per_peer": 17}, "max_per_peer must be in 1..max_connections"),
-        ({"max_per_peer": 0}, "max_per_peer must be in 1..max_connections"),
+        ({"max_per_peer": 0}, "max_per_peer must be >= 1"),
         ({"idle_timeout_s": 0.0}, "idle_timeout_s must be > 0"),
         ({"live_window_s": -1.0}, "live_window_s must be > 0"),
     ],

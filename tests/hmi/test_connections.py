@@ -19,7 +19,10 @@ from contextlib import ExitStack, contextmanager, suppress
 import pytest
 from pymodbus.client import ModbusTcpClient
 
+from softplc.cli import build_parser
+from softplc.hmi.admission import Limits
 from softplc.hmi.server import ModbusSlave, run_in_thread
+from softplc.runtime.comm import CommConfig, modbus_limits, modbus_slave
 from tests.hmi.helpers import ImageSource, connect, is_closed_by_peer, request
 
 IDLE_CONNECTIONS = 200
@@ -188,3 +191,30 @@ def test_per_peer_limit(source: ImageSource) -> None:
         assert is_closed_by_peer(idle)
         for sock in (*busy, other):
             assert request(sock, VALID_READ, tid=5) == bytes.fromhex("04020000")
+
+
+def test_run_flags_reach_the_slave_through_comm_config(source: ImageSource) -> None:
+    args = build_parser().parse_args(
+        ["run", "--modbus-max-connections", "3", "--modbus-max-per-peer", "2",
+         "--modbus-idle-timeout", "400ms", "--modbus", "127.0.0.1:0"]
+    )  # fmt: skip
+    config = CommConfig(modbus=args.modbus, **modbus_limits(args))
+    slave = modbus_slave(config, source, source.sink, dict)
+    assert slave.limits == Limits(3, 2, 0.4, 0.4)
+    with run_in_thread(slave) as handle, connect(handle.port) as idle:
+        assert is_closed_by_peer(idle)  # after the 0.4 s idle timeout
+        assert slave.connection_stats.idle_closed == 1
+    assert modbus_limits(build_parser().parse_args(["run"])) == {
+        "modbus_max_connections": 16,
+        "modbus_max_per_peer": 8,
+        "modbus_idle_timeout_s": 60.0,
+    }
+
+
+@pytest.mark.parametrize(
+    "flag", ["--modbus-max-connections=0", "--modbus-max-per-peer=x", "--modbus-idle-timeout=0s"]
+)
+def test_bad_run_flags_are_refused(flag: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["run", flag])
+    assert flag.split("=")[0] in capsys.readouterr().err
