@@ -22,8 +22,10 @@ class Status:
     p99_lateness_us: int = 0
     overruns: int = 0
     program_hash: str = ""  # hex sha256 of the program text, "" when EMPTY
-    fault_code: int = 0  # 0 none, 1 watchdog, 2 device
+    fault_code: int = 0  # a FaultCode (core/problems.py)
     period_us: int = 0
+    published_ns: int = 0  # CLOCK_MONOTONIC when the scan process published it (0: never)
+    stale: bool = False  # set by a reader: the snapshot is older than the PLC's cycle allows
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,13 +49,17 @@ class HmiWrite:
 @dataclass(frozen=True, slots=True)
 class CommandRequest:
     """A program command sent to the scan process. `program_text` is the YAML of a download;
-    `program_path` names it in messages and resolves its relative `io_image:`/subnet paths."""
+    `program_path` names it in messages and resolves its relative `io_image:`/subnet paths.
+    `deadline_ns` (CLOCK_MONOTONIC, shared by every process of the machine; 0: none) is the
+    last moment the scan may apply it: later, it is refused as expired and never applied, so
+    a sender that gave up waiting never sees it happen afterwards."""
 
     id: int
     command: Command
     program_text: str | None = None
     program_path: str | None = None
     online: bool = False
+    deadline_ns: int = 0
 
 
 @dataclass(frozen=True, slots=True)
