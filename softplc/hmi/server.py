@@ -215,9 +215,9 @@ class _Listener(ModbusTcpServer):
         return _Connection(self)
 
     def admitted(self) -> list[_Connection]:
-        return [
-            c for c in self.active_connections.values() if isinstance(c, _Connection) and c.admitted
-        ]
+        # One C-level copy first: a test thread may ask while the loop thread changes the dict.
+        connections = list(self.active_connections.values())
+        return [c for c in connections if isinstance(c, _Connection) and c.admitted]
 
     def admit(self, new: _Connection) -> bool:
         """Apply the admission rule to `new`; closes the evicted connection, if any."""
