@@ -52,5 +52,6 @@ def override_problem(key: object, value: object) -> str | None:
         return f"unknown limit {key!r}; expected one of {', '.join(KEYS)}"
     top = getattr(HARD, str(key))
     if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= top:
-        return f"limit {key} must be a whole number from 1 to {top:,} (default {getattr(DEFAULT, str(key)):,})"
+        default = getattr(DEFAULT, str(key))
+        return f"limit {key} must be a whole number from 1 to {top:,} (default {default:,})"
     return None

@@ -14,8 +14,8 @@ from typing import Any
 from softplc.core import limits
 from softplc.core.expr import ExprError, Value, substitute
 from softplc.core.problems import Problem
-from softplc.core.values import record_problems
 from softplc.core.units import parse_duration_ns
+from softplc.core.values import record_problems
 from softplc.program.yamlload import YList, YMap, line_of, load_yaml, trap_hint
 
 TOP_KEYS = {"program", "net", "description", "io_image", "params", "places", "transitions",
@@ -220,7 +220,7 @@ class _Parser:
                                           capacity, outputs, where))
         self.spec.place_names.add(self.prefix + name)
 
-    def records_ok(self, raw: YList, path: str) -> bool:
+    def records_ok(self, raw: list[Any], path: str) -> bool:
         """Every record of a coloured place's `tokens:` carries only values the runtime can
         carry (core/values.py); each problem at the line of its record or field."""
         ok = True
