@@ -260,6 +260,8 @@ class _Compiler:
 def _as_int(value: Value) -> int:
     if isinstance(value, str):
         raise TypeError("text cannot take part in arithmetic")
+    if not isinstance(value, int):  # int(1.5) would silently be 1 (core/values.py)
+        raise TypeError(f"{type(value).__name__} {value!r} cannot take part in arithmetic")
     return int(value)
 
 

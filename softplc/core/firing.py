@@ -104,7 +104,8 @@ class Engine:
         self.diagnostics: list[str] = []
         self._limits = net.limits
         self._work = 0  # binding tries in this round (limits.bindings_per_scan)
-        self._high = False  # total tokens above limits.place_tokens: any round may concentrate
+        self._high = True  # total above limits.place_tokens (any round may concentrate it),
+        # or not known yet: the first round checks and learns it
         self._planned: dict[int, int] = {}  # coloured place -> records reserved this round
         self._coloured_now = 0  # records in the net when this round's productions began
         self._tables(net, plain_paths)
@@ -149,6 +150,7 @@ class Engine:
         if self.state.marking is not self._marr:
             self._marr = self.state.marking
             self._m = _counts(self._marr)
+            self._high = True  # another marking: its counts are checked after the next round
         return self._m
 
     def marking_enabled(self, t: Transition) -> bool:
@@ -211,8 +213,8 @@ class Engine:
                     return None
                 if tried >= budget:
                     raise PlcFault(FaultCode.LIMIT, (
-                        f"transition {t.name}: {self._work + tried:,} binding tries in one scan "
-                        f"exceed the limit {self._limits.bindings_per_scan:,} "
+                        f"transition {t.name}: binding search exceeds the limit of "
+                        f"{self._limits.bindings_per_scan:,} tries in one scan "
                         "(limits.bindings_per_scan)"))
                 tried += 1
                 seen = [(a.place, i) for a, i in zip(arcs, combo, strict=True)]
@@ -603,6 +605,7 @@ class Engine:
         self._fresh = True
         self._ready.clear()
         self._outputs_pending = True
+        self._high = True  # a new marking: check the counts after the next round
 
 
 def enabled_transitions(
