@@ -33,6 +33,7 @@ from softplc.core.values import value_problem
 
 MAX_BINDINGS = 1000  # coloured binding search bound per transition and round
 MAX_DIAGNOSTICS = 100
+SMALL_NET = 64  # places: below this a Python reduction is cheaper than a numpy call
 _NO_TOKENS: Mapping[str, Token] = MappingProxyType({})
 # How a transition's enabledness is computed (Engine._enable_kind): its input and test arcs
 # only; those and inhibitors, guard or a busy check; or the general path (colour, capacity).
@@ -137,7 +138,8 @@ class Engine:
                             for s, t in zip(simple, ts, strict=True)]
         self._post = [tuple((o.place, o.weight) for o in t.post) for t in ts]
         # Only a firing that puts more tokens than it takes can raise a count past a limit.
-        self._grows = [sum(o.weight for o in t.post) > sum(a.weight for a in t.pre) for t in ts]
+        self._growers = frozenset(t.index for t in ts if sum(o.weight for o in t.post)
+                                  > sum(a.weight for a in t.pre))
         self._delays = [t.delay_ns for t in ts]
         self._any_coloured = any(t.coloured for t in ts)
         self._any_actions = any(t.actions for t in ts)
@@ -405,7 +407,8 @@ class Engine:
                     changed.add(p)
                 since.pop(ti, None)
                 ready.discard(ti)
-        if self._high or completed or any(map(self._grows.__getitem__, selected)):
+        if self._high or completed or (self._growers
+                                       and not self._growers.isdisjoint(selected)):
             self._check_counts()
         for ti in busy_changed:  # a busy transition is disabled; re-check it next round
             self._dirty_places.update(a.place for a in ts[ti].pre)
@@ -421,23 +424,27 @@ class Engine:
                     frozenset(changed))
 
     def _check_counts(self) -> None:
-        """Tokens per place and in total after a round that may have grown them: two numpy
-        reductions over the marking, not a Python loop."""
-        marking, lim = np.asarray(self.state.marking), self._limits
-        if not len(marking):
+        """Tokens per place and in total after a round that may have grown them: two
+        reductions over the marking (numpy for a large net, where a call's overhead pays)."""
+        lim, m = self._limits, self._view()
+        if not len(m):
             return
-        total = int(marking.sum())
+        if len(m) > SMALL_NET:
+            marking = np.asarray(self.state.marking)
+            total, count = int(marking.sum()), int(marking.max())
+        else:
+            total, count = sum(m), max(m)
         self._high = total > lim.place_tokens
-        fullest = int(marking.argmax())
-        count = int(marking[fullest])
+        if count <= lim.place_tokens and total <= lim.total_tokens:
+            return
+        fullest = self.net.place_names[list(m).index(count)]
         if count > lim.place_tokens:
             raise PlcFault(FaultCode.LIMIT, (
-                f"place {self.net.place_names[fullest]}: {count:,} tokens exceed the limit "
+                f"place {fullest}: {count:,} tokens exceed the limit "
                 f"{lim.place_tokens:,} (limits.place_tokens)"))
-        if total > lim.total_tokens:
-            raise PlcFault(FaultCode.LIMIT, (
-                f"net {self.net.name}: {total:,} tokens exceed the limit {lim.total_tokens:,} "
-                f"(limits.total_tokens; most in place {self.net.place_names[fullest]})"))
+        raise PlcFault(FaultCode.LIMIT, (
+            f"net {self.net.name}: {total:,} tokens exceed the limit {lim.total_tokens:,} "
+            f"(limits.total_tokens; most in place {fullest})"))
 
     def _reserve(self, who: str, place: int, records: int) -> None:
         """Room for `records` more records in coloured `place` this round, checked before
