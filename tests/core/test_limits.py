@@ -203,3 +203,22 @@ transitions:
     step = engine.fire_round(Ctx(), 0)
     assert step.fired == (0,) and ("mw", 12) not in step.writes
     assert any("text cannot be written to a symbol" in d for d in engine.diagnostics)
+
+
+def test_through_the_scan_a_limit_faults_the_plc_with_safe_outputs_and_it_stays_alive(
+        tmp_path: Path) -> None:
+    from softplc.core.lifecycle import PlcState
+    from tests.core.helpers import Bench
+
+    net = compile_program(tmp_path, GROW_COLOURED.replace("  src: {tokens: 1}",
+                                                          "  src: {tokens: 1, outputs: [r]}"))
+    bench = Bench(net)
+    for n in range(1, 20):
+        bench.scan(n * 10_000_000)
+        if bench.plc.state is PlcState.FAULTED:
+            break
+    assert bench.plc.state is PlcState.FAULTED and bench.plc.fault_code == FaultCode.LIMIT
+    assert "place parts: 12,000 coloured tokens exceed the limit 10,000" in bench.plc.fault_reason
+    assert bench.get("r") == 0  # safe value of r (not driven by the faulted net)
+    bench.scan(30 * 10_000_000)  # the PLC is alive and stays FAULTED
+    assert bench.plc.state is PlcState.FAULTED
