@@ -67,10 +67,14 @@ class CommandRequest:
 
 @dataclass(frozen=True, slots=True)
 class CommandReply:
+    """`ok`: applied. Not ok: refused (the state unchanged), or `expired`: drained after its
+    deadline and never applied."""
+
     id: int
     ok: bool
     message: str
     state: PlcState
+    expired: bool = False
 
 
 class SnapshotSource(Protocol):

@@ -25,6 +25,7 @@ from softplc.hmi.admission import Limits
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.procs import Flag as Event
+from softplc.runtime.fresh import FreshSource
 from softplc.runtime.shm import SnapshotReader
 
 if TYPE_CHECKING:
@@ -136,7 +137,8 @@ def modbus_slave(config: CommConfig, source: SnapshotSource, sink: Callable[[Hmi
 
 async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name: str,
                  ready: Event, stop: Event) -> None:
-    reader = SnapshotReader.attach(shm_name, config.sizes)
+    mapping = SnapshotReader.attach(shm_name, config.sizes)
+    reader = FreshSource(mapping)
     board = StatusBoard.attach(board_name)
     services: list[_Service] = []
     if config.modbus is not None:
@@ -159,7 +161,7 @@ async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name
     finally:
         for service in reversed(services):
             await service.stop()
-        reader.close()
+        mapping.close()
         board.close()
 
 

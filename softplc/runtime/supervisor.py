@@ -37,7 +37,7 @@ from softplc.core.problems import ProgramError
 from softplc.program.compiler import compile_file
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel, pid_alive
-from softplc.runtime.comm import CommConfig, comm_process_main
+from softplc.runtime.comm import CommConfig, comm_process_main, modbus_limits
 from softplc.runtime.loop import LoopConfig, scan_process_main
 from softplc.runtime.procs import ReadySignal, StopFlag
 from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
@@ -136,7 +136,8 @@ class Supervisor:
             on_stall=getattr(args, "on_stall", "fault"),
             realtime=Realtime(getattr(args, "rt_priority", None), getattr(args, "scan_cpu", None)))
         comm_config = CommConfig(modbus=args.modbus, api=args.api, state_dir=args.state_dir,
-                                 sizes=sizes, modbus_writes=getattr(args, "modbus_writes", "open"))
+                                 sizes=sizes, modbus_writes=getattr(args, "modbus_writes", "open"),
+                                 **modbus_limits(args))
         return cls(loop_config, comm_config)
 
     def start(self, timeout_s: float = 30.0) -> None:

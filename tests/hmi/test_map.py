@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -10,7 +12,9 @@ from softplc.core.image import Address, Area, ImageSizes, Width, parse_address
 from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import HmiWrite, Status
 from softplc.hmi.map import (
+    FLAG_STALE,
     STATUS_FAULT_CODE,
+    STATUS_FLAGS,
     STATUS_LAST_EXEC_US,
     STATUS_MAX_EXEC_US,
     STATUS_OVERRUNS,
@@ -99,8 +103,10 @@ def test_status_block_layout() -> None:
     assert words[STATUS_P99_LATENESS_US : STATUS_P99_LATENESS_US + 2] == [0, 0]
     assert words[STATUS_OVERRUNS : STATUS_OVERRUNS + 2] == [0, 3]
     assert words[STATUS_PERIOD_US : STATUS_PERIOD_US + 2] == [0, 10_000]
-    assert words[STATUS_PROGRAM_HASH:] == [0x0123, 0x4567, 0x89AB, 0xCDEF]
-    assert status_registers(Status())[STATUS_PROGRAM_HASH:] == [0, 0, 0, 0]
+    assert words[STATUS_PROGRAM_HASH : STATUS_PROGRAM_HASH + 4] == [0x0123, 0x4567, 0x89AB, 0xCDEF]
+    assert status_registers(Status())[STATUS_PROGRAM_HASH : STATUS_PROGRAM_HASH + 4] == [0] * 4
+    assert words[STATUS_FLAGS] == 0
+    assert status_registers(replace(status, stale=True))[STATUS_FLAGS] == FLAG_STALE
 
 
 def test_status_block_is_read_through_input_registers() -> None:
