@@ -24,6 +24,7 @@ class Status:
     program_hash: str = ""  # hex sha256 of the program text, "" when EMPTY
     fault_code: int = 0  # 0 none, 1 watchdog, 2 device
     period_us: int = 0
+    forced: int = 0  # how many symbols are forced (DESIGN.md section 10)
 
 
 @dataclass(frozen=True, slots=True)
@@ -54,6 +55,8 @@ class CommandRequest:
     program_text: str | None = None
     program_path: str | None = None
     online: bool = False
+    symbol: str | None = None  # FORCE/UNFORCE (DESIGN.md section 10); UNFORCE None: all
+    value: int = 0  # FORCE
 
 
 @dataclass(frozen=True, slots=True)

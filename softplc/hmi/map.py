@@ -51,7 +51,8 @@ STATUS_P99_LATENESS_US = 8  # u32
 STATUS_OVERRUNS = 10  # u32
 STATUS_PERIOD_US = 12  # u32
 STATUS_PROGRAM_HASH = 14  # first 64 bits of the sha256, 4 registers, high word first
-STATUS_WORDS = 18
+STATUS_FORCED = 18  # how many symbols are forced (0: none), saturates at 65535
+STATUS_WORDS = 19
 
 U32_MAX = 0xFFFFFFFF
 
@@ -87,7 +88,7 @@ def status_registers(status: Status) -> list[int]:
         status.period_us,
     ):
         words += _u32(value)
-    return words + _hash_words(status.program_hash)
+    return words + _hash_words(status.program_hash) + [min(max(status.forced, 0), WORD_MAX)]
 
 
 @dataclass(frozen=True, slots=True)

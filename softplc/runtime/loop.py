@@ -161,7 +161,8 @@ class ScanLoop:
         for item in self.downloads.take():
             req = item.request
             if req.command is not Command.DOWNLOAD:
-                commands.append(ProgramCommand(req.command, online=req.online, id=req.id))
+                commands.append(ProgramCommand(req.command, online=req.online, id=req.id,
+                                               symbol=req.symbol, value=req.value))
             elif isinstance(item.error, ProgramError):
                 self._refuse(req, f"download refused:\n{item.error}")
             elif item.error is not None:  # a compiler bug must never stop the scan
@@ -241,6 +242,7 @@ class ScanLoop:
             "health": {name: h.value for name, h in self.runner.health().items()},
             "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
             "symbols": symbols, "events": list(self.events),
+            "forced": plc.forces.values(),  # forcing (DESIGN.md section 10)
         }
 
     def status(self) -> Status:
@@ -249,7 +251,7 @@ class ScanLoop:
                       self.stats.max_exec_ns // 1000, int(self.summary.lateness_p99_us),
                       self.stats.overruns,
                       plc.net.program_hash if plc.net else "", plc.fault_code,
-                      self.config.period_ns // 1000)
+                      self.config.period_ns // 1000, len(plc.forces))
 
     def run(self, stop: Event | None = None) -> None:
         period = self.config.period_ns

@@ -25,7 +25,7 @@ program order; that is the platform this targets. Weakly ordered CPUs (ARM) woul
 that Python cannot express.
 
 Layout, native byte order: header (64 bytes: magic, version, header size, bits, words, total
-size, latest, the two slot counters), then two slots of: status (8 int64 + 64-byte program
+size, latest, the two slot counters), then two slots of: status (9 int64 + 64-byte program
 hash), %IX %QX %MX as one byte per bit, %IW %QW %MW as uint16.
 """
 
@@ -49,11 +49,11 @@ from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import Snapshot, Status
 
 MAGIC: Final = b"SPLCSNAP"
-VERSION: Final = 1
+VERSION: Final = 2  # 2: status gained `forced`
 _HEADER = struct.Struct("=8sIIIIQ")  # magic, version, header bytes, bits, words, total bytes
 _HEADER_BYTES: Final = 64
 _CONTROL_OFFSET: Final = 32  # uint64 latest, slot 0 counter, slot 1 counter
-_STATUS = struct.Struct("=8q64s")
+_STATUS = struct.Struct("=9q64s")
 _HASH_BYTES: Final = 64
 _BIT_AREAS: Final = ("ix", "qx", "mx")
 _WORD_AREAS: Final = ("iw", "qw", "mw")
@@ -107,12 +107,13 @@ def _pack_status(status: Status) -> bytes:
         status.overruns,
         status.fault_code,
         status.period_us,
+        status.forced,
         program_hash,
     )
 
 
 def _unpack_status(raw: npt.NDArray[np.uint8]) -> Status:
-    state, scans, last_exec, max_exec, p99_late, overruns, fault, period, program_hash = (
+    state, scans, last_exec, max_exec, p99_late, overruns, fault, period, forced, program_hash = (
         _STATUS.unpack_from(raw.data)
     )
     return Status(
@@ -125,6 +126,7 @@ def _unpack_status(raw: npt.NDArray[np.uint8]) -> Status:
         program_hash=program_hash.rstrip(b"\0").decode("ascii"),
         fault_code=fault,
         period_us=period,
+        forced=forced,
     )
 
 

@@ -11,6 +11,7 @@ from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import HmiWrite, Status
 from softplc.hmi.map import (
     STATUS_FAULT_CODE,
+    STATUS_FORCED,
     STATUS_LAST_EXEC_US,
     STATUS_MAX_EXEC_US,
     STATUS_OVERRUNS,
@@ -99,8 +100,13 @@ def test_status_block_layout() -> None:
     assert words[STATUS_P99_LATENESS_US : STATUS_P99_LATENESS_US + 2] == [0, 0]
     assert words[STATUS_OVERRUNS : STATUS_OVERRUNS + 2] == [0, 3]
     assert words[STATUS_PERIOD_US : STATUS_PERIOD_US + 2] == [0, 10_000]
-    assert words[STATUS_PROGRAM_HASH:] == [0x0123, 0x4567, 0x89AB, 0xCDEF]
-    assert status_registers(Status())[STATUS_PROGRAM_HASH:] == [0, 0, 0, 0]
+    assert words[STATUS_PROGRAM_HASH : STATUS_PROGRAM_HASH + 4] == [0x0123, 0x4567, 0x89AB, 0xCDEF]
+    assert status_registers(Status())[STATUS_PROGRAM_HASH:] == [0, 0, 0, 0, 0]
+    # Appended after the hash (never renumbered): how many symbols are forced.
+    assert STATUS_FORCED == STATUS_PROGRAM_HASH + 4 == STATUS_WORDS - 1
+    assert words[STATUS_FORCED] == 0
+    assert status_registers(Status(forced=3))[STATUS_FORCED] == 3
+    assert status_registers(Status(forced=70_000))[STATUS_FORCED] == 0xFFFF
 
 
 def test_status_block_is_read_through_input_registers() -> None:
@@ -122,7 +128,7 @@ def test_status_block_is_read_through_input_registers() -> None:
         (Table.DISCRETE_INPUTS, 800, 1),
         (Table.DISCRETE_INPUTS, 0, 801),
         (Table.INPUT_REGISTERS, 1024 + STATUS_WORDS, 1),
-        (Table.INPUT_REGISTERS, 1040, 3),
+        (Table.INPUT_REGISTERS, 1041, 3),
         (Table.HOLDING_REGISTERS, 2048, 1),
         (Table.HOLDING_REGISTERS, 65535, 1),
     ],
