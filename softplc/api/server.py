@@ -26,6 +26,7 @@ from typing import Any, Final, Protocol
 from aiohttp import web
 
 from softplc.api import auth
+from softplc.api import web as web_page
 from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
 from softplc.core.image import AddressError, parse_address
 from softplc.core.lifecycle import Command
@@ -260,6 +261,7 @@ class ApiServer:
         app.router.add_put(f"{p}/symbols/{{name}}", self._write_symbol)
         app.router.add_get(f"{p}/events", self._events)
         app.router.add_get(f"{p}/openapi.json", self._openapi)
+        web_page.register(app, self)  # the operator's page, live stream, forcing (docs/web.md)
         return app
 
     # -- middlewares ------------------------------------------------------------------------
@@ -294,7 +296,8 @@ class ApiServer:
             raise ApiProblem(403, "this service answers requests to a loopback host only")
         if not auth.same_origin(request.headers.get("Origin"), host):
             raise ApiProblem(403, "cross-origin requests are refused")
-        if self._token is not None and not auth.bearer_matches(
+        public = web_page.is_public(request.method, request.path)  # the page, to ask a token
+        if self._token is not None and not public and not auth.bearer_matches(
                 request.headers.get("Authorization"), self._token):
             raise ApiProblem(401, "missing or wrong bearer token (see STATE_DIR/api_token)",
                              headers={"WWW-Authenticate": 'Bearer realm="softplc"'})
@@ -312,9 +315,10 @@ class ApiServer:
         return document
 
     async def _command(self, command: Command, text: str | None = None,
-                       name: str | None = None, online: bool = False) -> CommandReply:
+                       name: str | None = None, online: bool = False,
+                       symbol: str | None = None, value: int = 0) -> CommandReply:
         request = CommandRequest(next(self._ids), command, program_text=text,
-                                 program_path=name, online=online)
+                                 program_path=name, online=online, symbol=symbol, value=value)
         try:
             timeout_s = self.command_timeout_s
             if command is Command.DOWNLOAD:

@@ -30,6 +30,7 @@ from softplc.core.problems import ProgramError
 from softplc.core.scan import FAULT_WATCHDOG, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
 from softplc.program.compiler import compile_file, compile_text
+from softplc.runtime import netview
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.clock import Clock, MonotonicClock, Schedule
@@ -243,6 +244,10 @@ class ScanLoop:
             "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
             "symbols": symbols, "events": list(self.events),
             "forced": plc.forces.values(),  # forcing (DESIGN.md section 10)
+            # The operator's page (docs/web.md): structure cached per program, live state.
+            "net": netview.structure(net) if net else None,
+            "net_live": netview.live(net, plc.engine.state if plc.engine else None,
+                                     self.clock.now_ns(), self.runner.fired_counts),
         }
 
     def status(self) -> Status:
