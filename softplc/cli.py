@@ -1,4 +1,5 @@
-"""Command line: `softplc check|run|simulate|replay|download|start|stop|resume|reset|kill|force|unforce|status|bench`.
+"""Command line: `softplc check|run|simulate|replay|download|start|stop|resume|reset|kill|
+force|unforce|status|bench`.
 
 Owns: argument parsing, exit codes, what a person sees. Does not know: how any of it works.
 """

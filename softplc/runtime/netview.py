@@ -36,7 +36,7 @@ def structure(net: CompiledNet) -> dict[str, Any]:
     bug here must not stop the scan that publishes it."""
     try:
         return _structure(net)
-    except Exception as exc:  # noqa: BLE001 - see the docstring
+    except Exception as exc:
         return {"error": f"net structure unavailable ({type(exc).__name__}: {exc})"}
 
 
@@ -108,7 +108,7 @@ def live(net: CompiledNet | None, state: NetState | None, now_ns: int,
     raises, like structure()."""
     try:
         return _live(net, state, now_ns, fired_counts)
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:
         return {"error": f"live net unavailable ({type(exc).__name__}: {exc})"}
 
 
