@@ -26,7 +26,8 @@ that Python cannot express.
 
 Layout, native byte order: header (64 bytes: magic, version, header size, bits, words, total
 size, latest, the two slot counters), then two slots of: status (10 int64, the last two the
-number of forced symbols and the CLOCK_MONOTONIC time of the publish, + 64-byte program hash), %IX %QX %MX as one byte per bit, %IW %QW %MW as uint16.
+number of forced symbols and the CLOCK_MONOTONIC time of the publish, + 64-byte program
+hash), %IX %QX %MX as one byte per bit, %IW %QW %MW as uint16.
 """
 
 from __future__ import annotations
