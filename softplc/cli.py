@@ -1,4 +1,5 @@
-"""Command line: `softplc check|run|simulate|replay|download|start|stop|resume|reset|kill|status|bench`.
+"""Command line: `softplc check|run|simulate|replay|download|start|stop|resume|reset|kill|
+force|unforce|status|bench`.
 
 Owns: argument parsing, exit codes, what a person sees. Does not know: how any of it works.
 """
@@ -191,7 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--plots", help="write PNG plots into this directory")
     bench.add_argument("--markdown", help="write the report (e.g. BENCHMARKS.md)")
     bench.add_argument("--only", help="comma-separated sections: engine, scan, modbus, "
-                       "online_change, memory")
+                       "online_change, memory, web")
     bench.add_argument("--quiet", action="store_true", help="no progress display")
     bench.set_defaults(func=cmd_bench)
 

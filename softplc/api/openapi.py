@@ -251,6 +251,9 @@ def openapi_document() -> dict[str, Any]:
             "responses": {"200": {"description": "OpenAPI 3.1", "content": {
                 "application/json": {"schema": {"type": "object"}}}}, **_errors(401, 403)}}},
     }
+    from softplc.api.web import openapi_paths  # the page, live stream and forcing
+
+    paths.update(openapi_paths(API_PREFIX))
     return copy.deepcopy({
         "openapi": "3.1.0",
         "info": {"title": "softplc management API", "version": "1.0.0",

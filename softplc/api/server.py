@@ -26,6 +26,7 @@ from typing import Any, Final, Protocol
 from aiohttp import web
 
 from softplc.api import auth
+from softplc.api import web as web_page
 from softplc.api.limits import HttpBounds, HttpLimits
 from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
 from softplc.core.image import AddressError, parse_address
@@ -271,6 +272,7 @@ class ApiServer:
         app.router.add_put(f"{p}/symbols/{{name}}", self._write_symbol)
         app.router.add_get(f"{p}/events", self._events)
         app.router.add_get(f"{p}/openapi.json", self._openapi)
+        web_page.register(app, self)  # the operator's page, live stream, forcing (docs/web.md)
         return app
 
     # -- middlewares ------------------------------------------------------------------------
@@ -305,7 +307,8 @@ class ApiServer:
             raise ApiProblem(403, "this service answers requests to a loopback host only")
         if not auth.same_origin(request.headers.get("Origin"), host):
             raise ApiProblem(403, "cross-origin requests are refused")
-        if self._token is not None and not auth.bearer_matches(
+        public = web_page.is_public(request.method, request.path)  # the page, to ask a token
+        if self._token is not None and not public and not auth.bearer_matches(
                 request.headers.get("Authorization"), self._token):
             raise ApiProblem(401, "missing or wrong bearer token (see STATE_DIR/api_token)",
                              headers={"WWW-Authenticate": 'Bearer realm="softplc"'})
@@ -324,7 +327,8 @@ class ApiServer:
 
     async def _command(self, command: Command, text: str | None = None,
                        name: str | None = None, online: bool = False,
-                       key: str | None = None) -> CommandReply | Record:
+                       key: str | None = None, symbol: str | None = None,
+                       value: int = 0) -> CommandReply | Record:
         """Send a command with an id and a deadline. Returns its reply, or its pending Record
         when no reply came in time (it is then applied before its deadline or never)."""
         if key is not None and (known := self._book.by_key(key)) is not None:
@@ -332,7 +336,8 @@ class ApiServer:
         self._refuse_if_stale()
         deadline_s = DOWNLOAD_DEADLINE_S if command is Command.DOWNLOAD else self.command_timeout_s
         request = self._book.request(command, deadline_s, key, program_text=text,
-                                     program_path=name, online=online)
+                                     program_path=name, online=online, symbol=symbol,
+                                     value=value)
         try:
             reply = await asyncio.to_thread(self._channel.send_command, request,
                                             deadline_s + REPLY_GRACE_S, self._book.settle)

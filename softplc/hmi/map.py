@@ -51,8 +51,9 @@ STATUS_P99_LATENESS_US = 8  # u32
 STATUS_OVERRUNS = 10  # u32
 STATUS_PERIOD_US = 12  # u32
 STATUS_PROGRAM_HASH = 14  # first 64 bits of the sha256, 4 registers, high word first
-STATUS_FLAGS = 18  # bit 0: stale (the scan process has not published for too long)
-STATUS_WORDS = 19
+STATUS_FORCED = 18  # how many symbols are forced (0: none), saturates at 65535
+STATUS_FLAGS = 19  # bit 0: stale (the scan process has not published for too long)
+STATUS_WORDS = 20
 FLAG_STALE = 1
 
 U32_MAX = 0xFFFFFFFF
@@ -89,7 +90,8 @@ def status_registers(status: Status) -> list[int]:
         status.period_us,
     ):
         words += _u32(value)
-    return words + _hash_words(status.program_hash) + [FLAG_STALE if status.stale else 0]
+    return words + _hash_words(status.program_hash) + [
+        min(max(status.forced, 0), WORD_MAX), FLAG_STALE if status.stale else 0]
 
 
 @dataclass(frozen=True, slots=True)

@@ -33,6 +33,7 @@ from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
 from softplc.devices.driver import Driver
 from softplc.program.compiler import compile_file, compile_text
+from softplc.runtime import netview
 from softplc.runtime import boot
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
@@ -240,7 +241,8 @@ class ScanLoop:
                     prepared.discard()
                 continue
             if req.command is not Command.DOWNLOAD:
-                commands.append(ProgramCommand(req.command, online=req.online, id=req.id))
+                commands.append(ProgramCommand(req.command, online=req.online, id=req.id,
+                                               symbol=req.symbol, value=req.value))
             elif isinstance(item.error, ProgramError):
                 self._refuse(req, f"download refused:\n{self._relative(str(item.error))}")
             elif item.error is not None:  # a device that cannot open, or a compiler bug
@@ -394,6 +396,11 @@ class ScanLoop:
             "health": {name: h.value for name, h in self.runner.health().items()},
             "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
             "symbols": symbols, "events": list(self.events),
+            "forced": plc.forces.values(),  # forcing (DESIGN.md section 10)
+            # The operator's page (docs/web.md): structure cached per program, live state.
+            "net": netview.structure(net) if net else None,
+            "net_live": netview.live(net, plc.engine.state if plc.engine else None,
+                                     self.clock.now_ns(), self.runner.fired_counts),
         }
 
     def status(self) -> Status:
@@ -402,7 +409,7 @@ class ScanLoop:
                       self.stats.max_exec_ns // 1000, int(self.summary.lateness_p99_us),
                       self.stats.overruns,
                       plc.net.program_hash if plc.net else "", int(plc.fault_code),
-                      self.config.period_ns // 1000)
+                      self.config.period_ns // 1000, len(plc.forces))
 
     def run(self, stop: Event | None = None) -> None:
         period = self.config.period_ns
