@@ -134,7 +134,7 @@ def test_status_block_is_read_through_input_registers() -> None:
         (Table.DISCRETE_INPUTS, 800, 1),
         (Table.DISCRETE_INPUTS, 0, 801),
         (Table.INPUT_REGISTERS, 1024 + STATUS_WORDS, 1),
-        (Table.INPUT_REGISTERS, 1041, 3),
+        (Table.INPUT_REGISTERS, 1024 + STATUS_WORDS - 2, 3),
         (Table.HOLDING_REGISTERS, 2048, 1),
         (Table.HOLDING_REGISTERS, 65535, 1),
     ],
