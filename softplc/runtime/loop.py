@@ -430,6 +430,10 @@ class ScanLoop:
             self.stats.record(exec_ns, late, skipped=schedule.advance(done))
         self.shutdown()
 
+    @staticmethod
+    def _observed_none() -> Observed:
+        return NOTHING_OBSERVED
+
     def _stall(self, late_ns: int) -> Observed:
         """A cycle that started more than the watchdog budget late: the process was paused or
         starved, and for that long nothing read inputs or wrote outputs."""
