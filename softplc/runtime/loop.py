@@ -390,6 +390,7 @@ class ScanLoop:
             "start_reason": self.start_reason, "program_source": self.program_source,
             "realtime": self.realtime,
             "restarts": self.config.restarts, "restart_reason": self.config.restart_reason,
+            "scan_pid": os.getpid(),
             "on_stall": self.config.on_stall, "watchdog_ms": self.budget_ns / 1e6,
             "internal_errors": self.internal_errors,
             "retain": self.retain.info() if self.retain else None,
