@@ -97,7 +97,8 @@ class Supervisor:
             warm_start=getattr(args, "warm_start", "run"),
             realtime=Realtime(getattr(args, "rt_priority", None), getattr(args, "scan_cpu", None)))
         comm_config = CommConfig(modbus=args.modbus, api=args.api, state_dir=args.state_dir,
-                                 sizes=sizes, modbus_writes=getattr(args, "modbus_writes", "open"))
+                                 sizes=sizes, modbus_writes=getattr(args, "modbus_writes", "open"),
+                                 opcua=getattr(args, "opcua", None))
         return cls(loop_config, comm_config)
 
     def start(self, timeout_s: float = 30.0) -> None:
@@ -116,7 +117,8 @@ class Supervisor:
         self.start_comm(timeout_s)
 
     def start_comm(self, timeout_s: float = 30.0) -> None:
-        if self.comm_config.modbus is None and self.comm_config.api is None:
+        if (self.comm_config.modbus is None and self.comm_config.api is None
+                and self.comm_config.opcua is None):
             return
         ready = self.ctx.Event()
         self.comm = self.ctx.Process(
@@ -230,4 +232,7 @@ def _banner(args: argparse.Namespace, doc: dict[str, Any]) -> None:
     if args.api:
         host, port = args.api
         print(f"  HTTP API on http://{host}:{port}; try: curl -s http://{host}:{port}/api/v1/status")
+    if getattr(args, "opcua", None):
+        host, port = args.opcua
+        print(f"  OPC UA server on opc.tcp://{host}:{port} (writes and methods: user token)")
     print("  Ctrl-C stops (outputs to their safe values first)", flush=True)
