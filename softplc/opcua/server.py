@@ -375,10 +375,13 @@ class OpcUaServer:
         if isinstance(restarts, int):
             await self._set(nodes["Restarts"].nodeid, _status_variant("Restarts", restarts))
         if document.get("program_hash") == self._built_hash:
-            for place, count in (document.get("marking") or {}).items():
-                node = self.space.places.get(str(place))
-                if node is not None and isinstance(count, int):
-                    await self._set(node.nodeid, ua.Variant(count, ua.VariantType.UInt32))
+            marking = document.get("marking") or {}
+            for place in marking:
+                await self.space.place(str(place))
+            for place, node in self.space.places.items():  # unmarked places are absent: 0
+                count = marking.get(place, 0)
+                await self._set(node.nodeid, ua.Variant(count if isinstance(count, int) else 0,
+                                                        ua.VariantType.UInt32))
         await self._board_events(document)
 
     async def _board_events(self, document: dict[str, Any]) -> None:

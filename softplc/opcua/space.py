@@ -119,6 +119,7 @@ class Space:
         self.symbols: dict[str, SymbolNode] = {}
         self.places: dict[str, Node] = {}
         self._folders: list[Node] = []
+        self._marking: Node | None = None
 
     def nid(self, text: str) -> ua.NodeId:
         return ua.NodeId(text, self.ns)
@@ -157,14 +158,24 @@ class Space:
         symbols = await self.plc.add_folder(self.nid(SYMBOLS), f"{self.ns}:Symbols")
         marking = await self.plc.add_folder(self.nid(MARKING), f"{self.ns}:Marking")
         self._folders = [symbols, marking]
+        self._marking = marking
         table = document.get("symbols") or {}
         for name, entry in table.items():
             if isinstance(entry, dict):
                 self.symbols[name] = await self._symbol(symbols, str(name), entry, policy)
-        for place, count in (document.get("marking") or {}).items():
-            self.places[str(place)] = await marking.add_variable(
-                self.nid(place_id(str(place))), f"{self.ns}:{place}",
-                ua.Variant(int(count), ua.VariantType.UInt32))
+        for place in document.get("places") or document.get("marking") or {}:
+            await self.place(str(place))
+
+    async def place(self, name: str) -> Node:
+        """The marking variable of `name`, added when first seen: the board lists marked
+        places only (and every place when it has a "places" key)."""
+        node = self.places.get(name)
+        if node is None:
+            assert self._marking is not None
+            node = await self._marking.add_variable(
+                self.nid(place_id(name)), f"{self.ns}:{name}", ua.Variant(0, ua.VariantType.UInt32))
+            self.places[name] = node
+        return node
 
     async def _symbol(self, folder: Node, name: str, entry: Mapping[str, Any],
                       policy: str) -> SymbolNode:
