@@ -135,6 +135,7 @@ class OpcUaServer:
         return port
 
     async def start(self) -> None:
+        _quiet_asyncua()
         token = await asyncio.to_thread(auth.load_or_create_token, self.state_dir)
         server = Server(user_manager=TokenUsers(token, auth.is_loopback(self.host)))
         await server.init()
@@ -415,6 +416,15 @@ class OpcUaServer:
         event.EventName, event.Seq, event.Scan = name, seq & 0xFFFFFFFF, scan
         event.Severity = severity
         await self._events.trigger(message=message)
+
+
+def _quiet_asyncua() -> None:
+    """asyncua logs a traceback at ERROR for every malformed message and INFO for every
+    request: a peer could flood the log (and block a process whose stderr is a full pipe).
+    Our own logger reports what matters. An explicitly set level is kept."""
+    logger = logging.getLogger("asyncua")
+    if logger.level == logging.NOTSET:
+        logger.setLevel(logging.CRITICAL)
 
 
 async def _unguarded(parent: ua.NodeId, *args: ua.Variant) -> ua.StatusCode:

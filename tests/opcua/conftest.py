@@ -25,7 +25,7 @@ def wait_port(port: int, proc: subprocess.Popen[str], timeout_s: float = 60.0) -
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise AssertionError(f"softplc run exited: {proc.communicate()[1][-2000:]}")
+            raise AssertionError(f"softplc run exited ({proc.returncode}); see its run.log")
         with socket.socket() as s:
             if s.connect_ex(("127.0.0.1", port)) == 0:
                 return
@@ -53,8 +53,10 @@ def start_plc(program: str, state_dir: Path, *extra: str, plant: str | None = No
             "--state-dir", str(state_dir), "--quiet", "--period", period, *extra]
     if plant:
         args += ["--plant", plant]
-    proc = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+    # Output goes to files: a pipe nobody reads fills up and blocks the writer.
+    log = (state_dir / "run.log").open("w")
+    proc = subprocess.Popen(args, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, text=True)
+    log.close()
     try:
         wait_port(port, proc)
     except BaseException:
