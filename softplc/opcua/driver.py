@@ -200,7 +200,7 @@ class OpcUaIoDriver:
                 nodes = await self._resolve(client)
                 self._note(connected=True, ok=False, error="")
                 await self._cycles_on(client, nodes)
-            except (OSError, TimeoutError, ua.UaError, asyncio.TimeoutError) as exc:
+            except (OSError, TimeoutError, ua.UaError) as exc:
                 self._note(connected=False, ok=False, error=f"{type(exc).__name__}: {exc}")
             finally:
                 with contextlib.suppress(Exception):

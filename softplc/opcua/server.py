@@ -192,9 +192,9 @@ class OpcUaServer:
         iserver = server.iserver
         create = iserver.create_session
 
-        def create_session(name: str, user: User = User(role=UserRole.Anonymous),
+        def create_session(name: str, user: User | None = None,
                            external: bool = False) -> InternalSession:
-            session = create(name, user, external)
+            session = create(name, user or User(role=UserRole.Anonymous), external)
             if external:  # the server's own session keeps asyncua's behaviour
                 session.write = partial(self._write, session, session.write)  # type: ignore
                 session.call = partial(self._call, session, session.call)  # type: ignore

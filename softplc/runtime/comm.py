@@ -160,7 +160,7 @@ async def _start_opcua(config: CommConfig, channel: Channel, reader: SnapshotRea
                          state_dir=Path(config.state_dir), modbus_writes=config.modbus_writes)
     try:
         await server.start()
-    except Exception:  # noqa: BLE001 - any failure here must leave Modbus and the API serving
+    except Exception:
         log.exception("OPC UA server not started on %s:%d", host, port)
         await server.stop()
         return []
