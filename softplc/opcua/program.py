@@ -10,8 +10,10 @@ Does not know: sessions and who may call (server.py guards that), the address sp
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import itertools
 import re
+import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Final, Protocol
@@ -111,6 +113,10 @@ class ProgramHandling:
     async def _send(self, request: CommandRequest) -> Outcome:
         timeout_s = DOWNLOAD_TIMEOUT_S if request.command is Command.DOWNLOAD else \
             COMMAND_TIMEOUT_S
+        # Past its deadline the scan refuses the command: a caller that gave up never sees
+        # it happen later (CommandRequest.deadline_ns, CLOCK_MONOTONIC).
+        request = dataclasses.replace(request, deadline_ns=time.clock_gettime_ns(
+            time.CLOCK_MONOTONIC) + int(timeout_s * 1e9))
         try:
             reply = await asyncio.to_thread(self._channel.send_command, request, timeout_s)
         except TimeoutError as exc:
