@@ -132,6 +132,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="Modbus TCP slave HOST:PORT, or off (127.0.0.1:5020)")
     run.add_argument("--api", type=_endpoint, default=("127.0.0.1", 8080),
                      help="HTTP API HOST:PORT, or off (127.0.0.1:8080)")
+    run.add_argument("--opcua", type=_endpoint, default=("127.0.0.1", 4840),
+                     help="OPC UA server HOST:PORT, or off (127.0.0.1:4840; docs/opcua.md)")
     run.add_argument("--plant", help="plant model for sim drivers whose io image names none "
                      "(transport, drilling); an io image that names its plant keeps it, and a "
                      "contradicting --plant is refused")
