@@ -198,8 +198,10 @@ def test_example_programs_compile_with_subnets_expanded() -> None:
     assert transport.subnets == ("c1", "c2")
     assert {"c1.idle", "c1.moving", "c1.full", "c2.idle", "handing_over"} <= set(
         transport.place_names)
-    start = transport.transition("c2.start")
-    assert start.guard is not None and start.guard.text == "s2_i"  # parameter substituted
+    start = transport.transition("c2.start")  # parameters substituted: a symbol, a literal
+    assert start.guard is not None and start.guard.text == "s2_i and (not False)"
+    feed = transport.transition("c1.start")  # the HMI's `hold` stops conveyor 1's feed only
+    assert feed.guard is not None and feed.guard.reads == {"s1_i", "hold"}
     assert transport.moore_drivers["m1"]  # c1.moving and handing_over drive m1
     drilling = compile_file(PROGRAMS / "drilling.yaml")
     assert drilling.transition("drill").duration_ns == 2_000_000_000
