@@ -64,7 +64,8 @@ class _Reader:
             if not isinstance(spec, dict) or spec.get("kind") not in DRIVER_KINDS:
                 kind = spec.get("kind") if isinstance(spec, dict) else None
                 hint = did_you_mean(kind, DRIVER_KINDS) if isinstance(kind, str) else ""
-                self.problem(line, path, f"expected {{kind: {' | '.join(DRIVER_KINDS)}, ...}}{hint}")
+                self.problem(line, path,
+                             f"expected {{kind: {' | '.join(DRIVER_KINDS)}, ...}}{hint}")
                 continue
             params = {k: v for k, v in spec.items() if k != "kind" and k not in POLICY_KEYS}
             policy = self.policy(spec, path)

@@ -14,8 +14,8 @@ from typing import Any
 from softplc.core.expr import ExprError, Value, substitute
 from softplc.core.problems import Problem
 from softplc.core.units import parse_duration_ns
-from softplc.program.yamlload import YList, YMap, line_of, load_yaml, trap_hint
 from softplc.program.suggest import did_you_mean, did_you_mean_key
+from softplc.program.yamlload import YList, YMap, line_of, load_yaml, trap_hint
 
 TOP_KEYS = {"program", "net", "description", "io_image", "params", "places", "transitions",
             "subnets", "events"}
