@@ -55,7 +55,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         except ProgramError as exc:
             _report_problems(args.program, exc.problems)
             return 1
-        problems = check_devices(io)
+        problems = check_devices(io, args.plant, need_plant=False)
         if problems:
             _report_problems(args.program, problems)
             return 1
@@ -66,7 +66,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     net = _compile_or_report(args.program)
     if net is None:
         return 1
-    problems = check_devices(net.io)
+    problems = check_devices(net.io, args.plant, need_plant=False)
     if problems:
         _report_problems(args.program, problems)
         return 1
@@ -172,6 +172,8 @@ def build_parser() -> argparse.ArgumentParser:
     check = sub.add_parser("check", help="validate and compile a program (or check a symbols "
                            "file), its drivers' plants and channels; opens nothing")
     check.add_argument("program", help="a program, or a symbols file (io_images/*.yaml)")
+    check.add_argument("--plant", help="plant model for sim drivers that name none "
+                       "(as run and simulate take it)")
     check.set_defaults(func=cmd_check)
 
     run = sub.add_parser("run", help="run a soft PLC (scan process + Modbus/HTTP process)")

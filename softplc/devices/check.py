@@ -21,13 +21,16 @@ from softplc.program.suggest import did_you_mean, did_you_mean_key
 SIM_PARAMS = ("plant",)
 
 
-def check_devices(io: IoImage, plant: str | None = None) -> list[Problem]:
-    """Every problem the drivers of `io` would raise when opened, sorted by line. `plant`
-    replaces the plant of sim drivers, as `--plant` does for run and simulate."""
+def check_devices(io: IoImage, plant: str | None = None, need_plant: bool = True
+                  ) -> list[Problem]:
+    """Every problem the drivers of `io` would raise when opened, sorted by line. `plant` is
+    the plant of sim drivers that name none, as `--plant` is for run and simulate. Without
+    `need_plant`, a sim driver with no plant at all is not a problem (`check` cannot know the
+    --plant of a later run) and its channels are not checked."""
     problems: list[Problem] = []
     for spec in io.drivers.values():
         mine = [s for s in io.symbols.values() if s.driver == spec.name]
-        if spec.kind == "sim":
+        if spec.kind == "sim" and (need_plant or plant or spec.params.get("plant")):
             problems += _check_sim(io.path, spec, mine, plant)
         elif spec.kind == "modbus":
             problems += _check_modbus(io.path, spec, mine)
@@ -40,14 +43,20 @@ def _check_sim(file: str, spec: DriverSpec, symbols: Sequence[Symbol],
     problems = [Problem(file, spec.line, f"{path}.{key}", f"unknown key {key!r}"
                         f"{did_you_mean_key(key, SIM_PARAMS)}; a sim driver takes: plant")
                 for key in sorted(set(spec.params) - set(SIM_PARAMS))]
-    name = override if override is not None else spec.params.get("plant")
+    # The io image's plant wins; --plant serves sim drivers that name none (runner.open_drivers)
+    # and contradicting the io image is refused, as `softplc run` does.
+    own = spec.params.get("plant")
+    if override and own and own != override:
+        problems.append(Problem(file, spec.line, path, f"names plant {own!r}, --plant asks for "
+                                f"{override!r}: drop --plant or use an io image for that plant"))
+    name = own if own else override
     known = ", ".join(sorted(PLANTS))
     if not isinstance(name, str):
         problems.append(Problem(file, spec.line, path,
                                 f"a sim driver needs plant: NAME (one of {known})"))
         return problems
     if name not in PLANTS:
-        where = "--plant" if override is not None else "plant"
+        where = "plant" if own else "--plant"
         problems.append(Problem(file, spec.line, path, f"{where} {name!r}: no such plant model"
                                 f"{did_you_mean(name, PLANTS)}; known plants: {known}"))
         return problems

@@ -55,15 +55,33 @@ def test_simulate_refuses_it_without_a_traceback(
     assert "channel 's1_in' is not a sensor" in err and "Traceback" not in err
 
 
-def test_the_plant_given_with_plant_is_checked(capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_plant_given_with_plant_is_checked(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     program = str(ROOT / "programs" / "transport.yaml")
-    assert main(["simulate", program, "--plant", "drillng", "--duration", "1s"]) == 1
+    assert main(["simulate", program, "--plant", "drilling", "--duration", "1s"]) == 1
+    assert "drivers.plant: names plant 'transport', --plant asks for 'drilling'" \
+        in capsys.readouterr().err
+    # an io image whose sim driver names no plant takes --plant's, checked as its own would be
+    text = (ROOT / "io_images" / "transport.yaml").read_text(encoding="utf-8")
+    (tmp_path / "io.yaml").write_text(text.replace("{kind: sim, plant: transport}",
+                                                   "{kind: sim}"), encoding="utf-8")
+    (tmp_path / "p.yaml").write_text("io_image: io.yaml\nplaces: {p: {tokens: 1}}\n"
+                                     "transitions: {t: {from: [p], when: s1_i}}\n",
+                                     encoding="utf-8")
+    assert main(["simulate", str(tmp_path / "p.yaml"), "--plant", "drillng"]) == 1
     err = capsys.readouterr().err
     assert "--plant 'drillng': no such plant model (did you mean 'drilling'?)" in err
-    assert main(["simulate", program, "--plant", "drilling", "--duration", "1s"]) == 1
+    assert main(["simulate", str(tmp_path / "p.yaml"), "--plant", "drilling"]) == 1
     err = capsys.readouterr().err
     assert "channel 'm1' (the symbol's name: no channel: given) is not an actuator of plant " \
            "'drilling'" in err
+    assert main(["check", str(tmp_path / "p.yaml"), "--plant", "drilling"]) == 1
+    assert "is not an actuator of plant 'drilling'" in capsys.readouterr().err
+    assert main(["check", str(tmp_path / "p.yaml")]) == 0  # the plant of a later --plant
+    assert main(["simulate", str(tmp_path / "p.yaml")]) == 1
+    assert "a sim driver needs plant: NAME (one of drilling, transport)" in capsys.readouterr().err
+    assert main(["simulate", str(tmp_path / "p.yaml"), "--plant", "transport",
+                 "--duration", "1s"]) == 0
 
 
 def test_the_case_studies_and_their_symbols_files_pass(capsys: pytest.CaptureFixture[str]) -> None:
