@@ -245,6 +245,8 @@ def _command(cmd: ProgramCommand) -> dict[str, Any]:
         out["hash"] = cmd.net.program_hash
     if cmd.online:
         out["online"] = True
+    if cmd.command in (Command.FORCE, Command.UNFORCE):  # replay reproduces forces
+        out["symbol"], out["value"] = cmd.symbol, cmd.value
     return out
 
 
