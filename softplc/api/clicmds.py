@@ -36,7 +36,12 @@ def add_client_commands(subparsers: Any) -> None:
     download = subparsers.add_parser("download", help="download a program to a running softplc")
     download.add_argument("program", help="program file (YAML)")
     download.add_argument("--online", action="store_true",
-                          help="online change while RUNNING: keep the marking by place name")
+                          help="online change while RUNNING: keep the marking by place name; "
+                          "new places start with their declared tokens; refused when tokens "
+                          "would be lost or a timed firing is in progress")
+    download.add_argument("--replace", action="store_true",
+                          help="with --online: a program with another name on the same devices "
+                          "replaces the running one from its initial marking (refused without)")
     _connection_options(download)
     download.set_defaults(func=cmd_download)
     for command in LIFECYCLE_COMMANDS:
@@ -100,7 +105,8 @@ def cmd_download(args: argparse.Namespace) -> int:
         return EXIT_REFUSED
     name = Path(args.program).name
     code, reply = _call(args, "download",
-                        lambda client: client.download_text(text, args.online, name))
+                        lambda client: client.download_text(text, args.online, name,
+                                                            args.replace))
     if code == EXIT_OK:
         print(f"{reply.get('message', 'downloaded')} (state {reply.get('state')})")
     return code

@@ -67,17 +67,20 @@ class ApiClient:
     # -- program handling -------------------------------------------------------------------
 
     def download(self, path_or_text: str | Path, online: bool = False,
-                 name: str | None = None) -> dict[str, Any]:
+                 name: str | None = None, replace: bool = False) -> dict[str, Any]:
         """Download a program file (a Path, or a string without a newline) or YAML text.
         `name` (default: the file's name) is what problem messages call the program."""
         if isinstance(path_or_text, str) and "\n" in path_or_text:
-            return self.download_text(path_or_text, online, name)
+            return self.download_text(path_or_text, online, name, replace)
         path = Path(path_or_text)
-        return self.download_text(path.read_text(encoding="utf-8"), online, name or path.name)
+        return self.download_text(path.read_text(encoding="utf-8"), online, name or path.name,
+                                  replace)
 
-    def download_text(self, text: str, online: bool = False,
-                      name: str | None = None) -> dict[str, Any]:
+    def download_text(self, text: str, online: bool = False, name: str | None = None,
+                      replace: bool = False) -> dict[str, Any]:
         query = {"online": "true" if online else "false"}
+        if replace:
+            query["replace"] = "true"
         if name:  # the server takes plain file names only
             query["name"] = re.sub(r"[^A-Za-z0-9._-]", "_", name)[:128]
         return self._json("POST", "/program", text.encode(), "application/yaml", query,

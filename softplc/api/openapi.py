@@ -77,6 +77,9 @@ _PROGRAM: Final[dict[str, Any]] = {
         "parameters": [
             {"name": "online", "in": "query", "schema": {"type": "boolean"},
              "description": "Online change: swap the net at a scan boundary, keep the marking."},
+            {"name": "replace", "in": "query", "schema": {"type": "boolean"},
+             "description": "While RUNNING, a program with another name on the same devices "
+             "replaces the running one from its initial marking (refused without it)."},
             {"name": "X-Softplc-Online", "in": "header", "schema": {"type": "boolean"},
              "description": "Same as the `online` query parameter."},
             {"name": "name", "in": "query",

@@ -328,7 +328,7 @@ class ApiServer:
     async def _command(self, command: Command, text: str | None = None,
                        name: str | None = None, online: bool = False,
                        key: str | None = None, symbol: str | None = None,
-                       value: int = 0) -> CommandReply | Record:
+                       value: int = 0, replace: bool = False) -> CommandReply | Record:
         """Send a command with an id and a deadline. Returns its reply, or its pending Record
         when no reply came in time (it is then applied before its deadline or never)."""
         if key is not None and (known := self._book.by_key(key)) is not None:
@@ -337,7 +337,7 @@ class ApiServer:
         deadline_s = DOWNLOAD_DEADLINE_S if command is Command.DOWNLOAD else self.command_timeout_s
         request = self._book.request(command, deadline_s, key, program_text=text,
                                      program_path=name, online=online, symbol=symbol,
-                                     value=value)
+                                     value=value, replace=replace)
         try:
             reply = await asyncio.to_thread(self._channel.send_command, request,
                                             deadline_s + REPLY_GRACE_S, self._book.settle)
@@ -446,6 +446,7 @@ class ApiServer:
     async def _download(self, request: web.Request) -> web.Response:
         online = _flag(request.query.get("online", request.headers.get("X-Softplc-Online")),
                        "online")
+        replace = _flag(request.query.get("replace"), "replace")
         name = request.query.get("name")
         if name is not None and not _NAME.fullmatch(name):
             raise ApiProblem(400, "name must be a plain file name (letters, digits, . _ -)")
@@ -459,7 +460,8 @@ class ApiServer:
                              [f"{name or 'program'}:1: the request body holds no program"])
         if problems := _unprintable(text, name or "program"):
             raise ApiProblem(422, "download refused: not YAML text", problems)
-        reply = await self._command(Command.DOWNLOAD, text, name, online, self._key(request))
+        reply = await self._command(Command.DOWNLOAD, text, name, online, self._key(request),
+                                    replace=replace)
         if isinstance(reply, CommandReply) and not reply.ok and reply.message.startswith(
                 _REFUSED_PROGRAM):
             raise ApiProblem(422, reply.message.partition("\n")[0].rstrip(":"),

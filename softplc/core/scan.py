@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from softplc.core import events as event_conditions
+from softplc.core import online
 from softplc.core.expr import Value
 from softplc.core.faults import DeviceMonitor
 from softplc.core.firing import Engine
@@ -40,6 +41,11 @@ class ProgramCommand:
     id: int = 0
     symbol: str | None = None  # FORCE/UNFORCE: the symbol (UNFORCE None: release all)
     value: int = 0  # FORCE: the forced value
+    replace: bool = False  # a download of another program while RUNNING: replace it
+    # Built off the scan for `net` (runtime/loop.py): the engine's tables and the carry plan
+    # against the running net, so that the swap costs a few array operations.
+    engine: Engine | None = None
+    plan: online.CarryPlan | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -147,8 +153,8 @@ class Plc:
             if cmd.net is None:
                 raise CommandRejected(self.state, cmd.command, "download without a program")
             if self.state is PlcState.RUNNING:
-                return self._online_change(cmd.net, cmd.online, now_ns)
-            self._load(cmd.net, NetState.initial(cmd.net))
+                return self._online_change(cmd)
+            self._load(cmd.net, NetState.initial(cmd.net), cmd.engine)
         elif cmd.command is Command.START or cmd.command is Command.RESET:
             assert self.net is not None
             self._load(self.net, NetState.initial(self.net))
@@ -168,10 +174,15 @@ class Plc:
             self.fault_code, self.fault_reason = FAULT_NONE, ""
         return f"{cmd.command.value}: now {target.name}"
 
-    def _load(self, net: CompiledNet, state: NetState) -> None:
+    def _load(self, net: CompiledNet, state: NetState, engine: Engine | None = None) -> None:
         if net.io.sizes != self.image.sizes:
             self.image, self.prev = ProcessImage(net.io.sizes), ProcessImage(net.io.sizes)
-        self.net, self.engine = net, Engine(net, state)
+        if engine is not None and engine.net is net and engine is not self.engine:
+            engine.state = state  # tables built off the scan; only the state is new
+            engine.invalidate()
+        else:
+            engine = Engine(net, state)
+        self.net, self.engine = net, engine
         self.stopped_at_ns = None
         self.locations = {s.name: (s.address.attr, s.address.index) for s in net.io.symbols.values()}
         by_location: dict[tuple[str, int], list[str]] = {}
@@ -225,52 +236,45 @@ class Plc:
         self.engine.invalidate()
         self.stopped_at_ns = None
 
-    def _online_change(self, net: CompiledNet, online: bool, now_ns: int) -> str:
-        assert self.net is not None and self.engine is not None
-        if not online:
+    def _online_change(self, cmd: ProgramCommand) -> str:
+        """A download while RUNNING (docs/programs.md, online change; core/online.py)."""
+        assert self.net is not None and self.engine is not None and cmd.net is not None
+        net, old = cmd.net, self.net
+        if not cmd.online:
             raise CommandRejected(self.state, Command.DOWNLOAD,
                                   "download while RUNNING needs online change (--online), "
                                   "or stop the program first")
-        old, st = self.net, self.engine.state
         if net.name != old.name:
-            # Another program (reconfiguration, seed paper 4.2): nothing to carry over; it
-            # takes over at this scan boundary from its initial marking, without a stop.
-            self._load(net, NetState.initial(net))
-            self.drive_safe()  # outputs the new program does not drive must not stay on
-            return (f"online replacement: {old.name} -> {net.name} ({net.program_hash[:12]}), "
-                    "initial marking")
-        if st.busy:
-            busy = ", ".join(old.transitions[t].name for t in sorted(st.busy))
-            raise CommandRejected(self.state, Command.DOWNLOAD,
-                                  f"online change refused: timed firing in progress ({busy})")
-        new = NetState.initial(net)
-        new.marking[:] = 0
-        new.tokens = {p: [] for p in new.tokens}
-        lost = []
-        for p, count in enumerate(st.marking):
-            name = old.place_names[p]
-            if name not in net.place_index:
-                if count:
-                    lost.append(f"{name} ({int(count)})")
-                continue
-            q = net.place_index[name]
-            if old.coloured[p] != net.coloured[q]:
-                if count:
-                    lost.append(f"{name} (coloured in one net only)")
-                continue
-            new.marking[q] = count
-            if old.coloured[p]:
-                new.tokens[q] = list(st.tokens.get(p, []))
-        if lost:
-            raise CommandRejected(self.state, Command.DOWNLOAD,
-                                  "online change refused: tokens would be lost in "
-                                  + ", ".join(lost) + " (places missing in the new net)")
-        names = {t.name: t.index for t in net.transitions}
-        for t, since in st.enabled_since.items():
-            if old.transitions[t].name in names:
-                new.enabled_since[names[old.transitions[t].name]] = since
-        self._load(net, new)
-        return f"online change to {net.name} ({net.program_hash[:12]})"
+            return self._replace(cmd)
+        carry_plan = cmd.plan if cmd.plan is not None and cmd.plan.old is old \
+            and cmd.plan.new is net else online.plan(old, net)
+        carried = online.carry(carry_plan, self.engine.state)
+        if isinstance(carried, str):
+            raise CommandRejected(self.state, Command.DOWNLOAD, carried)
+        self._load(net, carried, cmd.engine)
+        fresh = len(carry_plan.fresh)
+        return (f"online change to {net.name} ({net.program_hash[:12]})"
+                + (f", {fresh} new place(s) with their declared tokens" if fresh else ""))
+
+    def _replace(self, cmd: ProgramCommand) -> str:
+        """Another program while RUNNING. On other devices it is the seed paper's
+        reconfiguration (the machine changed too) and goes ahead; on the same devices the
+        tokens of the running program stand for real parts, so it needs `replace`."""
+        assert self.net is not None and cmd.net is not None
+        old, net = self.net, cmd.net
+        same_devices = tuple(old.io.drivers.values()) == tuple(net.io.drivers.values())
+        if same_devices and not cmd.replace:
+            marked = int(np.count_nonzero(self.engine.state.marking)) if self.engine else 0
+            raise CommandRejected(self.state, Command.DOWNLOAD, (
+                f"online change refused: {net.name} is another program than the running "
+                f"{old.name} on the same devices; it would start from its initial marking and "
+                f"drop the tokens of {marked} marked place(s). Replace it explicitly "
+                "(--replace), or stop first"))
+        self._load(net, NetState.initial(net), cmd.engine)
+        self.drive_safe()  # outputs the new program does not drive must not stay on
+        why = "replacement" if same_devices else "replacement with new devices (reconfiguration)"
+        return (f"online {why}: {old.name} -> {net.name} ({net.program_hash[:12]}), "
+                "initial marking")
 
     def fault(self, code: FaultCode, now_ns: int | None = None, reason: str = "") -> None:
         """Watchdog, device, program or limit fault: FAULTED, outputs safe (the caller or the

@@ -66,6 +66,7 @@ class CommandRequest:
     symbol: str | None = None  # FORCE/UNFORCE (DESIGN.md section 10); UNFORCE None: all
     value: int = 0  # FORCE
     deadline_ns: int = 0
+    replace: bool = False  # a download of another program while RUNNING may replace it
 
 
 @dataclass(frozen=True, slots=True)

@@ -24,9 +24,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from softplc.core import online
+from softplc.core.firing import Engine
 from softplc.core.image import ImageSizes
 from softplc.core.lifecycle import Command, PlcState
-from softplc.core.net import CompiledNet
+from softplc.core.net import CompiledNet, NetState
 from softplc.core.problems import ProgramError
 from softplc.core.problems import FaultCode
 from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
@@ -90,6 +92,8 @@ class Prepared:
     request: CommandRequest
     drivers: list[Driver] | None = None
     specs: tuple[object, ...] = field(default=())
+    engine: Engine | None = None  # the engine's tables for `net`
+    plan: online.CarryPlan | None = None  # the marking's carry-over from the running net
 
     def discard(self) -> None:
         for driver in self.drivers or ():
@@ -254,7 +258,9 @@ class ScanLoop:
                              f"{prepared.net.io.sizes} differ from the runtime's")
             elif prepared is not None:
                 self._prepared[req.id] = prepared
-                commands.append(ProgramCommand(Command.DOWNLOAD, prepared.net, req.online, req.id))
+                commands.append(ProgramCommand(
+                    Command.DOWNLOAD, prepared.net, req.online, req.id, replace=req.replace,
+                    engine=prepared.engine, plan=prepared.plan))
         return commands
 
     def _relative(self, message: str) -> str:
@@ -283,7 +289,12 @@ class ScanLoop:
         refused before anything changes (the reconfiguration of the seed paper, checked)."""
         net = self._compile(req)
         specs = tuple(net.io.drivers.values())
-        prepared = Prepared(net, req, None, specs)
+        # Everything the swap needs, built here: the engine's tables and the carry plan
+        # against the net running now (the scan checks it is still that net).
+        running = self.runner.plc.net
+        prepared = Prepared(net, req, None, specs, Engine(net, NetState.initial(net)),
+                            online.plan(running, net) if running is not None
+                            and running.name == net.name else None)
         if specs != self._driver_specs:
             prepared.drivers = open_drivers(net.io, self.config.seed, None)
         return prepared

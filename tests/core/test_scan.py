@@ -322,8 +322,9 @@ transitions:
     assert result.replies[0].ok and result.replies[0].state is S.RUNNING
     assert result.replies[0].message.startswith("online change to cell")
     assert bench.plc.net is new
-    # by name, whatever the order; places new to the net start empty
-    assert bench.marking() == {"busy": 1, "parts": 1}
+    # by name, whatever the order; places new to the net start with their declared tokens
+    # (issue 16: `tokens:` of a new place are applied), kept places keep theirs
+    assert bench.marking() == {"busy": 1, "parts": 1, "extra": 2}
     assert bench.plc.engine is not None
     assert bench.plc.engine.state.tokens[new.place_index["parts"]] == [{"id": 7}]
     bench.set(b=1)
