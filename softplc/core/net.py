@@ -96,6 +96,10 @@ class CompiledNet:
     edge_deps: Mapping[str, tuple[int, ...]]  # symbol -> transitions taking its edge
     emits: frozenset[str] = frozenset()
     subnets: tuple[str, ...] = ()
+    # (file, line) of each place and transition's definition, for located analysis findings
+    # (a subnet's places live in the subnet's file).
+    place_where: tuple[tuple[str, int], ...] = ()
+    transition_where: tuple[tuple[str, int], ...] = ()
 
     @property
     def rank(self) -> dict[int, int]:
