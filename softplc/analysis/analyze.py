@@ -107,11 +107,11 @@ def analyze(net: AnalysisNet, semantics: str = "scan",
     start = time.perf_counter()
     pinv = p_invariants(net.pre, net.post)
     tinv = t_invariants(net.pre, net.post)
-    bounds = _structural_bounds(net, pinv) if semantics == "interleaving" else None
-    if bounds is not None and net.n_transitions < 32_000:
+    bounds = _structural_bounds(net, pinv)
+    if bounds is not None and semantics == "interleaving" and net.n_transitions < 32_000:
         graph = explore_fast(net, bounds, max_states)
     else:
-        graph = explore(net, semantics, max_states)
+        graph = explore(net, semantics, max_states, accelerate=bounds is None)
     if semantics == "scan" and any(net.timed):
         graph.notes.append("timing abstracted: a delay may or may not have elapsed and a "
                            "running duration may end in any later scan")

@@ -195,7 +195,9 @@ class Explorer:
         return True
 
 
-def explore(net: AnalysisNet, semantics: str, max_states: int) -> Graph:
+def explore(net: AnalysisNet, semantics: str, max_states: int, accelerate: bool = True) -> Graph:
+    """Breadth-first search. `accelerate=False` when every place is known to be bounded
+    (P-invariants, capacities): no covering can exist, so ancestors are not searched."""
     x = Explorer(net, semantics)
     T = net.n_transitions
     g = Graph(semantics, fired=[False] * T)
@@ -218,7 +220,8 @@ def explore(net: AnalysisNet, semantics: str, max_states: int) -> Graph:
             if not x.scan:
                 g.fired[mv.fired[0]] = True
             _step_findings(net, x, mv, i, states, parent, g, conflicted)
-            target = _accelerate(x, mv.target, i, mv, states, parent, g)
+            target = (_accelerate(x, mv.target, i, mv, states, parent, g) if accelerate
+                      else mv.target)
             if target in index:
                 continue
             if len(states) >= max_states:
