@@ -1,4 +1,4 @@
-"""Command line: `softplc check|run|simulate|replay|download|start|stop|resume|reset|kill|status|bench`.
+"""Command line: `softplc check|run|simulate|replay|analyze|export|download|start|stop|resume|reset|kill|status|bench`.
 
 Owns: argument parsing, exit codes, what a person sees. Does not know: how any of it works.
 """
@@ -30,6 +30,9 @@ def cmd_check(args: argparse.Namespace) -> int:
     if net is None:
         return 1
     print(summarize(net))
+    from softplc.analysis.cli import check_summary
+
+    check_summary(net)  # warnings only: check's exit code is the compiler's
     return 0
 
 
@@ -169,6 +172,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--quiet", action="store_true", help="no progress display")
     bench.set_defaults(func=cmd_bench)
 
+    from softplc.analysis.cli import add_commands as add_analysis_commands
+
+    add_analysis_commands(sub)
     try:
         from softplc.api.clicmds import add_client_commands
     except ImportError:  # the HTTP client commands need the api package's dependencies
