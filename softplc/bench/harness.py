@@ -24,7 +24,7 @@ from typing import Any
 
 from softplc.bench.measure import Progress
 
-SECTIONS = ("engine", "scan", "modbus", "online_change", "memory")
+SECTIONS = ("engine", "scan", "modbus", "online_change", "memory", "analysis")
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,6 +71,10 @@ TARGETS = (
         0,
         "scans missed by an online change (worst of 10 and 10,000 transitions)",
     ),
+    Target("analysis.vs_snakes_states_per_s", ">=", 100,
+           "our states/s / SNAKES StateGraph's, same P/T nets (Kanban 2, FMS 2, ...)"),
+    Target("analysis.kanban5_s", "<=", 5,
+           "full reachability graph of Kanban N = 5 (2,546,432 states), seconds; not in --quick"),
 )
 HEADLINE = (*(t.key for t in TARGETS), "memory.rss_mb")
 
@@ -88,6 +92,10 @@ def _section_runner(name: str) -> Callable[[bool, Progress], dict[str, Any]]:
         from softplc.bench import modbusbench
 
         return lambda quick, progress: modbusbench.run(quick, progress)
+    if name == "analysis":
+        from softplc.bench import analysisbench
+
+        return lambda quick, progress: analysisbench.run(quick, progress)
     if name == "online_change":
         from softplc.bench import onlinebench
 
