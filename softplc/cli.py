@@ -1,4 +1,4 @@
-"""Command line: `softplc check|run|simulate|replay|analyze|export|download|start|stop|resume|reset|kill|status|bench`.
+"""Command line: `softplc check|run|simulate|replay|analyze|export|download|start|stop|...`.
 
 Owns: argument parsing, exit codes, what a person sees. Does not know: how any of it works.
 """

@@ -11,6 +11,8 @@ Memory per stored state: the marking (one byte per place while bounds < 256), it
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import numpy.typing as npt
 
@@ -35,7 +37,7 @@ class _Packer:
             used += w
         self.n_words = len(self.words)
 
-    def keys(self, rows: IntArray) -> KeyArray:
+    def keys(self, rows: npt.NDArray[np.integer[Any]]) -> KeyArray:
         out = np.zeros((len(rows), self.n_words), np.uint64)
         for k, word in enumerate(self.words):
             acc = out[:, k]
@@ -159,7 +161,8 @@ def _dead_in(rows: npt.NDArray[np.int32], arcs: list[list[tuple[npt.NDArray[np.i
 def _row(levels: list[npt.NDArray[np.generic]], index: int) -> npt.NDArray[np.generic]:
     for level in levels:
         if index < len(level):
-            return level[index]
+            row: npt.NDArray[np.generic] = level[index]
+            return row
         index -= len(level)
     raise IndexError(index)
 

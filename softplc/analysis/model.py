@@ -106,8 +106,8 @@ def _write_value(kind: ActionKind, value: Compiled | None) -> WriteValue:
         return 1  # set, pulse
     if not value.reads and not value.tokens and not value.edges:
         try:
-            return int(value(_NoContext()))  # a constant expression
-        except Exception:  # noqa: BLE001 - any failure: keep it symbolic
+            return int(value(_NoContext()))  # a constant: reads nothing
+        except Exception:
             return value.text
     return value.text
 
@@ -121,6 +121,9 @@ class _NoContext:
 
     def event(self, name: str) -> bool:
         raise KeyError(name)
+
+    def token(self, var: str) -> Mapping[str, int]:
+        raise KeyError(var)
 
 
 class _Valuation:

@@ -86,7 +86,8 @@ def programs(draw: st.DrawFn) -> str:
                        "transitions": transitions, "events": ["tick"]})
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=40, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(programs())
 def test_round_trip_property(tmp_path: Path, text: str) -> None:
     try:
