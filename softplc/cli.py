@@ -114,13 +114,17 @@ def build_parser() -> argparse.ArgumentParser:
     check.set_defaults(func=cmd_check)
 
     run = sub.add_parser("run", help="run a soft PLC (scan process + Modbus/HTTP process)")
-    run.add_argument("program", nargs="?")
+    run.add_argument("program", nargs="?",
+                     help="program to run; without it, the boot program of --state-dir (the "
+                     "last program the PLC accepted), if any")
     run.add_argument("--period", type=_duration, default=10_000_000, help="scan period (10ms)")
     run.add_argument("--modbus", type=_endpoint, default=("127.0.0.1", 5020),
                      help="Modbus TCP slave HOST:PORT, or off (127.0.0.1:5020)")
     run.add_argument("--api", type=_endpoint, default=("127.0.0.1", 8080),
                      help="HTTP API HOST:PORT, or off (127.0.0.1:8080)")
-    run.add_argument("--plant", help="plant model for sim drivers (transport, drilling)")
+    run.add_argument("--plant", help="plant model for sim drivers whose io image names none "
+                     "(transport, drilling); an io image that names its plant keeps it, and a "
+                     "contradicting --plant is refused")
     run.add_argument("--start", action="store_true",
                      help="start the program at once: warm from a valid snapshot of the same "
                      "program in --state-dir, else cold from the initial marking")
@@ -143,6 +147,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seed", type=int, default=0, help="plant seed (0)")
     run.add_argument("--watchdog", type=float, default=10.0,
                      help="fault when a scan runs longer than period x this (10)")
+    run.add_argument("--on-stall", choices=("fault", "continue"), default="fault",
+                     help="a scan cycle that starts period x watchdog late (process paused or "
+                     "starved): fault with safe outputs, or count it and go on (fault)")
     run.add_argument("--duration", type=_duration, help="stop after this long (default: Ctrl-C)")
     run.add_argument("--quiet", action="store_true", help="no live status line")
     run.set_defaults(func=cmd_run)

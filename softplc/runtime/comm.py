@@ -147,7 +147,7 @@ async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name
 
 def comm_process_main(config: CommConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: Event, stop: Event) -> None:
-    from softplc.runtime.supervisor import die_with_parent
+    from softplc.runtime.procs import die_with_parent
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: stop.set())

@@ -36,6 +36,7 @@ from softplc.core.events import EventMemory
 from softplc.core.image import AREAS, ProcessImage
 from softplc.core.lifecycle import PlcState
 from softplc.core.net import Busy, CompiledNet, NetState
+from softplc.core.problems import FaultCode
 from softplc.core.scan import Plc
 from softplc.runtime.clock import Clock
 from softplc.runtime.realtime import background_thread
@@ -175,7 +176,7 @@ def restore(plc: Plc, payload: dict[str, Any], resume: bool) -> PlcState:
     plc.image.copy_into(plc.prev)
     plc.events = EventMemory(dict(payload["events"]["last"]), dict(payload["events"]["armed"]))
     plc.scan_count = payload["scan_count"]
-    plc.fault_code = payload["fault_code"]
+    plc.fault_code = FaultCode(payload["fault_code"])
     was = PlcState[payload["state"]]
     held = payload["held"]
     plc.held = None if held is None else (_unpack(held[0], plc.image.qx),
