@@ -37,6 +37,13 @@ class _Packer:
             used += w
         self.n_words = len(self.words)
 
+    def deltas(self, change: npt.NDArray[np.int32]) -> npt.NDArray[np.uint64]:
+        """Per transition, what firing it adds to a one-word key (mod 2^64)."""
+        out = np.zeros(len(change), np.uint64)
+        for p, shift in self.words[0]:
+            out += (change[:, p].astype(np.int64) << shift).astype(np.uint64)
+        return out
+
     def keys(self, rows: npt.NDArray[np.integer[Any]]) -> KeyArray:
         out = np.zeros((len(rows), self.n_words), np.uint64)
         for k, word in enumerate(self.words):
@@ -57,7 +64,12 @@ def explore_fast(net: AnalysisNet, bounds: IntArray, max_states: int) -> Graph:
     change = (net.post - net.pre).astype(np.int32)
     arcs = _arc_tables(net)
     frontier = net.initial.astype(np.int32)[None, :]
-    seen = pack.keys(frontier)
+    fkeys = pack.keys(frontier)
+    seen = fkeys.copy()
+    # One-word keys are linear in the marking (fields never overflow: every count stays within
+    # its bound), so a successor's key is its source's key plus the transition's key delta:
+    # the successor markings of a level are only built for the new states.
+    dkeys = pack.deltas(change) if pack.n_words == 1 else None
     levels: list[npt.NDArray[np.generic]] = [frontier.astype(store)]
     parents: list[npt.NDArray[np.int32]] = [np.array([-1], np.int32)]
     vias: list[npt.NDArray[np.int16]] = [np.array([-1], np.int16)]
@@ -74,8 +86,10 @@ def explore_fast(net: AnalysisNet, bounds: IntArray, max_states: int) -> Graph:
         dead_rows.extend((base + np.flatnonzero(counts == 0)).tolist())
         _conflicts(net, frontier, base, g, levels, parents, vias)
         src, via = np.nonzero(enabled)
-        succ = frontier[src] + change[via]
-        keys = pack.keys(succ)
+        if dkeys is not None:
+            keys = fkeys[src] + dkeys[via]
+        else:
+            keys = pack.keys(frontier[src] + change[via])
         keys, first = np.unique(keys, return_index=True)
         pos = np.searchsorted(seen, keys)
         hit = pos < len(seen)
@@ -89,8 +103,9 @@ def explore_fast(net: AnalysisNet, bounds: IntArray, max_states: int) -> Graph:
             keep = keep[:room]
             g.complete = False
         pick = first[keep]
-        frontier = succ[pick]
-        seen = np.insert(seen, pos[keep], keys[keep])
+        frontier = frontier[src[pick]] + change[via[pick]]
+        fkeys = keys[keep]
+        seen = np.insert(seen, pos[keep], fkeys)
         base_next = total
         levels.append(frontier.astype(store))
         parents.append((base + src[pick]).astype(np.int32))
