@@ -12,6 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from softplc.analysis.analyze import analyze
+from softplc.analysis.model import from_compiled
 from softplc.analysis.models import kanban
 from softplc.analysis.pnml import (
     compiled_net,
@@ -86,7 +87,7 @@ def programs(draw: st.DrawFn) -> str:
                        "transitions": transitions, "events": ["tick"]})
 
 
-@settings(max_examples=40, deadline=None,
+@settings(max_examples=25, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(programs())
 def test_round_trip_property(tmp_path: Path, text: str) -> None:
@@ -96,9 +97,10 @@ def test_round_trip_property(tmp_path: Path, text: str) -> None:
         return  # an invalid random program (e.g. initial tokens over capacity): not exported
     back = _round_trip(net, tmp_path)
     assert structure(back) == structure(net)
-    # and the analysis sees the same net both ways
-    a = analyze(__import__("softplc.analysis.model", fromlist=["x"]).from_compiled(net))
-    b = analyze(__import__("softplc.analysis.model", fromlist=["x"]).from_compiled(back))
+    # and the analysis sees the same net both ways (bounded: a random net may grow without
+    # a provable covering, e.g. past an inhibitor arc)
+    a = analyze(from_compiled(net), max_states=300)
+    b = analyze(from_compiled(back), max_states=300)
     assert (a.graph.states, a.graph.edges) == (b.graph.states, b.graph.edges)
 
 
