@@ -1,4 +1,5 @@
-"""Command line: `softplc check|run|simulate|replay|analyze|export|download|start|stop|...`.
+"""Command line: `softplc check|run|simulate|replay|download|start|stop|resume|reset|kill|
+force|unforce|status|bench`.
 
 Owns: argument parsing, exit codes, what a person sees. Does not know: how any of it works.
 """
@@ -97,6 +98,18 @@ def _duration(text: str) -> int:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def _timeout(text: str) -> int:
+    if (ns := _duration(text)) <= 0:
+        raise argparse.ArgumentTypeError(f"expected a duration above 0, got {text!r}")
+    return ns
+
+
+def _count(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return int(text)
+
+
 def _endpoint(text: str) -> tuple[str, int] | None:
     if text in ("off", "none"):
         return None
@@ -122,6 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="Modbus TCP slave HOST:PORT, or off (127.0.0.1:5020)")
     run.add_argument("--api", type=_endpoint, default=("127.0.0.1", 8080),
                      help="HTTP API HOST:PORT, or off (127.0.0.1:8080)")
+    run.add_argument("--opcua", type=_endpoint, default=("127.0.0.1", 4840),
+                     help="OPC UA server HOST:PORT, or off (127.0.0.1:4840; docs/opcua.md)")
     run.add_argument("--plant", help="plant model for sim drivers whose io image names none "
                      "(transport, drilling); an io image that names its plant keeps it, and a "
                      "contradicting --plant is refused")
@@ -139,6 +154,13 @@ def build_parser() -> argparse.ArgumentParser:
                      help="Modbus writes allowed: open (outputs and memory, as OpenPLC), "
                      "symbols (only the running program's output and memory symbols not declared "
                      "hmi_writable: false), none (open)")
+    run.add_argument("--modbus-max-connections", type=_count, default=16, metavar="N",
+                     help="Modbus connection slots; when full, the connection idle longest is "
+                     "closed for a new one (16)")
+    run.add_argument("--modbus-max-per-peer", type=_count, default=8, metavar="N",
+                     help="Modbus connection slots one IP address may hold (8)")
+    run.add_argument("--modbus-idle-timeout", type=_timeout, default=60_000_000_000,
+                     help="close a Modbus connection without a request for this long (60s)")
     run.add_argument("--rt-priority", type=int, metavar="1..99",
                      help="run the scan process with this SCHED_FIFO priority (needs root or "
                      "CAP_SYS_NICE; refused: normal scheduling, said in status)")
@@ -175,7 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--plots", help="write PNG plots into this directory")
     bench.add_argument("--markdown", help="write the report (e.g. BENCHMARKS.md)")
     bench.add_argument("--only", help="comma-separated sections: engine, scan, modbus, "
-                       "online_change, memory, analysis")
+                       "online_change, memory, web, analysis")
     bench.add_argument("--quiet", action="store_true", help="no progress display")
     bench.set_defaults(func=cmd_bench)
 

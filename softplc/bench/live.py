@@ -28,15 +28,16 @@ import numpy as np
 import numpy.typing as npt
 
 from softplc.core.image import ImageSizes
+from softplc.core.scan import NOTHING_OBSERVED, Observed
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.clock import MonotonicClock, Schedule
 from softplc.runtime.comm import CommConfig
 from softplc.runtime.loop import LoopConfig, ScanLoop, scan_process_main
+from softplc.runtime.procs import die_with_parent
 from softplc.runtime.realtime import NORMAL, Realtime, apply
 from softplc.runtime.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
-from softplc.runtime.procs import die_with_parent
 from softplc.runtime.supervisor import SHM_PREFIX, Supervisor
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout: programs/ and io_images/
@@ -142,9 +143,9 @@ class RecordingLoop(ScanLoop):
         self.summary = self.stats.summary()
         self.changes: list[dict[str, Any]] = []
 
-    def scan_once(self, now_ns: int) -> bool:
+    def scan_once(self, now_ns: int, observed: Observed = NOTHING_OBSERVED) -> bool:
         before = self.runner.plc.net
-        handled = super().scan_once(now_ns)
+        handled = super().scan_once(now_ns, observed)  # the loop passes what it observed
         net = self.runner.plc.net
         if net is not None and net is not before:
             # The first scan of the new net is this one: core.scan fires it after the download.

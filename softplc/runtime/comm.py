@@ -16,14 +16,16 @@ import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from multiprocessing.synchronize import Event
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final, Literal, Protocol, get_args
 
 from softplc.core.image import Address, AddressError, ImageSizes, parse_address
 from softplc.core.snapshot import HmiWrite, SnapshotSource
+from softplc.hmi.admission import Limits
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
+from softplc.runtime.procs import Flag as Event
+from softplc.runtime.fresh import FreshSource
 from softplc.runtime.shm import SnapshotReader
 
 if TYPE_CHECKING:
@@ -46,11 +48,26 @@ class CommConfig:
     state_dir: str = "state"
     sizes: ImageSizes = ImageSizes()
     modbus_writes: ModbusWrites = "open"
+    # Connection slots, per-IP slots, idle timeout (hmi/admission.py, docs/modbus.md).
+    modbus_max_connections: int = 16
+    modbus_max_per_peer: int = 8
+    modbus_idle_timeout_s: float = 60.0
+    opcua: tuple[str, int] | None = None  # `softplc run` serves 127.0.0.1:4840 unless told off
 
     def __post_init__(self) -> None:
         if self.modbus_writes not in MODBUS_WRITES:
             raise ValueError(f"modbus_writes must be one of {', '.join(MODBUS_WRITES)}, "
                              f"not {self.modbus_writes!r}")
+        Limits(self.modbus_max_connections, self.modbus_max_per_peer,
+               self.modbus_idle_timeout_s)  # raises ValueError naming the bad one
+
+
+def modbus_limits(args: Any) -> dict[str, Any]:
+    """CommConfig's Modbus connection fields from `softplc run` arguments (cli.py):
+    `CommConfig(..., **modbus_limits(args))`."""
+    return {"modbus_max_connections": getattr(args, "modbus_max_connections", 16),
+            "modbus_max_per_peer": getattr(args, "modbus_max_per_peer", 8),
+            "modbus_idle_timeout_s": getattr(args, "modbus_idle_timeout", 60_000_000_000) / 1e9}
 
 
 def _writable_addresses(document: dict[str, Any]) -> frozenset[Address]:
@@ -113,12 +130,16 @@ def modbus_slave(config: CommConfig, source: SnapshotSource, sink: Callable[[Hmi
     writable = (ProgramWritable(read_board, source) if config.modbus_writes == "symbols"
                 else None)
     return ModbusSlave(source, sink, sizes=config.sizes, host=host, port=port,
-                       writable=writable, read_only=config.modbus_writes == "none")
+                       writable=writable, read_only=config.modbus_writes == "none",
+                       max_connections=config.modbus_max_connections,
+                       max_per_peer=config.modbus_max_per_peer,
+                       idle_timeout_s=config.modbus_idle_timeout_s)
 
 
 async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name: str,
                  ready: Event, stop: Event) -> None:
-    reader = SnapshotReader.attach(shm_name, config.sizes)
+    mapping = SnapshotReader.attach(shm_name, config.sizes)
+    reader = FreshSource(mapping)
     board = StatusBoard.attach(board_name)
     services: list[_Service] = []
     if config.modbus is not None:
@@ -133,6 +154,8 @@ async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name
                         state_dir=Path(config.state_dir))
         await api.start()
         services.append(api)
+    if config.opcua is not None:
+        services.extend(await _start_opcua(config, channel, reader, board))
     ready.set()
     parent = os.getppid()
     try:
@@ -141,8 +164,27 @@ async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name
     finally:
         for service in reversed(services):
             await service.stop()
-        reader.close()
+        mapping.close()
         board.close()
+
+
+async def _start_opcua(config: CommConfig, channel: Channel, reader: SnapshotReader,
+                       board: StatusBoard) -> list[_Service]:
+    """The OPC UA server, or none when it cannot start (port taken): Modbus and the API
+    keep serving, the failure is logged."""
+    from softplc.opcua.server import OpcUaServer
+
+    assert config.opcua is not None
+    host, port = config.opcua
+    server = OpcUaServer(channel, reader, board, host=host, port=port,
+                         state_dir=Path(config.state_dir), modbus_writes=config.modbus_writes)
+    try:
+        await server.start()
+    except Exception:
+        log.exception("OPC UA server not started on %s:%d", host, port)
+        await server.stop()
+        return []
+    return [server]
 
 
 def comm_process_main(config: CommConfig, channel: Channel, shm_name: str, board_name: str,

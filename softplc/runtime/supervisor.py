@@ -37,8 +37,9 @@ from softplc.core.problems import ProgramError
 from softplc.program.compiler import compile_file
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel, pid_alive
-from softplc.runtime.comm import CommConfig, comm_process_main
+from softplc.runtime.comm import CommConfig, comm_process_main, modbus_limits
 from softplc.runtime.loop import LoopConfig, scan_process_main
+from softplc.runtime.procs import ReadySignal, StopFlag
 from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
 from softplc.runtime.retain import StateDirBusy, check_state_dir
 from softplc.runtime.runner import plant_conflict
@@ -105,8 +106,8 @@ class Supervisor:
         self.channel = Channel(ctx=self.ctx)
         self.tag = tag or f"{SHM_PREFIX}{os.getpid()}"
         self.shm_name, self.board_name = f"{self.tag}_image", f"{self.tag}_board"
-        self.stop_scan = self.ctx.Event()
-        self.stop_comm = self.ctx.Event()
+        self.stop_scan = StopFlag()
+        self.stop_comm = StopFlag()
         self.loop_config, self.comm_config = loop_config, comm_config
         self.scan_main, self.scan_args = scan_main, scan_args
         self.scan: Any = None
@@ -135,7 +136,8 @@ class Supervisor:
             on_stall=getattr(args, "on_stall", "fault"),
             realtime=Realtime(getattr(args, "rt_priority", None), getattr(args, "scan_cpu", None)))
         comm_config = CommConfig(modbus=args.modbus, api=args.api, state_dir=args.state_dir,
-                                 sizes=sizes, modbus_writes=getattr(args, "modbus_writes", "open"))
+                                 sizes=sizes, modbus_writes=getattr(args, "modbus_writes", "open"),
+                                 opcua=getattr(args, "opcua", None), **modbus_limits(args))
         return cls(loop_config, comm_config)
 
     def start(self, timeout_s: float = 30.0) -> None:
@@ -148,12 +150,13 @@ class Supervisor:
         _record_semaphores(self.tag)
 
     def start_scan(self, config: LoopConfig, timeout_s: float = 30.0) -> None:
-        ready = self.ctx.Event()
+        ready = ReadySignal(self.ctx)
         self.scan = self.ctx.Process(
             target=self.scan_main, name="softplc-scan",
             args=(config, self.channel, self.shm_name, self.board_name, ready,
                   self.stop_scan, *self.scan_args))
         self.scan.start()
+        self.stop_scan.bind(self.scan.pid)
         deadline = time.monotonic() + timeout_s
         while not ready.wait(0.05):
             if not self.scan.is_alive():
@@ -162,14 +165,16 @@ class Supervisor:
                 raise RuntimeError(f"the scan process did not start within {timeout_s:g} s")
 
     def start_comm(self, timeout_s: float = 30.0) -> None:
-        if self.comm_config.modbus is None and self.comm_config.api is None:
+        if (self.comm_config.modbus is None and self.comm_config.api is None
+                and self.comm_config.opcua is None):
             return
-        ready = self.ctx.Event()
+        ready = ReadySignal(self.ctx)
         self.comm = self.ctx.Process(
             target=comm_process_main, name="softplc-comm",
             args=(self.comm_config, self.channel, self.shm_name, self.board_name, ready,
                   self.stop_comm))
         self.comm.start()
+        self.stop_comm.bind(self.comm.pid)
         keep_off_scan_cpu(self.comm.pid, self.loop_config.realtime)
         deadline = time.monotonic() + timeout_s
         while not ready.wait(0.05):
@@ -403,4 +408,7 @@ def _banner(args: argparse.Namespace, doc: dict[str, Any]) -> None:
     if args.api:
         host, port = args.api
         print(f"  HTTP API on http://{host}:{port}; try: curl -s http://{host}:{port}/api/v1/status")
+    if getattr(args, "opcua", None):
+        host, port = args.opcua
+        print(f"  OPC UA server on opc.tcp://{host}:{port} (writes and methods: user token)")
     print("  Ctrl-C stops (outputs to their safe values first)", flush=True)
