@@ -162,8 +162,10 @@ def bench_scan_main(config: LoopConfig, channel: Channel, shm_name: str, board_n
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     die_with_parent()
     realtime = apply(config.realtime)
-    writer = SnapshotWriter.create(config.sizes, name=shm_name)
-    board = StatusBoard.create(board_name)
+    # The supervisor created both segments (it owns them, as for `softplc run`): publish into
+    # them. Creating them here replaced the supervisor's, which then leaked in the harness.
+    writer, own_segment = SnapshotWriter.open_or_create(config.sizes, shm_name)
+    board, own_board = StatusBoard.open_or_create(board_name)
     try:
         loop = RecordingLoop(config, channel, writer, board, capacity)
         loop.realtime = realtime
@@ -174,8 +176,12 @@ def bench_scan_main(config: LoopConfig, channel: Channel, shm_name: str, board_n
         results.send(loop.stats.as_record(loop.changes))
     finally:
         writer.close()
-        writer.unlink()
-        board.close()
+        if own_segment:
+            writer.unlink()
+        if own_board:
+            board.close()
+        else:
+            board.detach()
 
 
 def floor_main(period_ns: int, duration_s: float, results: Connection,
@@ -298,6 +304,10 @@ class LiveRuntime:
         if self.board is not None:
             self.board.close()
             self.board = None
+        # Both processes have ended: this closes and unlinks the segments the supervisor owns
+        # (left open, they were garbage collected with numpy views still on them: BufferError
+        # tracebacks, then the resource tracker's "leaked shared_memory objects" at exit).
+        self.supervisor.stop()
         self._state_dir.cleanup()
         self._record = record
         return record
