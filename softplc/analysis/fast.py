@@ -87,7 +87,7 @@ def explore_fast(net: AnalysisNet, bounds: IntArray, max_states: int) -> Graph:
         _conflicts(net, frontier, base, g, levels, parents, vias)
         src, via = np.nonzero(enabled)
         if dkeys is not None:
-            keys = fkeys[src] + dkeys[via]
+            keys = fkeys[src].astype(np.uint64) + dkeys[via]
         else:
             keys = pack.keys(frontier[src] + change[via])
         keys, first = np.unique(keys, return_index=True)
