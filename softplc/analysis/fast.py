@@ -86,13 +86,14 @@ def explore_fast(net: AnalysisNet, bounds: IntArray, max_states: int) -> Graph:
         dead_rows.extend((base + np.flatnonzero(counts == 0)).tolist())
         _conflicts(net, frontier, base, g, levels, parents, vias)
         src, via = np.nonzero(enabled)
+        keys: KeyArray
         if dkeys is not None:
             keys = fkeys[src].astype(np.uint64) + dkeys[via]
         else:
             keys = pack.keys(frontier[src] + change[via])
         keys, first = np.unique(keys, return_index=True)
-        pos = np.searchsorted(seen, keys)
-        hit = pos < len(seen)
+        pos: npt.NDArray[np.intp] = np.searchsorted(seen, keys)
+        hit: npt.NDArray[np.bool_] = pos < len(seen)
         hit[hit] = seen[pos[hit]] == keys[hit]
         new = ~hit
         if not new.any():
