@@ -72,6 +72,9 @@ def cmd_check(args: argparse.Namespace) -> int:
         _report_problems(args.program, problems)
         return 1
     print(summarize(net))
+    from softplc.analysis.cli import check_summary
+
+    check_summary(net)  # warnings only: check's exit code is the compiler's
     return 0
 
 
@@ -264,10 +267,13 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--plots", help="write PNG plots into this directory")
     bench.add_argument("--markdown", help="write the report (e.g. BENCHMARKS.md)")
     bench.add_argument("--only", help="comma-separated sections: engine, scan, modbus, "
-                       "online_change, memory, web")
+                       "online_change, memory, web, analysis")
     bench.add_argument("--quiet", action="store_true", help="no progress display")
     bench.set_defaults(func=cmd_bench)
 
+    from softplc.analysis.cli import add_commands as add_analysis_commands
+
+    add_analysis_commands(sub)
     try:
         from softplc.api.clicmds import add_client_commands
     except ImportError:  # the HTTP client commands need the api package's dependencies

@@ -24,7 +24,7 @@ from typing import Any
 
 from softplc.bench.measure import Progress
 
-SECTIONS = ("engine", "scan", "modbus", "online_change", "memory", "web")
+SECTIONS = ("engine", "scan", "modbus", "online_change", "memory", "web", "analysis")
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,6 +84,10 @@ TARGETS = (
         "scans",
         "1 ms",
     ),
+    Target("analysis.vs_snakes_states_per_s", ">=", 100,
+           "our states/s / SNAKES StateGraph's, same P/T nets (Kanban 2, FMS 2, ...)"),
+    Target("analysis.kanban5_s", "<=", 5,
+           "full reachability graph of Kanban N = 5 (2,546,432 states), seconds; not in --quick"),
 )
 HEADLINE = (*(t.key for t in TARGETS), "memory.rss_mb")
 
@@ -105,6 +109,10 @@ def _section_runner(name: str) -> Callable[[bool, Progress], dict[str, Any]]:
         from softplc.bench import webbench
 
         return lambda quick, progress: webbench.run(quick, progress)
+    if name == "analysis":
+        from softplc.bench import analysisbench
+
+        return lambda quick, progress: analysisbench.run(quick, progress)
     if name == "online_change":
         from softplc.bench import onlinebench
 

@@ -250,12 +250,19 @@ def _memory_tables(section: dict[str, Any]) -> list[str]:
     ]
 
 
+def _analysis_tables(section: dict[str, Any]) -> list[str]:
+    rows = [[r.get("net"), r.get("states"), r.get("edges"), r.get("snakes_s"), r.get("softplc_s"),
+             r.get("ratio")] for r in section.get("nets", [])]
+    return [*_table(["net", "states", "edges", "SNAKES s", "softplc s", "ratio"], rows), ""]
+
+
 _DETAIL = {
     "engine": _engine_tables,
     "scan": _scan_tables,
     "modbus": _modbus_tables,
     "online_change": _online_tables,
     "memory": _memory_tables,
+    "analysis": _analysis_tables,
 }
 
 

@@ -98,6 +98,10 @@ class CompiledNet:
     emits: frozenset[str] = frozenset()
     subnets: tuple[str, ...] = ()
     limits: Limits = DEFAULT  # checked by the engine at run time (core/limits.py)
+    # (file, line) of each place and transition's definition, for located analysis findings
+    # (a subnet's places live in the subnet's file).
+    place_where: tuple[tuple[str, int], ...] = ()
+    transition_where: tuple[tuple[str, int], ...] = ()
 
     @property
     def rank(self) -> dict[int, int]:

@@ -286,6 +286,8 @@ def _build(spec: ProgramSpec, io: IoImage, c: _Compiler) -> CompiledNet:
         MappingProxyType(place_outputs), _frozen(moore), _frozen(busy_drivers),
         tuple(tuple(sorted(s)) for s in touching), _frozen(guard_deps), _frozen(edge_deps),
         frozenset(c.events), tuple(spec.subnets), c.limits,
+        place_where=tuple((p.where.file, p.where.line) for p in spec.places),
+        transition_where=tuple((t.where.file, t.where.line) for t in spec.transitions),
     )
 
 
@@ -347,6 +349,18 @@ def compile_text(text: str, filename: str, root: Path | None = None) -> Compiled
             except ProgramError as exc:
                 problems.extend(_at_reference(p, ref, where) for p in exc.problems)
     if io is None:
+        raise ProgramError(sorted(set(problems)))
+    compiler = _Compiler(spec, io, problems)
+    compiler.check_names()
+    return _build(spec, io, compiler)
+
+
+def compile_text_with_io(text: str, filename: str, io: IoImage,
+                          root: Path | None = None) -> CompiledNet:
+    """Compile a program against an io image given by the caller (a PNML import, whose
+    symbols come from beside the net, or none at all). Raises ProgramError like compile_text."""
+    spec, problems = parse_program(text, filename, root)
+    if any("YAML" in p.message for p in problems):
         raise ProgramError(sorted(set(problems)))
     compiler = _Compiler(spec, io, problems)
     compiler.check_names()

@@ -1,0 +1,110 @@
+"""The analysis commands of the CLI: `softplc analyze NET` and `softplc export PROGRAM`, and
+the summary `softplc check` prints.
+
+Owns: their arguments, exit codes (analyze: 0 no blocking finding, 1 findings or a bad
+net, 2 incomplete without findings; export: 0 or 1) and output. Does not know: how the
+analysis works.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from softplc.analysis.analyze import DEFAULT_MAX_STATES, SEMANTICS, analyze
+from softplc.analysis.gate import Verdict, verdict_of, verify
+from softplc.analysis.model import AnalysisNet, from_compiled
+from softplc.core.net import CompiledNet
+from softplc.core.problems import ProgramError
+from softplc.program.compiler import compile_file
+
+
+def add_commands(sub: Any) -> None:
+    an = sub.add_parser("analyze", help="state-space and structural analysis of a program "
+                        "(YAML) or a PNML net")
+    an.add_argument("net", help="program .yaml or net .pnml")
+    an.add_argument("--json", action="store_true", help="print one JSON object")
+    an.add_argument("--max-states", type=int, default=DEFAULT_MAX_STATES,
+                    help="stop exploring past this many states: result incomplete "
+                    f"(default {DEFAULT_MAX_STATES})")
+    an.add_argument("--semantics", choices=SEMANTICS, default=None,
+                    help="scan (the PLC's: default for programs) or interleaving (classical "
+                    "P/T reachability graph: default for bare PNML nets)")
+    an.set_defaults(func=cmd_analyze)
+    ex = sub.add_parser("export", help="write a program as PNML (ISO/IEC 15909-2)")
+    ex.add_argument("program")
+    ex.add_argument("-o", "--output", required=True, help="the .pnml file to write")
+    ex.set_defaults(func=cmd_export)
+
+
+def _load(path: str) -> tuple[AnalysisNet, bool]:
+    """The net and whether it is a program (scan semantics meaningful)."""
+    if Path(path).suffix.lower() in (".pnml", ".xml"):
+        from softplc.analysis.pnml import load_for_analysis
+
+        net, compiled = load_for_analysis(path)
+        return net, compiled is not None
+    return from_compiled(compile_file(path)), True
+
+
+def cmd_analyze(args: argparse.Namespace) -> int:
+    try:
+        net, program = _load(args.net)
+    except ProgramError as exc:
+        for problem in exc.problems:
+            print(problem, file=sys.stderr)
+        print(f"{args.net}: {len(exc.problems)} problem(s)", file=sys.stderr)
+        return 1
+    semantics = args.semantics or ("scan" if program else "interleaving")
+    verdict = verdict_of(analyze(net, semantics, max(1, args.max_states)))
+    if args.json:
+        print(json.dumps(verdict.analysis.to_dict() | {"findings": list(verdict.findings),
+                                                       "blocking": verdict.blocking}))
+    else:
+        _print(verdict)
+    if verdict.blocking:
+        return 1
+    return 0 if verdict.analysis.graph.complete else 2
+
+
+def _print(verdict: Verdict) -> None:
+    d = verdict.analysis.to_dict()
+    print(verdict.summary)
+    bounds = ", ".join(f"{k}: {'ω' if v is None else v}" for k, v in d["place_bounds"].items())
+    print(f"place bounds: {bounds}")
+    print(f"max tokens: {d['max_tokens_place']} in a place, {d['max_tokens_marking']} in a "
+          f"marking; {'conservative' if d['conservative'] else 'not conservative'}; "
+          f"{len(d['p_invariants'])} P-invariant(s), {len(d['t_invariants'])} T-invariant(s)")
+    for finding in verdict.findings:
+        print(finding)
+    for note in d["notes"]:
+        print(f"note: {note}")
+
+
+def check_summary(net: CompiledNet) -> None:
+    """What `softplc check` prints after the program summary: findings are warnings."""
+    verdict = verify(net)
+    print(verdict.summary)
+    for finding in verdict.findings:
+        print(f"warning: {finding}")
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from softplc.analysis.pnml import export_compiled
+
+    try:
+        net = compile_file(args.program)
+    except ProgramError as exc:
+        for problem in exc.problems:
+            print(problem, file=sys.stderr)
+        return 1
+    out = Path(args.output)
+    io_ref = os.path.relpath(Path(net.io.path).resolve(), out.resolve().parent)
+    out.write_text(export_compiled(net, io_image=io_ref), encoding="utf-8")
+    print(f"{args.program} -> {out}: {len(net.place_names)} places, "
+          f"{len(net.transitions)} transitions")
+    return 0

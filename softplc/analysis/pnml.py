@@ -1,0 +1,425 @@
+"""PNML (ISO/IEC 15909-2, `ptnet` type) import and export.
+
+Owns: writing a CompiledNet (or a bare PtNet) as PNML: the P/T skeleton any tool opens
+(places, transitions, weighted arcs, initial markings, names) plus softplc's own data in
+`toolspecific tool="softplc"` elements (guards, actions, timing, priorities, outputs,
+capacities, coloured tokens, test and inhibitor arcs, the io image); reading PNML back
+(pages, reference places and transitions) into a bare P/T AnalysisNet, or, with softplc's
+data (in toolspecific, or a `NET.softplc.json` mapping beside the file), into a CompiledNet
+through the program compiler. Every problem is located (file:line).
+Does not know: exploration, the CLI.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+from xml.sax.saxutils import escape, quoteattr
+
+import numpy as np
+
+from softplc.analysis.model import AnalysisNet, from_pt
+from softplc.analysis.models import PtNet
+from softplc.analysis.xmltree import Node, parse_xml
+from softplc.core.net import ActionKind, CompiledNet
+from softplc.core.problems import Problem, ProgramError
+from softplc.program.compiler import compile_text_with_io
+from softplc.program.io_image import load_io_image
+
+PNML_NS = "http://www.pnml.org/version-2009/grammar/pnml"
+PTNET = "http://www.pnml.org/version-2009/grammar/ptnet"
+TOOL = "softplc"
+
+
+# -- export -------------------------------------------------------------------------------
+
+def _tool(body: str, indent: str) -> str:
+    return f'{indent}<toolspecific tool="{TOOL}" version="1">{body}</toolspecific>\n'
+
+
+def _named(kind: str, ident: str, name: str, inner: str, indent: str) -> str:
+    return (f'{indent}<{kind} id="{ident}"><name><text>{escape(name)}</text></name>\n'
+            f"{inner}{indent}</{kind}>\n")
+
+
+def _json_tag(tag: str, value: Any) -> str:
+    return f"<{tag}>{escape(json.dumps(value, sort_keys=True))}</{tag}>"
+
+
+def _action_text(kind: ActionKind, target: str, value_text: str | None) -> str:
+    if kind is ActionKind.WRITE:
+        return f"{target} = {value_text}"
+    return f"{kind.value} {target}"
+
+
+def export_compiled(net: CompiledNet, io_image: str | None = None) -> str:
+    """PNML text of `net`. `io_image`: the symbols file as the importer should find it
+    (relative to the PNML file); default: the path the program gave, made relative."""
+    io_ref = io_image if io_image is not None else net.io.path
+    head = _json_tag("program", {"name": net.name, "io_image": io_ref,
+                                 "events": sorted(net.emits)})
+    out = [f'<?xml version="1.0" encoding="UTF-8"?>\n<pnml xmlns="{PNML_NS}">\n',
+           f'  <net id="{_id(net.name)}" type="{PTNET}">\n',
+           f"    <name><text>{escape(net.name)}</text></name>\n", _tool(head, "    "),
+           '    <page id="page0">\n']
+    ind = "      "
+    for p, name in enumerate(net.place_names):
+        extra: dict[str, Any] = {}
+        if net.capacity[p] >= 0:
+            extra["capacity"] = int(net.capacity[p])
+        if net.place_outputs.get(p):
+            extra["outputs"] = [[s, v] for s, v in net.place_outputs[p]]
+        if net.coloured[p]:
+            extra["records"] = [dict(r) for r in net.initial_tokens.get(p, ())]
+        inner = f"{ind}  <initialMarking><text>{int(net.initial[p])}</text></initialMarking>\n"
+        if extra:
+            inner += _tool(_json_tag("place", extra), ind + "  ")
+        out.append(_named("place", f"p{p}", name, inner, ind))
+    for t in net.transitions:
+        data: dict[str, Any] = {"priority": t.priority}
+        if t.guard is not None:
+            data["when"] = t.guard.text
+        if t.actions:
+            data["do"] = [_action_text(a.kind, a.target, a.value.text if a.value else None)
+                          for a in t.actions]
+        for key, ns in (("delay", t.delay_ns), ("duration", t.duration_ns)):
+            if ns:
+                data[key] = f"{ns}ns"
+        if t.busy_outputs:
+            data["outputs"] = [[s, v] for s, v in t.busy_outputs]
+        if t.test:
+            data["read"] = [[net.place_names[p], w] for p, w in t.test]
+        if t.inhibit:
+            data["inhibit"] = [[net.place_names[p], w] for p, w in t.inhibit]
+        out.append(_named("transition", f"t{t.index}", t.name,
+                          _tool(_json_tag("transition", data), ind + "  "), ind))
+    n = 0
+    for t in net.transitions:
+        for a in t.pre:
+            tool = _tool(_json_tag("arc", {"var": a.var}), ind + "  ") if a.var else ""
+            out.append(_arc(f"a{n}", f"p{a.place}", f"t{t.index}", a.weight, tool, ind))
+            n += 1
+        for o in t.post:
+            spec: dict[str, Any] = {}
+            if o.var is not None:
+                spec["token"] = o.var
+            elif o.fields is not None:
+                spec["token"] = {k: c.text for k, c in o.fields.items()}
+            tool = _tool(_json_tag("arc", spec), ind + "  ") if spec else ""
+            out.append(_arc(f"a{n}", f"t{t.index}", f"p{o.place}", o.weight, tool, ind))
+            n += 1
+    out.append("    </page>\n  </net>\n</pnml>\n")
+    return "".join(out)
+
+
+def export_pt(net: PtNet) -> str:
+    """PNML text of a bare P/T net (the benchmark models)."""
+    ids = {p: f"p{i}" for i, (p, _) in enumerate(net.places)}
+    out = [f'<?xml version="1.0" encoding="UTF-8"?>\n<pnml xmlns="{PNML_NS}">\n',
+           f'  <net id="{_id(net.name)}" type="{PTNET}">\n',
+           f"    <name><text>{escape(net.name)}</text></name>\n", '    <page id="page0">\n']
+    ind = "      "
+    for p, k in net.places:
+        out.append(_named("place", ids[p], p, f"{ind}  <initialMarking><text>{k}</text>"
+                          "</initialMarking>\n", ind))
+    n = 0
+    for i, (t, pre, post) in enumerate(net.transitions):
+        out.append(_named("transition", f"t{i}", t, "", ind))
+        for p, w in pre.items():
+            out.append(_arc(f"a{n}", ids[p], f"t{i}", w, "", ind))
+            n += 1
+        for p, w in post.items():
+            out.append(_arc(f"a{n}", f"t{i}", ids[p], w, "", ind))
+            n += 1
+    out.append("    </page>\n  </net>\n</pnml>\n")
+    return "".join(out)
+
+
+def _arc(ident: str, source: str, target: str, weight: int, tool: str, ind: str) -> str:
+    inscription = (f"{ind}  <inscription><text>{weight}</text></inscription>\n"
+                   if weight != 1 else "")
+    return (f"{ind}<arc id={quoteattr(ident)} source={quoteattr(source)} "
+            f"target={quoteattr(target)}>\n{inscription}{tool}{ind}</arc>\n")
+
+
+def _id(name: str) -> str:
+    clean = "".join(c if c.isalnum() or c in "_-." else "_" for c in name)
+    return clean if clean[:1].isalpha() else "n" + clean
+
+
+# -- import -------------------------------------------------------------------------------
+
+@dataclass(slots=True)
+class _Item:
+    ident: str
+    name: str
+    line: int
+    node: Node
+
+
+@dataclass(slots=True)
+class PnmlNet:
+    """A parsed PNML net: places, transitions and arcs with their lines."""
+
+    file: str
+    name: str
+    places: list[_Item]
+    initial: list[int]
+    transitions: list[_Item]
+    arcs: list[tuple[int, int, int, bool, Node]]  # (place, transition, weight, to_place, node)
+    tool: dict[str, Any] | None  # the net's softplc toolspecific data
+
+
+class _Reader:
+    def __init__(self, file: str) -> None:
+        self.file = file
+        self.problems: list[Problem] = []
+
+    def problem(self, node: Node, message: str) -> None:
+        self.problems.append(Problem(self.file, node.line, node.tag, message))
+
+    def tool_json(self, node: Node, tag: str) -> dict[str, Any] | None:
+        for ts in node.all("toolspecific"):
+            if ts.attrs.get("tool") != TOOL:
+                continue
+            inner = ts.child(tag)
+            if inner is None:
+                continue
+            try:
+                value = json.loads(inner.text)
+            except json.JSONDecodeError as exc:
+                self.problem(inner, f"toolspecific {tag}: bad JSON ({exc.msg})")
+                return None
+            if not isinstance(value, dict):
+                self.problem(inner, f"toolspecific {tag}: expected a JSON object")
+                return None
+            return value
+        return None
+
+    def count(self, node: Node, path: tuple[str, ...], default: int, what: str) -> int:
+        text = node.text_of(*path)
+        if text is None or text == "":
+            return default
+        if not text.isdigit():
+            self.problem(node.child(path[0]) or node, f"{what} {text!r}: expected a whole "
+                         "number >= 0" + ("" if what == "initial marking" else " (> 0)"))
+            return default
+        return int(text)
+
+
+def _elements(page: Node) -> Iterator[Node]:
+    for child in page.children:
+        if child.tag == "page":
+            yield from _elements(child)
+        else:
+            yield child
+
+
+def read_pnml(path: str | Path) -> PnmlNet:
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ProgramError([Problem(str(path), 0, "", f"cannot read PNML: {exc.strerror}")]
+                           ) from None
+    return parse_pnml(data, str(path))
+
+
+def parse_pnml(data: bytes, file: str) -> PnmlNet:
+    root = parse_xml(data, file)
+    r = _Reader(file)
+    net = root.child("net") if root.tag == "pnml" else None
+    if net is None:
+        raise ProgramError([Problem(file, root.line, root.tag,
+                                    "expected <pnml> with a <net> element")])
+    if net.attrs.get("type", "").rstrip("#/") not in (PTNET, PTNET.replace("2009", "2011")):
+        r.problem(net, f"net type {net.attrs.get('type')!r}: only P/T nets ({PTNET}) are read")
+    items: dict[str, _Item] = {}
+    refs: dict[str, tuple[str, Node]] = {}
+    places: list[_Item] = []
+    transitions: list[_Item] = []
+    arcs_raw: list[Node] = []
+    initial: list[int] = []
+    for el in (e for page in net.all("page") for e in _elements(page)):
+        ident = el.attrs.get("id", "")
+        if el.tag in ("place", "transition", "referencePlace", "referenceTransition"):
+            if not ident:
+                r.problem(el, f"<{el.tag}> without an id")
+                continue
+            if ident in items or ident in refs:
+                r.problem(el, f"id {ident!r} is used twice")
+                continue
+        if el.tag in ("place", "transition"):
+            item = _Item(ident, el.text_of("name", "text") or ident, el.line, el)
+            items[ident] = item
+            if el.tag == "place":
+                places.append(item)
+                initial.append(r.count(el, ("initialMarking", "text"), 0, "initial marking"))
+            else:
+                transitions.append(item)
+        elif el.tag in ("referencePlace", "referenceTransition"):
+            refs[ident] = (el.attrs.get("ref", ""), el)
+        elif el.tag == "arc":
+            arcs_raw.append(el)
+    resolved = {i: _resolve(i, items, refs, r) for i in refs}
+    pindex = {p.ident: k for k, p in enumerate(places)}
+    tindex = {t.ident: k for k, t in enumerate(transitions)}
+    arcs = []
+    for el in arcs_raw:
+        src = resolved.get(el.attrs.get("source", ""), el.attrs.get("source", ""))
+        dst = resolved.get(el.attrs.get("target", ""), el.attrs.get("target", ""))
+        weight = r.count(el, ("inscription", "text"), 1, "arc inscription")
+        if weight == 0:
+            r.problem(el, "arc inscription 0: expected a whole number > 0")
+        if src in pindex and dst in tindex:
+            arcs.append((pindex[src], tindex[dst], weight, False, el))
+        elif src in tindex and dst in pindex:
+            arcs.append((pindex[dst], tindex[src], weight, True, el))
+        else:
+            r.problem(el, f"arc {el.attrs.get('id', '?')}: source {src!r} and target {dst!r} "
+                      "must be a place and a transition of this net")
+    tool = r.tool_json(net, "program")
+    if r.problems:
+        raise ProgramError(r.problems)
+    return PnmlNet(file, net.text_of("name", "text") or net.attrs.get("id", "net"), places,
+                   initial, transitions, arcs, tool)
+
+
+def _resolve(ident: str, items: dict[str, _Item], refs: dict[str, tuple[str, Node]],
+             r: _Reader) -> str:
+    seen = {ident}
+    target, node = refs[ident]
+    while target in refs:
+        if target in seen:
+            r.problem(node, f"reference {ident!r} is circular")
+            return ""
+        seen.add(target)
+        target = refs[target][0]
+    if target not in items:
+        r.problem(node, f"reference {ident!r} names {target!r}, which is no place or transition")
+    return target
+
+
+def pt_analysis_net(net: PnmlNet) -> AnalysisNet:
+    """The bare P/T skeleton (softplc data, if any, ignored)."""
+    P, T = len(net.places), len(net.transitions)
+    pre, post = np.zeros((T, P), np.int64), np.zeros((T, P), np.int64)
+    for p, t, w, to_place, _ in net.arcs:
+        (post if to_place else pre)[t, p] += w
+    return from_pt(net.name, net.file, [(p.name, k, p.line) for p, k in
+                                        zip(net.places, net.initial, strict=True)],
+                   [(t.name, t.line) for t in net.transitions], pre, post)
+
+
+def mapping_beside(path: Path) -> dict[str, Any] | None:
+    """`NET.softplc.json` beside `NET.pnml`: {"io_image": ..., "places": {name: {...}},
+    "transitions": {name: {...}}} with the keys of a program file, for running a net that
+    another tool drew."""
+    side = path.with_suffix(".softplc.json")
+    if not side.exists():
+        return None
+    try:
+        value = json.loads(side.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ProgramError([Problem(str(side), getattr(exc, "lineno", 0), "",
+                                    f"cannot read the mapping: {exc}")]) from None
+    if not isinstance(value, dict):
+        raise ProgramError([Problem(str(side), 1, "", "expected a JSON object")])
+    return value
+
+
+def compiled_net(net: PnmlNet, mapping: dict[str, Any] | None = None) -> CompiledNet:
+    """The runnable program: the net's softplc data (toolspecific), overlaid by `mapping`."""
+    r = _Reader(net.file)
+    tool = dict(net.tool or {})
+    mapping = mapping or {}
+    io_ref = mapping.get("io_image", tool.get("io_image"))
+    if not io_ref:
+        raise ProgramError([Problem(net.file, 1, "net", "no io image: a softplc toolspecific "
+                                    "<program> or a .softplc.json mapping must name one")])
+    io = load_io_image(Path(net.file).parent / str(io_ref))
+    places: dict[str, Any] = {}
+    for item, tokens in zip(net.places, net.initial, strict=True):
+        extra = r.tool_json(item.node, "place") or {}
+        extra.update(mapping.get("places", {}).get(item.name, {}))
+        spec: dict[str, Any] = {}
+        if "records" in extra:
+            spec["tokens"] = extra["records"]
+            spec["coloured"] = True
+        elif tokens:
+            spec["tokens"] = tokens
+        if "capacity" in extra:
+            spec["capacity"] = extra["capacity"]
+        if extra.get("outputs"):
+            spec["outputs"] = {s: v for s, v in extra["outputs"]}
+        places[item.name] = spec
+    transitions: dict[str, Any] = {}
+    for t, item in enumerate(net.transitions):
+        data = r.tool_json(item.node, "transition") or {}
+        data.update(mapping.get("transitions", {}).get(item.name, {}))
+        spec = {k: v for k, v in data.items() if k in ("priority", "when", "do", "delay",
+                                                       "duration")}
+        if data.get("outputs"):
+            spec["outputs"] = {s: v for s, v in data["outputs"]}
+        spec["from"] = [_arc_spec(net, r, p, w, a, "var") for p, tt, w, to, a in net.arcs
+                        if tt == t and not to]
+        spec["to"] = [_arc_spec(net, r, p, w, a, "token") for p, tt, w, to, a in net.arcs
+                      if tt == t and to]
+        for key in ("read", "inhibit"):
+            if data.get(key):
+                spec[key] = [{"place": p, "weight": w} for p, w in data[key]]
+        transitions[item.name] = spec
+    if r.problems:
+        raise ProgramError(r.problems)
+    program = {"program": net.name, "places": places, "transitions": transitions}
+    if tool.get("events"):
+        program["events"] = tool["events"]
+    compiled = compile_text_with_io(json.dumps(program, indent=1), net.file, io)
+    return dataclasses.replace(
+        compiled, place_where=tuple((net.file, p.line) for p in net.places),
+        transition_where=tuple((net.file, t.line) for t in net.transitions))
+
+
+def _arc_spec(net: PnmlNet, r: _Reader, p: int, w: int, node: Node, key: str) -> Any:
+    data = r.tool_json(node, "arc") or {}
+    name = net.places[p].name
+    if key in data:
+        return {"place": name, key: data[key]}
+    return name if w == 1 else {"place": name, "weight": w}
+
+
+def load_for_analysis(path: str | Path) -> tuple[AnalysisNet, CompiledNet | None]:
+    """A PNML file as an AnalysisNet: the program (scan semantics available) when softplc
+    data is present or beside it, else the bare P/T net."""
+    from softplc.analysis.model import from_compiled
+
+    path = Path(path)
+    net = read_pnml(path)
+    mapping = mapping_beside(path)
+    if net.tool is not None or mapping is not None:
+        compiled = compiled_net(net, mapping)
+        return from_compiled(compiled), compiled
+    return pt_analysis_net(net), None
+
+
+def structure(net: CompiledNet) -> tuple[Any, ...]:
+    """Everything a CompiledNet runs by, in comparable form: export then import must give the
+    same (the program hash differs: it is a digest of the source files' text)."""
+    def trans(t: Any) -> tuple[Any, ...]:
+        return (t.name, t.priority, tuple((a.place, a.weight, a.var) for a in t.pre),
+                tuple((o.place, o.weight, o.var, None if o.fields is None else
+                       tuple(sorted((k, c.text) for k, c in o.fields.items()))) for o in t.post),
+                tuple(t.test), tuple(t.inhibit), None if t.guard is None else t.guard.text,
+                tuple((a.kind, a.target, a.value.text if a.value else None) for a in t.actions),
+                t.delay_ns, t.duration_ns, tuple(t.busy_outputs), t.coloured)
+    return (net.name, net.place_names, tuple(int(x) for x in net.initial),
+            tuple(int(x) for x in net.capacity), tuple(bool(x) for x in net.coloured),
+            tuple(sorted((p, tuple(dict(r).items() for r in toks))
+                         for p, toks in net.initial_tokens.items())),
+            tuple(trans(t) for t in net.transitions), net.order,
+            tuple(sorted(net.place_outputs.items())), tuple(sorted(net.emits)),
+            tuple(sorted((s.name, str(s.address), s.type.value) for s in net.io.symbols.values())))

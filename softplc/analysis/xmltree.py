@@ -1,0 +1,84 @@
+"""A small XML tree with line numbers, read through defusedxml's hardened SAX parser.
+
+Owns: Node (tag without namespace, attributes, text, line, children) and `parse_xml`, which
+refuses DTDs' entity declarations and external entities (defusedxml raises on them) and
+turns every XML error into a located Problem. Does not know: PNML.
+"""
+
+from __future__ import annotations
+
+import xml.sax
+from dataclasses import dataclass, field
+from xml.sax.handler import ContentHandler
+from xml.sax.xmlreader import AttributesImpl, Locator
+
+import defusedxml.sax  # type: ignore[import-untyped]
+from defusedxml import DefusedXmlException
+
+from softplc.core.problems import Problem, ProgramError
+
+
+@dataclass(slots=True)
+class Node:
+    tag: str
+    attrs: dict[str, str]
+    line: int
+    children: list[Node] = field(default_factory=list)
+    text: str = ""
+
+    def child(self, tag: str) -> Node | None:
+        return next((c for c in self.children if c.tag == tag), None)
+
+    def all(self, tag: str) -> list[Node]:
+        return [c for c in self.children if c.tag == tag]
+
+    def text_of(self, *path: str) -> str | None:
+        node: Node | None = self
+        for tag in path:
+            node = node.child(tag) if node is not None else None
+        return None if node is None else node.text.strip()
+
+
+class _Builder(ContentHandler):
+    def __init__(self) -> None:
+        super().__init__()
+        self.stack: list[Node] = []
+        self.root: Node | None = None
+        self.locator: Locator | None = None
+
+    def setDocumentLocator(self, locator: Locator) -> None:
+        self.locator = locator
+
+    def startElement(self, name: str, attrs: AttributesImpl) -> None:
+        line = self.locator.getLineNumber() if self.locator else 0
+        node = Node(name.rpartition(":")[2], dict(attrs.items()), line or 0)
+        if self.stack:
+            self.stack[-1].children.append(node)
+        else:
+            self.root = node
+        self.stack.append(node)
+
+    def endElement(self, name: str) -> None:
+        self.stack.pop()
+
+    def characters(self, content: str) -> None:
+        if self.stack:
+            self.stack[-1].text += content
+
+
+def parse_xml(data: bytes, filename: str) -> Node:
+    builder = _Builder()
+    try:
+        defusedxml.sax.parseString(data, builder, forbid_dtd=False, forbid_entities=True,
+                                   forbid_external=True)
+    except DefusedXmlException as exc:
+        line = builder.locator.getLineNumber() if builder.locator else 0
+        raise ProgramError([Problem(filename, line or 1, "", f"refused XML: {exc} (entity "
+                                    "declarations and external entities are not accepted)")]
+                           ) from None
+    except xml.sax.SAXParseException as exc:
+        raise ProgramError([Problem(filename, exc.getLineNumber() or 1, "",
+                                    f"not well-formed XML: {exc.getMessage()}")]) from None
+    if builder.root is None:
+        raise ProgramError([Problem(filename, 1, "", "empty XML document")])
+    return builder.root
