@@ -235,6 +235,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seed", type=int, default=0, help="plant seed (0)")
     run.add_argument("--watchdog", type=float, default=10.0,
                      help="fault when a scan runs longer than period x this (10)")
+    run.add_argument("--verify", choices=("refuse", "warn", "off"), default="warn",
+                     help="analysis gate on every download (docs/analysis.md): refuse nets with "
+                     "an unbounded place, a deadlock, a dead transition or an output conflict; "
+                     "warn (accept, findings in the reply and status); off (warn)")
     run.add_argument("--on-stall", choices=("fault", "continue"), default="fault",
                      help="a scan cycle that starts period x watchdog late (process paused or "
                      "starved): fault with safe outputs, or count it and go on (fault)")

@@ -81,6 +81,15 @@ class LoopConfig:
     restarts: int = 0  # how often the supervisor restarted the scan process before this one
     restart_reason: str = ""  # why it restarted it last
     boot: bool = True  # no program given: run the boot program of state_dir, if any
+    verify: str = "warn"  # analysis gate on downloads: "refuse", "warn" or "off"
+
+
+class AnalysisRefused(Exception):
+    """A download the analysis gate refuses (--verify refuse): every blocking finding."""
+
+    def __init__(self, findings: tuple[str, ...]) -> None:
+        super().__init__("\n".join(findings))
+        self.findings = findings
 
 
 @dataclass(slots=True)
@@ -94,6 +103,7 @@ class Prepared:
     specs: tuple[object, ...] = field(default=())
     engine: Engine | None = None  # the engine's tables for `net`
     plan: online.CarryPlan | None = None  # the marking's carry-over from the running net
+    analysis: dict[str, Any] | None = None  # the gate's summary and findings
 
     def discard(self) -> None:
         for driver in self.drivers or ():
@@ -133,6 +143,9 @@ class ScanLoop:
         self._retained_ns = 0
         self._prepared: dict[int, Prepared] = {}  # downloads handed to the scan, by request id
         net, self._boot = self._program()
+        # The program the PLC starts with is analysed too, never refused: the person at the
+        # console chose it. Its findings are in status.
+        self.analysis = self._analyse(net, gate=False) if net is not None else None
         decision = StartDecision("cold", self.start_reason)
         if config.state_dir is not None:
             store = RetainStore.open(config.state_dir)  # StateDirBusy: another runtime has it
@@ -247,6 +260,9 @@ class ScanLoop:
             if req.command is not Command.DOWNLOAD:
                 commands.append(ProgramCommand(req.command, online=req.online, id=req.id,
                                                symbol=req.symbol, value=req.value))
+            elif isinstance(item.error, AnalysisRefused):
+                self._refuse(req, "download refused by the analysis gate (--verify refuse):\n"
+                             + "\n".join(item.error.findings))
             elif isinstance(item.error, ProgramError):
                 self._refuse(req, f"download refused:\n{self._relative(str(item.error))}")
             elif item.error is not None:  # a device that cannot open, or a compiler bug
@@ -288,16 +304,31 @@ class ScanLoop:
         they are not the running ones, so that a program whose devices cannot be opened is
         refused before anything changes (the reconfiguration of the seed paper, checked)."""
         net = self._compile(req)
+        analysis = self._analyse(net)
         specs = tuple(net.io.drivers.values())
         # Everything the swap needs, built here: the engine's tables and the carry plan
         # against the net running now (the scan checks it is still that net).
         running = self.runner.plc.net
         prepared = Prepared(net, req, None, specs, Engine(net, NetState.initial(net)),
                             online.plan(running, net) if running is not None
-                            and running.name == net.name else None)
+                            and running.name == net.name else None, analysis)
         if specs != self._driver_specs:
             prepared.drivers = open_drivers(net.io, self.config.seed, None)
         return prepared
+
+    def _analyse(self, net: CompiledNet, gate: bool = True) -> dict[str, Any] | None:
+        """The analysis gate (docs/analysis.md), off the scan. Refuses by raising
+        AnalysisRefused under --verify refuse (when `gate`); otherwise the findings go along."""
+        if self.config.verify == "off":
+            return None
+        from softplc.analysis.gate import verify
+
+        verdict = verify(net)
+        if gate and verdict.blocking and self.config.verify == "refuse":
+            raise AnalysisRefused(tuple(self._relative(f) for f in verdict.findings))
+        return {"summary": verdict.summary, "blocking": verdict.blocking,
+                "findings": [self._relative(f) for f in verdict.findings],
+                "policy": self.config.verify}
 
     def _reply(self, reply: CommandReply) -> None:
         if reply.id == 0 or self.channel is None:
@@ -317,6 +348,12 @@ class ScanLoop:
         if accepted is not None:
             self._swap_drivers(accepted)
             self._keep_boot(accepted.request)
+            self.analysis = accepted.analysis
+            if accepted.analysis and accepted.analysis["findings"]:
+                replies = [CommandReply(r.id, r.ok, f"{r.message}; {accepted.analysis['summary']}"
+                                        + f" ({len(accepted.analysis['findings'])} finding(s), "
+                                        "see status)", r.state, r.expired)
+                           if r.id == accepted.request.id else r for r in replies]
         elif any(c.command is Command.DOWNLOAD and c.id == 0 for c in commands):
             self._swap_drivers(None)
         for reply in replies:
@@ -403,7 +440,7 @@ class ScanLoop:
             "restarts": self.config.restarts, "restart_reason": self.config.restart_reason,
             "scan_pid": os.getpid(),
             "on_stall": self.config.on_stall, "watchdog_ms": self.budget_ns / 1e6,
-            "internal_errors": self.internal_errors,
+            "internal_errors": self.internal_errors, "analysis": self.analysis,
             "retain": self.retain.info() if self.retain else None,
             "health": {name: h.value for name, h in self.runner.health().items()},
             "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],

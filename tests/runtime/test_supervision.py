@@ -271,3 +271,25 @@ def test_a_killed_process_group_leaves_nothing_behind_after_the_next_start(
     runs.append(last)
     assert [p for p in leftovers if p.exists()] == []
     assert last.stop() == 0
+
+
+def test_verify_refuse_refuses_a_net_with_findings_and_keeps_the_running_one(
+        tmp_path: Path, runs: list[Run]) -> None:
+    shutil.copytree(ROOT / "programs", tmp_path / "programs")
+    shutil.copytree(ROOT / "io_images", tmp_path / "io_images")
+    for name in ("deadlock.yaml", "unbounded.yaml", "conflict.yaml", "symbols.yaml"):
+        shutil.copy(ROOT / "tests" / "analysis" / "programs" / name, tmp_path / "programs")
+    run = Run(tmp_path, "programs/transport.yaml", tmp_path / "state", "--verify", "refuse")
+    runs.append(run)
+    before = eventually(lambda: (s := run.status())["scan_count"] > 20 and s, 30, "scans")
+    assert "bounded" in before["analysis"]["summary"] and not before["analysis"]["blocking"]
+    for name, finding in (("deadlock.yaml", "deadlock"), ("unbounded.yaml", "unbounded"),
+                          ("conflict.yaml", "driven to different values")):
+        with pytest.raises(ApiError) as refused:
+            run.api.download(tmp_path / "programs" / name, online=True, replace=True)
+        assert refused.value.status == 422 and "analysis gate" in str(refused.value)
+        assert any(finding in p and p.startswith("programs/" + name + ":")
+                   for p in refused.value.problems), refused.value.problems
+    after = run.status()
+    assert (after["program"], after["program_hash"], after["state"]) == (
+        "transport", before["program_hash"], "RUNNING")
