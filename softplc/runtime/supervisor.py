@@ -43,6 +43,7 @@ from softplc.runtime.procs import ReadySignal, StopFlag
 from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
 from softplc.runtime.retain import StateDirBusy, check_state_dir
 from softplc.runtime.runner import plant_conflict
+from softplc.runtime.sdnotify import Notifier
 from softplc.runtime.shm import SnapshotWriter
 
 SHM_PREFIX: Final = "softplc_"
@@ -349,17 +350,19 @@ def run(args: argparse.Namespace) -> int:
         print(f"softplc: {exc}", file=sys.stderr)
         supervisor.stop()
         return EXIT_START
+    notifier = Notifier()
+    notifier.send(f"READY=1\nMAINPID={os.getpid()}\nSTATUS=scanning")
     _banner(args, supervisor.status())
     print(f"  scan process pid {supervisor.scan.pid} ({supervisor.status().get('realtime', '?')}), "
           f"communication process pid {supervisor.comm.pid if supervisor.comm else '-'}",
           flush=True)
     print(f"  supervisor pid {os.getpid()}: SIGTERM or SIGINT stops everything within "
           f"{STOP_S:g} s; exit code 0 then, 3 if it gives up restarting", flush=True)
-    return _supervise(supervisor, args, lambda: stopping)
+    return _supervise(supervisor, args, lambda: stopping, notifier)
 
 
 def _supervise(supervisor: Supervisor, args: argparse.Namespace,
-               stopping: Callable[[], bool]) -> int:
+               stopping: Callable[[], bool], notifier: Notifier) -> int:
     began = time.monotonic()
     tty = sys.stdout.isatty() and not args.quiet
     last_print = 0.0
@@ -375,7 +378,9 @@ def _supervise(supervisor: Supervisor, args: argparse.Namespace,
                 break
             for line in said:
                 print(("\n" if tty else "") + f"softplc: {line}", file=sys.stderr, flush=True)
+                notifier.send(f"STATUS={line}")
             now = time.monotonic()
+            notifier.ping(now)
             if args.duration and now - began >= args.duration / 1e9:
                 break
             if tty:
@@ -384,6 +389,7 @@ def _supervise(supervisor: Supervisor, args: argparse.Namespace,
                 print(status_line(supervisor.status()), flush=True)
                 last_print = now
     finally:
+        notifier.send("STOPPING=1")
         supervisor.stop()
         final = supervisor.final
     ending = "gave up" if code else "stopped"
