@@ -231,6 +231,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="run the scan process with this SCHED_FIFO priority (needs root or "
                      "CAP_SYS_NICE; refused: normal scheduling, said in status)")
     run.add_argument("--scan-cpu", type=int, metavar="N", help="pin the scan process to CPU N")
+    run.add_argument("--programs-dir", metavar="DIR", default=None,
+                     help="where a program downloaded as plain YAML text (not a bundle) finds "
+                     "its io image and subnets (default: programs/ beside the program's "
+                     "folder, else under the current directory)")
     run.add_argument("--trace", help="record every scan to this JSON Lines file")
     run.add_argument("--seed", type=int, default=0, help="plant seed (0)")
     run.add_argument("--watchdog", type=float, default=10.0,
