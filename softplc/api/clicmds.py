@@ -113,14 +113,22 @@ def _call(args: argparse.Namespace, what: str,
 
 def cmd_download(args: argparse.Namespace) -> int:
     try:
-        Path(args.program).read_text(encoding="utf-8")
+        text = Path(args.program).read_text(encoding="utf-8")
+        absent = bundles.missing(args.program)
         blob = bundles.pack(bundles.from_files(args.program))
     except (OSError, UnicodeDecodeError, bundles.BundleError) as exc:
         print(f"softplc download: cannot read {args.program}: {exc}", file=sys.stderr)
         return EXIT_REFUSED
-    code, reply = _call(args, "download",
-                        lambda client: client.download_bundle(blob, args.online, args.replace,
-                                                              args.dry_run))
+    if absent:  # compatibility: the server resolves them against its programs directory
+        print(f"softplc download: not found here: {', '.join(map(str, absent))}; sending the "
+              "program as plain text (the server looks for them in its programs directory)",
+              file=sys.stderr)
+        name = Path(args.program).name
+        code, reply = _call(args, "download", lambda client: client.download_text(
+            text, args.online, name, args.replace, args.dry_run))
+    else:
+        code, reply = _call(args, "download", lambda client: client.download_bundle(
+            blob, args.online, args.replace, args.dry_run))
     if code != EXIT_OK:
         return code
     if "plan" in reply:

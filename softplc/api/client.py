@@ -77,10 +77,12 @@ class ApiClient:
                                   replace)
 
     def download_text(self, text: str, online: bool = False, name: str | None = None,
-                      replace: bool = False) -> dict[str, Any]:
+                      replace: bool = False, dry_run: bool = False) -> dict[str, Any]:
         query = {"online": "true" if online else "false"}
         if replace:
             query["replace"] = "true"
+        if dry_run:
+            query["dry_run"] = "true"
         if name:  # the server takes plain file names only
             query["name"] = re.sub(r"[^A-Za-z0-9._-]", "_", name)[:128]
         return self._json("POST", "/program", text.encode(), "application/yaml", query,

@@ -69,6 +69,15 @@ def is_bundle(blob: bytes) -> bool:
 def referenced(program: str | Path) -> list[Path]:
     """The program file and every file it needs (io image, subnets, recursively), resolved.
     Files that cannot be read or parsed are left out: `check` reports them."""
+    return [path for path in _walk(program) if path.is_file()]
+
+
+def missing(program: str | Path) -> list[Path]:
+    """Files the program references that are not there locally."""
+    return [path for path in _walk(program) if not path.is_file()]
+
+
+def _walk(program: str | Path) -> list[Path]:
     seen: list[Path] = []
     pending = [Path(program).resolve()]
     while pending:
@@ -97,7 +106,7 @@ def _references(data: Any, base: Path) -> list[Path]:
             net = instance.get("net") if isinstance(instance, Mapping) else None
             if isinstance(net, str) and net and "\0" not in net:
                 refs.append((base / net).resolve())
-    return [ref for ref in refs if ref.is_file()]
+    return refs
 
 
 def from_files(program: str | Path) -> Bundle:
