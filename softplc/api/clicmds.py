@@ -259,10 +259,16 @@ def format_status(status: dict[str, Any]) -> str:
     marking = status.get("marking") or {}
     marked = {place: tokens for place, tokens in marking.items() if tokens}
     lines.append("marking" + ("" if marked else "     (no tokens)"))
-    lines += [f"  {place:<24} {tokens}" for place, tokens in sorted(marked.items())]
+    records = status.get("tokens") or {}
+    lines += [f"  {place:<24} {tokens}" + ("  " + ", ".join(
+        json.dumps(r, sort_keys=True) for r in records[place]) if records.get(place) else "")
+        for place, tokens in sorted(marked.items())]
     forced = status.get("forced") or {}
     lines.append("forced" + ("      (nothing)" if not forced else ""))
     lines += [f"  {name:<24} {value}  FORCED" for name, value in sorted(forced.items())]
+    if status.get("diagnostic_count"):
+        lines.append(f"diagnostics {status['diagnostic_count']} run-time error(s) of guards "
+                     "and actions (the last shown)")
     lines += [f"diagnostic  {d}" for d in status.get("diagnostics") or []]
     return "\n".join(lines)
 

@@ -147,6 +147,8 @@ class ScanLoop:
         self._retained_ns = 0
         self._prepared: dict[int, Prepared] = {}  # downloads handed to the scan, by request id
         self._bundle_roots: set[str] = set()  # unpacked bundles, stripped from messages
+        self._diag_engine: Engine | None = None  # diagnostics put on the event stream
+        self._diag_seen = 0
         net, self._boot = self._program()
         # The program the PLC starts with is analysed too, never refused: the person at the
         # console chose it. Its findings are in status.
@@ -502,7 +504,21 @@ class ScanLoop:
         self._after(commands, result.replies)
         for name in result.events:
             self._event(name, now_ns)
+        self._diagnostic_events(now_ns)
         return bool(commands)
+
+    def _diagnostic_events(self, now_ns: int) -> None:
+        """New run-time diagnostics on the event stream (a few per scan: a guard failing
+        every scan must not flood it; status counts them all)."""
+        engine = self.runner.plc.engine
+        if engine is None:
+            return
+        if engine is not self._diag_engine:
+            self._diag_engine, self._diag_seen = engine, 0
+        if engine.diagnostic_count > self._diag_seen:
+            for message in engine.diagnostics[self._diag_seen:self._diag_seen + 3]:
+                self._event(f"diagnostic:{message}", now_ns)
+            self._diag_seen = engine.diagnostic_count
 
     def _confirm_safe(self, now_ns: int) -> None:
         timeout_s = min(0.5, max(0.05, 5 * self.config.period_ns / 1e9))
@@ -545,6 +561,8 @@ class ScanLoop:
             "retain": self.retain.info() if self.retain else None,
             "health": {name: h.value for name, h in self.runner.health().items()},
             "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
+            "diagnostic_count": plc.engine.diagnostic_count if plc.engine else 0,
+            "tokens": _records(net, plc.engine.state if plc.engine else None),
             "symbols": symbols, "events": list(self.events),
             "forced": plc.forces.values(),  # forcing (DESIGN.md section 10)
             # The operator's page (docs/web.md): structure cached per program, live state.
@@ -659,6 +677,14 @@ class ScanLoop:
                 print(f"softplc: {outcome}", file=sys.stderr, flush=True)
         if self.board is not None:
             self.board.publish(self.document())
+
+
+def _records(net: CompiledNet | None, state: NetState | None) -> dict[str, list[Any]]:
+    """Coloured places' records (the first 20 of each), for status and the API."""
+    if net is None or state is None:
+        return {}
+    return {net.place_names[p]: [dict(t) for t in records[:20]]
+            for p, records in sorted(state.tokens.items()) if records}
 
 
 def plc_marking(net: CompiledNet) -> dict[str, int]:
