@@ -257,8 +257,12 @@ def build_parser() -> argparse.ArgumentParser:
                      "an unbounded place, a deadlock, a dead transition or an output conflict; "
                      "warn (accept, findings in the reply and status); off (warn)")
     run.add_argument("--on-stall", choices=("fault", "continue"), default="fault",
-                     help="a scan cycle that starts period x watchdog late (process paused or "
-                     "starved): fault with safe outputs, or count it and go on (fault)")
+                     help="a scan cycle that starts period x watchdog late is a stall (counted, "
+                     "an event); one that is also --stall-fault-after late (process paused, VM "
+                     "pause): fault with safe outputs, or go on (fault)")
+    run.add_argument("--stall-fault-after", type=_duration, default=500_000_000,
+                     help="how late a cycle must start for --on-stall fault to fault "
+                     "(500ms; at least period x watchdog)")
     run.add_argument("--duration", type=_duration, help="stop after this long (default: Ctrl-C)")
     run.add_argument("--quiet", action="store_true", help="no live status line")
     run.set_defaults(func=cmd_run)

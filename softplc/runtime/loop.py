@@ -81,7 +81,12 @@ class LoopConfig:
     retain_interval_ns: int = 1_000_000_000  # 0: only on stop
     warm_start: str = "run"  # a warm restart of a RUNNING snapshot: "run" resumes, "stop" waits
     realtime: Realtime = NORMAL  # SCHED_FIFO priority and CPU of the scan process
-    on_stall: str = "fault"  # a cycle that starts period x watchdog late: "fault" or "continue"
+    on_stall: str = "fault"  # a stall long enough to fault (below): "fault" or "continue"
+    # A cycle that starts period x watchdog late is a stall: counted, an event. It faults (with
+    # on_stall "fault") once it is also this long: a general-purpose OS delays a sleeping
+    # process by tens of ms under load, which lateness and overruns already show; a pause of
+    # half a second or more (SIGSTOP, VM pause, swap storm) is no hiccup.
+    stall_fault_ns: int = 500_000_000
     restarts: int = 0  # how often the supervisor restarted the scan process before this one
     restart_reason: str = ""  # why it restarted it last
     boot: bool = True  # no program given: run the boot program of state_dir, if any
@@ -557,6 +562,7 @@ class ScanLoop:
             "restarts": self.config.restarts, "restart_reason": self.config.restart_reason,
             "scan_pid": os.getpid(),
             "on_stall": self.config.on_stall, "watchdog_ms": self.budget_ns / 1e6,
+            "stall_fault_ms": max(self.config.stall_fault_ns, self.budget_ns) / 1e6,
             "internal_errors": self.internal_errors, "analysis": self.analysis,
             "retain": self.retain.info() if self.retain else None,
             "health": {name: h.value for name, h in self.runner.health().items()},
@@ -608,7 +614,8 @@ class ScanLoop:
         self.stalls += 1
         self.longest_gap_ns = max(self.longest_gap_ns, late_ns)
         self._event(f"stall:{late_ns // 1_000_000}ms", self.clock.now_ns())
-        if self.config.on_stall != "fault":
+        if self.config.on_stall != "fault" or late_ns < max(self.config.stall_fault_ns,
+                                                             self.budget_ns):
             return NOTHING_OBSERVED
         return Observed(stall=f"cycle started {late_ns / 1e6:.0f} ms late (budget "
                         f"{self.budget_ns / 1e6:g} ms): inputs and outputs were frozen meanwhile")
