@@ -150,7 +150,7 @@ def format_plan(plan: dict[str, Any]) -> str:
         lines.append(f"{title}:" + ("" if places else " none"))
         for place, tokens in sorted(places.items()):
             shown = f"  {place:<24} {tokens}"
-            if place in records and records[place]:
+            if records.get(place):
                 shown += "  " + ", ".join(json.dumps(r, sort_keys=True) for r in records[place])
             lines.append(shown)
     outputs = plan.get("outputs") or {}

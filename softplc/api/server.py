@@ -27,13 +27,6 @@ from aiohttp import web
 
 from softplc.api import auth
 from softplc.api import web as web_page
-from softplc.api.limits import HttpBounds, HttpLimits
-from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
-from softplc.core.image import AddressError, parse_address
-from softplc.core.lifecycle import Command
-from softplc.core.snapshot import CommandReply, CommandRequest, HmiWrite, SnapshotSource
-from softplc.program import bundle as bundles
-from softplc.runtime import boot
 from softplc.api.commands import (
     DOWNLOAD_DEADLINE_S,
     KEEP,
@@ -42,6 +35,13 @@ from softplc.api.commands import (
     Outcome,
     Record,
 )
+from softplc.api.limits import HttpBounds, HttpLimits
+from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
+from softplc.core.image import AddressError, parse_address
+from softplc.core.lifecycle import Command
+from softplc.core.snapshot import CommandReply, CommandRequest, HmiWrite, SnapshotSource
+from softplc.program import bundle as bundles
+from softplc.runtime import boot
 from softplc.runtime.channel import ChannelFull, NotQueued
 from softplc.runtime.fresh import FreshSource
 from softplc.runtime.shm import SnapshotUnavailable

@@ -130,7 +130,7 @@ def pack(bundle: Bundle) -> bytes:
     out = io.BytesIO()
     with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as archive:
         manifest = json.dumps({"format": FORMAT, "program": bundle.program}, sort_keys=True)
-        for name, data in [(MANIFEST, manifest.encode())] + sorted(bundle.files.items()):
+        for name, data in [(MANIFEST, manifest.encode()), *sorted(bundle.files.items())]:
             info = zipfile.ZipInfo(name, _EPOCH)
             info.compress_type = zipfile.ZIP_DEFLATED
             info.external_attr = 0o644 << 16
