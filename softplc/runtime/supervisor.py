@@ -78,8 +78,8 @@ def _remove_stale_segments() -> None:
 def _record_semaphores(tag: str) -> None:
     """List this process's named semaphores (multiprocessing's Events, locks) where the next
     start finds them if this run is killed before its resource tracker can unlink them."""
-    names = sorted({o._semlock.name for o in gc.get_objects()
-                    if isinstance(o, mp_sync.SemLock)})
+    names = sorted({o._semlock.name for o in gc.get_objects()  # None: unlinked at creation
+                    if isinstance(o, mp_sync.SemLock) and o._semlock.name})
     with contextlib.suppress(OSError):
         Path(f"/dev/shm/{tag}_sems").write_text("\n".join(names), encoding="utf-8")
 
