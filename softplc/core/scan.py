@@ -450,6 +450,7 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
         # already holds them, so the image difference alone would miss them.
         changed = plc._changed() | set(now_events) | set(plc.true_last) | plc.written_last
         before = plc.engine.state.marking.copy()
+        plc.engine.scan = plc.scan_count  # diagnostics name the scan
         step = plc.engine.fire_round(ctx, now_ns, changed)
         plc._write(step.writes)
         plc.forces.apply_outputs(plc.image)  # forcing: after Moore/Mealy, before the drivers

@@ -131,6 +131,7 @@ class Supervisor:
         loop_config = LoopConfig(
             program=args.program, start=args.start, period_ns=args.period, plant=args.plant,
             seed=args.seed, trace=args.trace, watchdog=args.watchdog, root=str(root),
+            programs_dir=getattr(args, "programs_dir", None),
             sizes=sizes, state_dir=args.state_dir,
             retain_interval_ns=getattr(args, "retain_interval", 1_000_000_000),
             warm_start=getattr(args, "warm_start", "run"),
