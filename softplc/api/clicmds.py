@@ -17,6 +17,7 @@ from typing import Any, Final
 from softplc.api.auth import TOKEN_ENV
 from softplc.api.client import DEFAULT_URL, ApiClient, ApiError, ApiUnreachable
 from softplc.api.openapi import LIFECYCLE_COMMANDS
+from softplc.core.lifecycle import Command, accepting
 from softplc.program import bundle as bundles
 
 EXIT_OK: Final = 0
@@ -42,10 +43,11 @@ def add_client_commands(subparsers: Any) -> None:
     download.add_argument("--online", action="store_true",
                           help="online change while RUNNING: keep the marking by place name; "
                           "new places start with their declared tokens; refused when tokens "
-                          "would be lost or a timed firing is in progress")
+                          "would be lost or a timed firing is in progress (default: off)")
     download.add_argument("--replace", action="store_true",
                           help="with --online: a program with another name on the same devices "
-                          "replaces the running one from its initial marking (refused without)")
+                          "replaces the running one from its initial marking (refused without; "
+                          "default: off)")
     download.add_argument("--dry-run", action="store_true",
                           help="show what the download would do against the running state "
                           "(kept, new and dropped places with tokens, outputs changing hands, "
@@ -60,20 +62,23 @@ def add_client_commands(subparsers: Any) -> None:
     _connection_options(upload)
     upload.set_defaults(func=cmd_upload)
     for command in LIFECYCLE_COMMANDS:
-        parser = subparsers.add_parser(command, help=_HELP[command])
+        parser = subparsers.add_parser(command, help=f"{_HELP[command]} (accepted in "
+                                       f"{accepting(Command(command))})")
         _connection_options(parser)
         parser.set_defaults(func=cmd_lifecycle, api_command=command)
     force = subparsers.add_parser("force", help="force a symbol (input or output) to a value")
-    force.add_argument("symbol")
+    force.add_argument("symbol", help="an input, output or memory symbol of the program")
     force.add_argument("value", help="0/1, true/false or a word 0..65535")
     _connection_options(force)
     force.set_defaults(func=cmd_force)
     unforce = subparsers.add_parser("unforce", help="release a forced symbol (all without one)")
-    unforce.add_argument("symbol", nargs="?", default=None)
+    unforce.add_argument("symbol", nargs="?", default=None,
+                         help="the forced symbol to release (default: every forced symbol)")
     _connection_options(unforce)
     unforce.set_defaults(func=cmd_unforce)
     status = subparsers.add_parser("status", help="state, program, scans, timing, marking")
-    status.add_argument("--json", action="store_true", help="print the status as JSON")
+    status.add_argument("--json", action="store_true",
+                        help="print the status as JSON (default: off, a summary)")
     _connection_options(status)
     status.set_defaults(func=cmd_status)
 
@@ -85,7 +90,8 @@ def _connection_options(parser: argparse.ArgumentParser) -> None:
                         help=f"bearer token (default: ${TOKEN_ENV}, else --state-dir's "
                         "api_token); needed when the API is bound off loopback")
     parser.add_argument("--state-dir", metavar="DIR", default=None,
-                        help="the server's state directory, to read DIR/api_token from")
+                        help="the server's state directory, to read DIR/api_token from "
+                        "(default: none)")
     parser.add_argument("--timeout", metavar="SECONDS", type=float, default=10.0,
                         help="how long to wait for an answer (default: %(default)s)")
 
@@ -97,7 +103,8 @@ def _call(args: argparse.Namespace, what: str,
         client = ApiClient(args.api, args.token, args.timeout, state_dir=args.state_dir)
         return EXIT_OK, action(client)
     except ApiError as exc:
-        print(f"softplc {what}: refused (HTTP {exc.status}): {exc.message}", file=sys.stderr)
+        message = exc.message.removeprefix(f"{what} refused: ")  # said once is enough
+        print(f"softplc {what}: refused (HTTP {exc.status}): {message}", file=sys.stderr)
         for problem in exc.problems:
             print(problem, file=sys.stderr)
         if exc.problems:
@@ -134,7 +141,7 @@ def cmd_download(args: argparse.Namespace) -> int:
     if "plan" in reply:
         print(format_plan(reply["plan"]))
         return EXIT_OK if reply["plan"].get("accepted") else EXIT_REFUSED
-    print(f"{reply.get('message', 'downloaded')} (state {reply.get('state')})")
+    print(said("download", reply))
     return code
 
 
@@ -190,11 +197,24 @@ def _call_bytes(args: argparse.Namespace, what: str,
     return code, got[0] if got else b""
 
 
+def said(command: str, reply: dict[str, Any]) -> str:
+    """A command's reply as one line that names the command and the state once each: the
+    scan's messages already start with the command ("stop: now STOPPED") and may name the
+    state, so nothing is added that is already there."""
+    message = str(reply.get("message") or "done")
+    if not message.startswith(command):
+        message = f"{command}: {message}"
+    state = reply.get("state")
+    if state and str(state) not in message:
+        message += f" (state {state})"
+    return message
+
+
 def cmd_lifecycle(args: argparse.Namespace) -> int:
     command: str = args.api_command
     code, reply = _call(args, command, lambda client: client.command(command))
     if code == EXIT_OK:
-        print(f"{command}: {reply.get('message') or 'done'} (state {reply.get('state')})")
+        print(said(command, reply))
     return code
 
 
@@ -218,14 +238,14 @@ def cmd_force(args: argparse.Namespace) -> int:
         return EXIT_REFUSED
     code, reply = _call(args, "force", lambda client: client.force(args.symbol, value))
     if code == EXIT_OK:
-        print(f"{reply.get('message')} (state {reply.get('state')})")
+        print(said("force", reply))
     return code
 
 
 def cmd_unforce(args: argparse.Namespace) -> int:
     code, reply = _call(args, "unforce", lambda client: client.unforce(args.symbol))
     if code == EXIT_OK:
-        print(f"{reply.get('message')} (state {reply.get('state')})")
+        print(said("unforce", reply))
     return code
 
 

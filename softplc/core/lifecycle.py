@@ -74,6 +74,11 @@ def next_state(state: PlcState, command: Command) -> PlcState:
 
 def accepting(command: Command) -> str:
     """The states that accept `command`, for a refusal's message."""
+    if command is Command.UNFORCE:
+        return "every state"
+    if command is Command.FORCE:  # wherever a program is loaded (core/scan.py)
+        return ", ".join(sorted(s.name for s in PlcState if s is not PlcState.EMPTY)) + \
+            " (any state with a program loaded)"
     states = sorted({s.name for (s, c) in TRANSITIONS if c is command})
     if command is Command.DOWNLOAD and "RUNNING" not in states:
         states.append("RUNNING (online change)")

@@ -21,7 +21,7 @@ from softplc.core.faults import DeviceMonitor
 from softplc.core.firing import Engine
 from softplc.core.forcing import Force, ForceRefused, Forces
 from softplc.core.image import AREAS, OUTPUT_AREAS, Area, ProcessImage
-from softplc.core.lifecycle import Command, CommandRejected, PlcState, next_state
+from softplc.core.lifecycle import Command, CommandRejected, PlcState, accepting, next_state
 from softplc.core.net import Busy, CompiledNet, NetState
 from softplc.core.problems import FaultCode, PlcFault
 from softplc.core.snapshot import CommandReply, HmiWrite
@@ -206,8 +206,11 @@ class Plc:
                     self.engine.refresh_outputs()  # place-driven outputs: the marking's again
                 names = ", ".join(e.symbol for e, _ in released)
                 return f"unforce: released {names or 'nothing (no symbol was forced)'}"
-            if self.net is None or cmd.symbol is None:
-                raise ForceRefused("force needs a loaded program and a symbol")
+            if self.net is None:
+                raise ForceRefused(f"no program is loaded (state {self.state.name}; force is "
+                                   f"accepted in {accepting(Command.FORCE)})")
+            if cmd.symbol is None:
+                raise ForceRefused("force needs a symbol")
             entry = self.forces.force(self.net.io.symbols, cmd.symbol, cmd.value, self.image)
         except ForceRefused as exc:
             raise CommandRejected(self.state, cmd.command, f"{cmd.command.value} refused: "
@@ -243,7 +246,8 @@ class Plc:
         if not cmd.online:
             raise CommandRejected(self.state, Command.DOWNLOAD,
                                   "download while RUNNING needs online change (--online), "
-                                  "or stop the program first")
+                                  "or stop the program first (a plain download is accepted in "
+                                  f"{accepting(Command.DOWNLOAD).replace(', RUNNING', '')})")
         if net.name != old.name:
             return self._replace(cmd)
         carry_plan = cmd.plan if cmd.plan is not None and cmd.plan.old is old \

@@ -146,7 +146,8 @@ def test_download_while_running_needs_online(net: CompiledNet) -> None:
     (reply,) = result.replies
     assert not reply.ok and reply.state is S.RUNNING
     assert reply.message == ("download while RUNNING needs online change (--online), "
-                             "or stop the program first")
+                             "or stop the program first (a plain download is accepted in "
+                             "EMPTY, FAULTED, KILLED, STOPPED)")
     assert bench.marking() == MOVED
 
 
