@@ -1,4 +1,4 @@
-"""One firing round of a Petri net (DESIGN.md section 3).
+"""One firing round of a Petri net (docs/design.md section 3).
 
 Owns: candidate transitions, deterministic step selection on the residual marking, the marking
 update (all consumptions, then all productions, then actions in step order), enabling delays,

@@ -1,4 +1,4 @@
-"""Program lifecycle: PLC states x program commands, as a table (DESIGN.md section 4).
+"""Program lifecycle: PLC states x program commands, as a table (docs/design.md section 4).
 
 Owns: PlcState, Command, the transition table, CommandRejected.
 Does not know: what a program is, how a scan runs, where commands come from.
@@ -26,7 +26,7 @@ class Command(enum.Enum):
     RESUME = "resume"
     RESET = "reset"
     KILL = "kill"
-    # Forcing (DESIGN.md section 10): not in the table below, never changes the state. FORCE
+    # Forcing (docs/design.md section 10): not in the table below, never changes the state. FORCE
     # is accepted wherever a program is loaded, UNFORCE in every state (core/scan.py).
     FORCE = "force"
     UNFORCE = "unforce"

@@ -1,6 +1,6 @@
 """The PLC: one scan as a function of (state, input image, now_ns, commands).
 
-Owns: the order of a scan (DESIGN.md section 1): apply commands and HMI writes at the scan
+Owns: the order of a scan (docs/design.md section 1): apply commands and HMI writes at the scan
 boundary; latch inputs; evaluate event conditions; one firing round when RUNNING; write the
 output image (safe values unless RUNNING). Program handling per the lifecycle table, online
 change with the marking carried over by place name, frozen timers while stopped.
@@ -122,7 +122,7 @@ class Plc:
     devices: DeviceMonitor = field(default_factory=DeviceMonitor)
     _policies_of: CompiledNet | None = None
     _policies: Mapping[str, FaultPolicy] = field(default_factory=dict)
-    forces: Forces = field(default_factory=Forces)  # DESIGN.md section 10
+    forces: Forces = field(default_factory=Forces)  # docs/design.md section 10
 
     @classmethod
     def empty(cls, image: ProcessImage | None = None) -> Plc:
@@ -158,7 +158,7 @@ class Plc:
         elif cmd.command is Command.START or cmd.command is Command.RESET:
             assert self.net is not None
             self._load(self.net, NetState.initial(self.net))
-            self.forces.release(None)  # a cold start drops every force (DESIGN.md section 10)
+            self.forces.release(None)  # a cold start drops every force (docs/design.md section 10)
         elif cmd.command is Command.RESUME:
             self._thaw(now_ns)
         if target is not PlcState.RUNNING and self.state is PlcState.RUNNING:
@@ -192,7 +192,7 @@ class Plc:
         self.events = event_conditions.EventMemory()
         self.forces.rebind(net.io.symbols)  # forces on symbols the program lacks are dropped
 
-    # -- forcing (DESIGN.md section 10) -----------------------------------------------------
+    # -- forcing (docs/design.md section 10) -----------------------------------------------------
 
     def _force(self, cmd: ProgramCommand) -> str:
         """FORCE/UNFORCE: the state stays. Forced outputs act only while RUNNING (stopped,
@@ -355,7 +355,7 @@ def scan(plc: Plc, inputs: ProcessImage, now_ns: int,
     `inputs` is only read (its %I areas are latched).
 
     `observed` is what the runtime measured (device answers, an overrun, a stall): the scan
-    judges it before the program runs, per the fault policies (DESIGN.md section 9).
+    judges it before the program runs, per the fault policies (docs/design.md section 8).
     Nothing raised inside a scan escapes it: PlcFault (a limit, a program error) and any
     other exception (a bug) fault the PLC with safe outputs and the reason, and the scan
     returns as a scan of a FAULTED PLC would: faults, not deaths."""

@@ -1,4 +1,4 @@
-"""The real-time scan loop: the scan process of DESIGN.md section 7.
+"""The real-time scan loop: the scan process of docs/design.md section 7.
 
 Owns: absolute deadlines on the monotonic clock, skipped slots counted as overruns, the
 cycle supervision (a whole scan longer than period x watchdog, or a cycle that starts that
@@ -570,7 +570,7 @@ class ScanLoop:
             "diagnostic_count": plc.engine.diagnostic_count if plc.engine else 0,
             "tokens": _records(net, plc.engine.state if plc.engine else None),
             "symbols": symbols, "events": list(self.events),
-            "forced": plc.forces.values(),  # forcing (DESIGN.md section 10)
+            "forced": plc.forces.values(),  # forcing (docs/design.md section 10)
             # The operator's page (docs/web.md): structure cached per program, live state.
             "net": netview.structure(net) if net else None,
             "net_live": netview.live(net, plc.engine.state if plc.engine else None,

@@ -1,4 +1,4 @@
-"""Forcing (DESIGN.md section 10) in the pure scan: a forced input replaces the driver's value
+"""Forcing (docs/design.md section 10) in the pure scan: a forced input replaces the driver's value
 at the latch, a forced output replaces the program's value after Moore/Mealy; release one or
 all; kept across stop/resume and downloads of programs that declare the symbol, dropped on a
 cold start (START, RESET). No socket, no sleep: `now_ns` is an argument.

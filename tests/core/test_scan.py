@@ -1,4 +1,4 @@
-"""The scan and the program lifecycle (DESIGN.md section 4), in virtual time, in process.
+"""The scan and the program lifecycle (docs/design.md section 4), in virtual time, in process.
 
 Walks every (state, command) pair of the lifecycle table; checks safe outputs, stop/resume,
 kill, online change. No socket, no sleep: `now_ns` is an argument.
@@ -33,7 +33,7 @@ transitions:
 INITIAL = {"idle": 1}
 MOVED = {"busy": 1}  # the marking the walk's RUNNING/STOPPED/KILLED/FAULTED PLCs hold
 
-# The table of DESIGN.md section 4, written out again: None = rejected.
+# The table of docs/design.md section 4, written out again: None = rejected.
 TABLE: dict[PlcState, dict[Command, PlcState | None]] = {
     S.EMPTY: {C.DOWNLOAD: S.STOPPED, C.START: None, C.STOP: None, C.RESUME: None,
               C.RESET: None, C.KILL: None},
