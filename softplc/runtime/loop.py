@@ -12,6 +12,7 @@ Does not know: Modbus, HTTP (the communication process), terminals (the CLI).
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import sys
@@ -741,6 +742,8 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
             raise SystemExit(4) from None
         writer.publish(loop.runner.plc.image, loop.status())
         board.publish(loop.document())
+        gc.collect()  # before the first scan, not during one; then keep what start-up built
+        gc.freeze()  # out of every later collection (real-time practice, see _prepare)
         ready.set()
         loop.run(stop)
     finally:

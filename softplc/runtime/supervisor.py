@@ -50,7 +50,8 @@ SHM_PREFIX: Final = "softplc_"
 SCAN_RESTARTS: Final = 5  # scan process restarts allowed within RESTART_WINDOW_S
 COMM_RESTARTS: Final = 5  # communication process restarts allowed within RESTART_WINDOW_S
 RESTART_WINDOW_S: Final = 60.0
-BACKOFF_S: Final = (0.0, 0.5, 1.0, 2.0, 4.0)  # before the 1st, 2nd, ... restart in a window
+BACKOFF_S: Final = (0.0, 0.5, 1.0, 2.0, 4.0)  # by restarts within BACKOFF_WINDOW_S
+BACKOFF_WINDOW_S: Final = 10.0  # a scan process that ran this long restarts without delay
 STOP_S: Final = 2.0  # SIGTERM/SIGINT: every process gone within this (then SIGKILL)
 EXIT_OK, EXIT_START, EXIT_USAGE, EXIT_GAVE_UP = 0, 1, 2, 3
 
@@ -215,9 +216,12 @@ class Supervisor:
             raise GaveUp(f"the scan process {reason}; it died {used + 1} times within "
                          f"{RESTART_WINDOW_S:g} s: giving up")
         self.restart_reason = f"scan process {reason}"
-        self._restart_due = self.clock() + BACKOFF_S[min(used, len(BACKOFF_S) - 1)]
+        now = self.clock()
+        recent = sum(1 for t in self.scan_restarts if now - t <= BACKOFF_WINDOW_S)
+        delay = BACKOFF_S[min(recent, len(BACKOFF_S) - 1)]
+        self._restart_due = now + delay
         return [f"scan process {reason}; restarting it warm"
-                + (f" in {BACKOFF_S[used]:g} s" if BACKOFF_S[min(used, 4)] else "")]
+                + (f" in {delay:g} s" if delay else "")]
 
     def _restart_scan(self) -> str:
         self.scan_restarts.append(self.clock())
