@@ -108,6 +108,10 @@ class CommandBook:
             self._records[reply.id] = record
         return record
 
+    def late(self, reply: CommandReply) -> None:
+        """A reply that came after its sender stopped waiting (the channel's `on_late`)."""
+        self.settle(reply)
+
     def drop(self, command_id: int, message: str) -> None:
         """A command that never reached the queue: refused, never applied."""
         with self._lock:

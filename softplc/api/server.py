@@ -68,7 +68,8 @@ _NOT_YAML: Final = re.compile(
 class CommandChannel(Protocol):
     """What the service needs of softplc.runtime.channel.Channel (client side)."""
 
-    def send_command(self, request: CommandRequest, timeout_s: float = ...) -> CommandReply: ...
+    def send_command(self, request: CommandRequest, timeout_s: float = ...,
+                     on_late: Callable[[CommandReply], None] | None = ...) -> CommandReply: ...
 
     def send_hmi_write(self, write: HmiWrite) -> None: ...
 
@@ -345,7 +346,7 @@ class ApiServer:
                                      dry_run=dry_run)
         try:
             reply = await asyncio.to_thread(self._channel.send_command, request,
-                                            deadline_s + REPLY_GRACE_S, self._book.settle)
+                                            deadline_s + REPLY_GRACE_S, self._book.late)
         except (NotQueued, ChannelFull) as exc:
             self._book.drop(request.id, f"not queued: {exc}")
             raise ApiProblem(503, f"{command.value} not sent, never applied: {exc}",

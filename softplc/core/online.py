@@ -53,9 +53,12 @@ def plan(old: CompiledNet, new: CompiledNet) -> CarryPlan:
     names = {t.name: t.index for t in new.transitions}
     transitions = {t.index: names[t.name] for t in old.transitions if t.name in names}
     coloured = tuple((p, q) for p, q in zip(kept_old, kept_new, strict=True) if old.coloured[p])
-    as_array = lambda xs: np.asarray(xs, dtype=np.int64)  # noqa: E731
-    return CarryPlan(old, new, as_array(kept_old), as_array(kept_new), as_array(dropped),
-                     as_array(fresh), coloured, transitions)
+    return CarryPlan(old, new, _indices(kept_old), _indices(kept_new), _indices(dropped),
+                     _indices(fresh), coloured, transitions)
+
+
+def _indices(values: list[int]) -> np.ndarray:
+    return np.asarray(values, dtype=np.int64)
 
 
 def carry(carry_plan: CarryPlan, state: NetState) -> NetState | str:

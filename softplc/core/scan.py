@@ -16,6 +16,7 @@ import numpy as np
 
 from softplc.core import events as event_conditions
 from softplc.core import online
+from softplc.core.online import CarryPlan
 from softplc.core.expr import Value
 from softplc.core.faults import DeviceMonitor
 from softplc.core.firing import Engine
@@ -45,7 +46,7 @@ class ProgramCommand:
     # Built off the scan for `net` (runtime/loop.py): the engine's tables and the carry plan
     # against the running net, so that the swap costs a few array operations.
     engine: Engine | None = None
-    plan: online.CarryPlan | None = None
+    plan: CarryPlan | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -168,7 +168,7 @@ async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name
         board.close()
 
 
-async def _start_opcua(config: CommConfig, channel: Channel, reader: SnapshotReader,
+async def _start_opcua(config: CommConfig, channel: Channel, reader: SnapshotSource,
                        board: StatusBoard) -> list[_Service]:
     """The OPC UA server, or none when it cannot start (port taken): Modbus and the API
     keep serving, the failure is logged."""

@@ -188,12 +188,13 @@ class ScanLoop:
         if config.state_dir is None or not config.boot:
             return None, None
         try:
-            program = boot.load(config.state_dir)
+            loaded = boot.load(config.state_dir)
         except boot.BootUnreadable as exc:
             self.program_source = f"none ({exc})"
             return None, None
-        if program is None:
+        if loaded is None:
             return None, None
+        program = loaded
         try:
             if program.bundle is not None:
                 net = self._compile_bundle(program.bundle)  # unpacked anew if removed

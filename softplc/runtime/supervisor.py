@@ -80,8 +80,10 @@ def _remove_stale_segments() -> None:
 def _record_semaphores(tag: str) -> None:
     """List this process's named semaphores (multiprocessing's Events, locks) where the next
     start finds them if this run is killed before its resource tracker can unlink them."""
-    names = sorted({o._semlock.name for o in gc.get_objects()  # None: unlinked at creation
-                    if isinstance(o, mp_sync.SemLock) and o._semlock.name})
+    locks = [getattr(o, "_semlock", None) for o in gc.get_objects()
+             if isinstance(o, mp_sync.SemLock)]
+    names = sorted({str(lock.name) for lock in locks  # no name: unlinked at creation
+                    if lock is not None and getattr(lock, "name", None)})
     with contextlib.suppress(OSError):
         Path(f"/dev/shm/{tag}_sems").write_text("\n".join(names), encoding="utf-8")
 
@@ -332,8 +334,8 @@ def run(args: argparse.Namespace) -> int:
     except StateDirBusy as exc:
         print(f"softplc: {exc}", file=sys.stderr)
         return EXIT_START
-    if problem := _startup_problem(args):
-        print(f"softplc: {problem}", file=sys.stderr)
+    if trouble := _startup_problem(args):
+        print(f"softplc: {trouble}", file=sys.stderr)
         return EXIT_START
     _remove_stale_segments()
     try:
