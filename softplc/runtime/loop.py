@@ -29,6 +29,7 @@ from softplc.core.net import CompiledNet
 from softplc.core.problems import ProgramError
 from softplc.core.scan import FAULT_WATCHDOG, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
+from softplc.devices.driver import SAFE_TIMEOUT_S, go_safe_all
 from softplc.program.compiler import compile_file, compile_text
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
@@ -279,8 +280,7 @@ class ScanLoop:
     def _watchdog(self) -> None:
         plc = self.runner.plc
         plc.fault(FAULT_WATCHDOG)
-        for driver in self.runner.drivers:  # safe outputs now, not one period later
-            driver.write_outputs(plc.image, self.clock.now_ns())
+        go_safe_all(self.runner.drivers, plc.image, SAFE_TIMEOUT_S)  # now, confirmed
 
     def shutdown(self) -> None:
         """Outputs to their safe values, written through the drivers, then close."""
@@ -289,8 +289,7 @@ class ScanLoop:
         # Retained before the outputs go safe: a warm restart resumes what the program drove.
         self._retain(self.clock.now_ns(), True)
         plc.drive_safe()
-        for driver in self.runner.drivers:
-            driver.write_outputs(plc.image, self.clock.now_ns())
+        go_safe_all(self.runner.drivers, plc.image, SAFE_TIMEOUT_S)  # written and confirmed
         if self.writer is not None:
             self.writer.publish(plc.image, self.status())
         if self.board is not None:
