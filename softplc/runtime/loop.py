@@ -17,7 +17,7 @@ import signal
 import sys
 import threading
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from multiprocessing.synchronize import Event
 from pathlib import Path
@@ -300,13 +300,27 @@ class ScanLoop:
             self.retain.close()  # waits for the last snapshot to be on disk
 
 
+def _once(action: Callable[[], object]) -> Callable[[int, object], None]:
+    """A SIGTERM handler that acts on the first signal only. A dying supervisor can deliver
+    SIGTERM more than once (PR_SET_PDEATHSIG fires as each of its threads exits), and one
+    arriving inside stop.set() re-entered it and deadlocked on its lock, outputs still on."""
+    done: dict[str, bool] = {}
+
+    def handler(signum: int, frame: object) -> None:
+        if not done:
+            done["yes"] = True  # no call before this store: no other handler can run first
+            action()
+
+    return handler
+
+
 def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: Event, stop: Event) -> None:
     """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`."""
     from softplc.runtime.supervisor import die_with_parent
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, _once(stop.set))
     die_with_parent()
     parent = os.getppid()
 

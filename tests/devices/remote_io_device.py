@@ -7,11 +7,16 @@ Beckhoff: holding register `watchdog_register` holds the watchdog timeout in mil
 timeout. When it does not, the module trips: every coil drops to 0 (its fail-safe state) and is
 held there until the heartbeat changes again. The watchdog arms at the first heartbeat change,
 so a controller that never sends one (or a timeout of 0) leaves the outputs alone.
+
+`latency_s` delays every request from the network by that much before it takes effect and is
+answered, like a real module behind a real network (a few ms); the test side's own reads and
+writes are not delayed.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import socket
 import threading
 import time
@@ -24,6 +29,8 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 FC_COIL, FC_DI, FC_HR, FC_IR = 1, 2, 3, 4
 SIZE = 64  # per table; a multiple of 16 (pymodbus checks bit areas per 16-bit word)
 CHECK_S = 0.005  # how often the module's watchdog looks at the heartbeat register
+# Set in the tasks of the module itself and of the test side: their accesses are not requests.
+_INTERNAL: contextvars.ContextVar[bool] = contextvars.ContextVar("internal", default=False)
 
 
 def free_port() -> int:
@@ -37,8 +44,10 @@ class RemoteIoDevice:
     """Start with start(), end with dispose(). Thread-safe accessors for the test side."""
 
     def __init__(self, port: int | None = None, *, heartbeat_register: int = 40,
-                 watchdog_register: int = 41, timeout_ms: int = 0) -> None:
+                 watchdog_register: int = 41, timeout_ms: int = 0,
+                 latency_s: float = 0.0) -> None:
         self.port = port or free_port()
+        self.latency_s = latency_s
         self.heartbeat_register, self.watchdog_register = heartbeat_register, watchdog_register
         self.initial_timeout_ms = timeout_ms
         self.trips = 0
@@ -72,9 +81,11 @@ class RemoteIoDevice:
         self.loop.close()
 
     async def _start(self) -> None:
+        _INTERNAL.set(True)
         bits = [SimData(0, values=[False] * SIZE, datatype=DataType.BITS)]
         words = [SimData(0, values=[0] * SIZE, datatype=DataType.REGISTERS)]
-        device = SimDevice(id=0, simdata=(bits, list(bits), words, list(words)))
+        device = SimDevice(id=0, simdata=(bits, list(bits), words, list(words)),
+                           action=self._action)
         self.server = ModbusTcpServer(device, address=("127.0.0.1", self.port),
                                       trace_pdu=self._trace)
         await self.server.serve_forever(background=True)
@@ -95,6 +106,16 @@ class RemoteIoDevice:
     def _call(self, coro: Any) -> Any:
         return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout=5)
 
+    async def _action(self, fc: int, start_address: int, address: int, count: int,
+                      registers: list[int], set_values: list[int] | None) -> None:
+        if self.latency_s and not _INTERNAL.get():
+            await asyncio.sleep(self.latency_s)
+
+    @staticmethod
+    async def _internal(coro: Any) -> Any:
+        _INTERNAL.set(True)
+        return await coro
+
     def _trace(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU:
         if not sending:
             with self._lock:
@@ -104,6 +125,7 @@ class RemoteIoDevice:
     # -- the module's communication watchdog -------------------------------------------------
 
     async def _watch(self) -> None:
+        _INTERNAL.set(True)
         while True:
             await asyncio.sleep(CHECK_S)
             await self._check()
@@ -133,11 +155,11 @@ class RemoteIoDevice:
 
     def get(self, fc: int, address: int, count: int = 1) -> list[Any]:
         assert self.server is not None
-        return list(self._call(self.server.async_getValues(0, fc, address, count)))
+        return list(self._call(self._internal(self.server.async_getValues(0, fc, address, count))))
 
     def set(self, fc: int, address: int, values: list[Any]) -> None:
         assert self.server is not None
-        self._call(self.server.async_setValues(0, fc, address, values))
+        self._call(self._internal(self.server.async_setValues(0, fc, address, values)))
 
     def coil(self, address: int) -> bool:
         return bool(self.get(FC_COIL, address)[0])
