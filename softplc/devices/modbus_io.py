@@ -3,7 +3,8 @@
 Owns: the I/O thread with its own asyncio loop and pymodbus client, the last good inputs, the
 latest outputs, their acknowledgement, go_safe (a confirmed write within a bound), the
 heartbeat that keeps the device's own watchdog alive, health and stats. Channel planning is
-modbus_plan.py, params are modbus_params.py. Does not know: the scan, the Petri net, the HMI.
+modbus_plan.py, params modbus_params.py, the requests themselves modbus_requests.py.
+Does not know: the scan, the Petri net, the HMI.
 
 Threading: read_inputs/write_outputs never touch the network; they swap values with the I/O
 thread under a lock. write_outputs wakes it for one cycle: every write range, the heartbeat
@@ -36,14 +37,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
-from pymodbus.client import AsyncModbusTcpClient, ModbusTcpClient
-from pymodbus.exceptions import ModbusException
-from pymodbus.pdu import ModbusPDU
+from pymodbus.client import AsyncModbusTcpClient
 
 from softplc.core.image import BoolArray, ProcessImage, WordArray
 from softplc.core.symbols import DriverSpec, Symbol
-from softplc.devices.driver import DeviceError, Health
+from softplc.devices.driver import Health
 from softplc.devices.modbus_params import Heartbeat, ModbusParams
 from softplc.devices.modbus_plan import (
     MAX_OFFSET,
@@ -53,6 +51,15 @@ from softplc.devices.modbus_plan import (
     Table,
     parse_channel,
     plan_channels,
+)
+from softplc.devices.modbus_requests import (
+    ERRORS,
+    RemoteError,
+    quiet_pymodbus,
+    read_block,
+    write_block,
+    write_direct,
+    write_word,
 )
 
 __all__ = [
@@ -67,7 +74,6 @@ CLOSE_JOIN_S = 1.0  # the I/O thread's time to flush and end on close()
 CLOSE_DIRECT_S = 0.5  # then, if it could not, a direct write of the pending outputs
 THREAD_SHARE = 0.5  # of go_safe's bound, for the I/O thread before the direct write
 _CANCEL_ROUNDS = 50
-_ERRORS = (TimeoutError, ModbusException, DeviceError, OSError)
 
 Outputs = tuple[list[Any], ...]
 
@@ -86,10 +92,6 @@ class IoStats:
     cycles_failed: int
     last_error: str
     heartbeats: int = 0  # heartbeat writes the device acknowledged
-
-
-class RemoteError(DeviceError):
-    """The remote device answered a request with a Modbus exception or a short reply."""
 
 
 _HEALTH = {(True, True): Health.OK, (True, False): Health.DEGRADED}
@@ -148,7 +150,7 @@ class ModbusIoDriver:
     def open(self) -> None:
         if self._thread is not None:
             return
-        _quiet_pymodbus()
+        quiet_pymodbus()
         self._closing = False
         self._loop = asyncio.new_event_loop()
         self._wake, self._urgent = asyncio.Event(), asyncio.Event()
@@ -296,29 +298,12 @@ class ModbusIoDriver:
                 loop.call_soon_threadsafe(self._urgent.set)
 
     def _direct(self, outputs: Outputs, seq: int, deadline: float) -> str:
-        """Write `outputs` on a fresh connection of our own (the I/O thread's may be wedged),
-        every request bounded by what is left until `deadline`. "" when acknowledged."""
-        p = self.params
-        left = deadline - time.monotonic()
-        if left <= 0:
-            return "no time left for a direct write"
-        client = ModbusTcpClient(p.host, port=p.port, timeout=min(p.timeout_s, left), retries=0,
-                                 reconnect_delay=0)
-        try:
-            if not client.connect():  # type: ignore[no-untyped-call]
-                return f"cannot connect to {p.host}:{p.port}"
-            for block, values in zip(self.plan.writes, outputs, strict=True):
-                if block.table is Table.COIL:
-                    reply = client.write_coils(block.start, values, device_id=p.unit)
-                else:
-                    reply = client.write_registers(block.start, values, device_id=p.unit)
-                _checked(reply, block)
-        except _ERRORS as exc:
-            return f"direct write: {exc or type(exc).__name__}"
-        finally:
-            client.close()  # type: ignore[no-untyped-call]
-        self._ack(seq)
-        return ""
+        """Write `outputs` on a fresh connection of our own (the I/O thread's may be wedged)
+        within `deadline`; acknowledge `seq` when the device answered. "" or why not."""
+        why = write_direct(self.params, self.plan.writes, outputs, deadline)
+        if not why:
+            self._ack(seq)
+        return why
 
     # ----- I/O thread -----
 
@@ -409,7 +394,7 @@ class ModbusIoDriver:
             if not client.connected and not await client.connect():
                 return
             await self._write_outputs(client, *pending)
-        except _ERRORS as exc:
+        except ERRORS as exc:
             log.warning("modbus driver %s: final write failed: %s", self.name, exc)
 
     def _on_link(self, connected: bool) -> None:
@@ -433,8 +418,8 @@ class ModbusIoDriver:
             if outputs is not None:
                 await self._write_outputs(client, outputs, seq)
             await self._heartbeat(client)
-            inputs = tuple([await self._read(client, block) for block in self.plan.reads])
-        except _ERRORS as exc:
+            inputs = tuple([await read_block(client, b, self.params.unit) for b in self.plan.reads])
+        except ERRORS as exc:
             self._fails_on_link += 1
             self._note_failure(str(exc) or type(exc).__name__, cycle=True)
             return False
@@ -456,7 +441,7 @@ class ModbusIoDriver:
             with self._lock:
                 if self._safe_seq > seq:
                     outputs, seq, i = self._outputs or outputs, self._out_seq, 0
-            await self._write(client, blocks[i], outputs[i])
+            await write_block(client, blocks[i], outputs[i], self.params.unit)
             i += 1
         self._ack(seq)
 
@@ -464,10 +449,8 @@ class ModbusIoDriver:
         beat = self.params.heartbeat
         if not self._fresh_link or beat is None or beat.watchdog_register is None:
             return
-        reply = await client.write_register(
-            beat.watchdog_register, beat.watchdog_value or 0, device_id=self.params.unit
-        )
-        _checked(reply, Block(Table.HR, beat.watchdog_register, (0,)))
+        await write_word(client, beat.watchdog_register, beat.watchdog_value or 0,
+                         self.params.unit)
         self._fresh_link = False
 
     async def _heartbeat(self, client: AsyncModbusTcpClient) -> None:
@@ -476,8 +459,7 @@ class ModbusIoDriver:
         if beat is None or now < self._beat_due:
             return
         value = (self._beat + 1) & 0xFFFF
-        reply = await client.write_register(beat.register, value, device_id=self.params.unit)
-        _checked(reply, Block(Table.HR, beat.register, (0,)))
+        await write_word(client, beat.register, value, self.params.unit)
         self._beat, self._beat_due = value, now + beat.period_ns / 1e9
         with self._lock:
             self._heartbeats += 1
@@ -491,41 +473,3 @@ class ModbusIoDriver:
             self._last_error = error
         if first:
             log.warning("modbus driver %s: %s", self.name, error)
-
-    async def _read(self, client: AsyncModbusTcpClient, block: Block) -> BoolArray | WordArray:
-        request = {
-            Table.COIL: client.read_coils,
-            Table.DI: client.read_discrete_inputs,
-            Table.HR: client.read_holding_registers,
-            Table.IR: client.read_input_registers,
-        }[block.table]
-        reply = _checked(
-            await request(block.start, count=block.count, device_id=self.params.unit), block
-        )
-        values = reply.bits if block.table.is_bit else reply.registers
-        if len(values) < block.count:
-            raise RemoteError(f"{block}: short reply ({len(values)} values)")
-        dtype: npt.DTypeLike = np.bool_ if block.table.is_bit else np.uint16
-        return np.asarray(values[: block.count], dtype=dtype)
-
-    async def _write(self, client: AsyncModbusTcpClient, block: Block, values: list[Any]) -> None:
-        unit = self.params.unit
-        if block.table is Table.COIL:
-            reply = await client.write_coils(block.start, values, device_id=unit)
-        else:
-            reply = await client.write_registers(block.start, values, device_id=unit)
-        _checked(reply, block)
-
-
-def _checked(reply: ModbusPDU, block: Block) -> ModbusPDU:
-    if reply.isError():
-        raise RemoteError(f"{block}: Modbus exception code {reply.exception_code}")
-    return reply
-
-
-def _quiet_pymodbus() -> None:
-    """pymodbus logs warnings and errors with frame dumps on every failed (re)connect and
-    timeout; our own logger reports state changes once. An explicitly set level is kept."""
-    logger = logging.getLogger("pymodbus")
-    if logger.level == logging.NOTSET:
-        logger.setLevel(logging.CRITICAL)
