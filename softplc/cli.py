@@ -94,6 +94,18 @@ def _duration(text: str) -> int:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def _timeout(text: str) -> int:
+    if (ns := _duration(text)) <= 0:
+        raise argparse.ArgumentTypeError(f"expected a duration above 0, got {text!r}")
+    return ns
+
+
+def _count(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return int(text)
+
+
 def _endpoint(text: str) -> tuple[str, int] | None:
     if text in ("off", "none"):
         return None
@@ -111,13 +123,17 @@ def build_parser() -> argparse.ArgumentParser:
     check.set_defaults(func=cmd_check)
 
     run = sub.add_parser("run", help="run a soft PLC (scan process + Modbus/HTTP process)")
-    run.add_argument("program", nargs="?")
+    run.add_argument("program", nargs="?",
+                     help="program to run; without it, the boot program of --state-dir (the "
+                     "last program the PLC accepted), if any")
     run.add_argument("--period", type=_duration, default=10_000_000, help="scan period (10ms)")
     run.add_argument("--modbus", type=_endpoint, default=("127.0.0.1", 5020),
                      help="Modbus TCP slave HOST:PORT, or off (127.0.0.1:5020)")
     run.add_argument("--api", type=_endpoint, default=("127.0.0.1", 8080),
                      help="HTTP API HOST:PORT, or off (127.0.0.1:8080)")
-    run.add_argument("--plant", help="plant model for sim drivers (transport, drilling)")
+    run.add_argument("--plant", help="plant model for sim drivers whose io image names none "
+                     "(transport, drilling); an io image that names its plant keeps it, and a "
+                     "contradicting --plant is refused")
     run.add_argument("--start", action="store_true",
                      help="start the program at once: warm from a valid snapshot of the same "
                      "program in --state-dir, else cold from the initial marking")
@@ -132,6 +148,13 @@ def build_parser() -> argparse.ArgumentParser:
                      help="Modbus writes allowed: open (outputs and memory, as OpenPLC), "
                      "symbols (only the running program's output and memory symbols not declared "
                      "hmi_writable: false), none (open)")
+    run.add_argument("--modbus-max-connections", type=_count, default=16, metavar="N",
+                     help="Modbus connection slots; when full, the connection idle longest is "
+                     "closed for a new one (16)")
+    run.add_argument("--modbus-max-per-peer", type=_count, default=8, metavar="N",
+                     help="Modbus connection slots one IP address may hold (8)")
+    run.add_argument("--modbus-idle-timeout", type=_timeout, default=60_000_000_000,
+                     help="close a Modbus connection without a request for this long (60s)")
     run.add_argument("--rt-priority", type=int, metavar="1..99",
                      help="run the scan process with this SCHED_FIFO priority (needs root or "
                      "CAP_SYS_NICE; refused: normal scheduling, said in status)")
@@ -140,6 +163,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seed", type=int, default=0, help="plant seed (0)")
     run.add_argument("--watchdog", type=float, default=10.0,
                      help="fault when a scan runs longer than period x this (10)")
+    run.add_argument("--on-stall", choices=("fault", "continue"), default="fault",
+                     help="a scan cycle that starts period x watchdog late (process paused or "
+                     "starved): fault with safe outputs, or count it and go on (fault)")
     run.add_argument("--duration", type=_duration, help="stop after this long (default: Ctrl-C)")
     run.add_argument("--quiet", action="store_true", help="no live status line")
     run.set_defaults(func=cmd_run)

@@ -26,6 +26,7 @@ from typing import Any, Final, Protocol
 from aiohttp import web
 
 from softplc.api import auth
+from softplc.api.limits import HttpBounds, HttpLimits
 from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
 from softplc.core.image import AddressError, parse_address
 from softplc.core.lifecycle import Command
@@ -203,7 +204,8 @@ class ApiServer:
     def __init__(self, channel: CommandChannel, snapshots: SnapshotSource, board: BoardSource,
                  *, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, state_dir: Path,
                  token_required: bool | None = None, heartbeat_s: float = HEARTBEAT_S,
-                 command_timeout_s: float = COMMAND_TIMEOUT_S) -> None:
+                 command_timeout_s: float = COMMAND_TIMEOUT_S,
+                 limits: HttpLimits | None = None) -> None:
         self.host = host
         self.port = port
         self.state_dir = Path(state_dir)
@@ -217,6 +219,7 @@ class ApiServer:
         self._token: str | None = None
         self._hub = _EventHub(self._board_document)
         self._runner: web.AppRunner | None = None
+        self.bounds = HttpBounds(limits)  # connection cap, header and body timeouts
 
     @property
     def token_file(self) -> Path | None:
@@ -233,10 +236,10 @@ class ApiServer:
     async def start(self) -> None:
         if self.token_required:
             self._token = await asyncio.to_thread(auth.load_or_create_token, self.state_dir)
-        self._runner = web.AppRunner(self.build_app(), shutdown_timeout=2.0,
-                                     access_log_format='%a "%r" %s %b %Tfs')
+        self._runner = self.bounds.runner(self.build_app(), shutdown_timeout=2.0,
+                                          access_log_format='%a "%r" %s %b %Tfs')
         await self._runner.setup()
-        await web.TCPSite(self._runner, self.host, self.port).start()
+        await self.bounds.site(self._runner, self.host, self.port).start()
         log.info("HTTP API on %s:%d (token %s)", self.host, self.bound_port,
                  "required" if self.token_required else "not required")
 

@@ -36,7 +36,8 @@ from softplc.runtime.loop import LoopConfig, ScanLoop, scan_process_main
 from softplc.runtime.realtime import NORMAL, Realtime, apply
 from softplc.runtime.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
-from softplc.runtime.supervisor import SHM_PREFIX, Supervisor, die_with_parent
+from softplc.runtime.procs import die_with_parent
+from softplc.runtime.supervisor import SHM_PREFIX, Supervisor
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout: programs/ and io_images/
 TRANSPORT = ROOT / "programs" / "transport.yaml"

@@ -21,6 +21,7 @@ Thunk = Callable[["EvalContext"], Value]
 MAX_NODES = 400
 MAX_TEXT = 2000
 INT_LIMIT = 1 << 63  # results beyond +-2**63 are an error: no unbounded integer growth
+MAX_STR = 256  # characters of a text value (core/values.py MAX_TEXT: the same language)
 
 
 class ExprError(ValueError):
@@ -136,6 +137,8 @@ class _Compiler:
             if isinstance(value, int) and not isinstance(value, bool) and not (
                     -INT_LIMIT < value < INT_LIMIT):
                 raise self.fail(node, f"integer {value} is out of range (at most 2**63 - 1)")
+            if isinstance(value, str) and len(value) > MAX_STR:
+                raise self.fail(node, f"text of {len(value)} characters (at most {MAX_STR})")
             return lambda ctx: value
         raise self.fail(node, f"constant {value!r} is not allowed: use integers, true/false or 'text'")
 
@@ -257,6 +260,8 @@ class _Compiler:
 def _as_int(value: Value) -> int:
     if isinstance(value, str):
         raise TypeError("text cannot take part in arithmetic")
+    if not isinstance(value, int):  # int(1.5) would silently be 1 (core/values.py)
+        raise TypeError(f"{type(value).__name__} {value!r} cannot take part in arithmetic")
     return int(value)
 
 

@@ -11,10 +11,16 @@ from __future__ import annotations
 import enum
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from softplc.core.lifecycle import PlcState
-from softplc.core.scan import FAULT_DEVICE, Plc
+from softplc.core.problems import FaultCode
 from softplc.core.symbols import FaultPolicy, OnFailure
+
+if TYPE_CHECKING:  # the scan owns a DeviceMonitor; the monitor only acts on the Plc it is given
+    from softplc.core.scan import Plc
+
+FAULT_DEVICE = FaultCode.DEVICE
 
 DEFAULT_POLICY = FaultPolicy()  # for a driver the io image does not declare (tests, tools)
 

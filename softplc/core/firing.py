@@ -8,6 +8,13 @@ Does not know: YAML, devices, HMI, wall-clock time (`now_ns` is an argument).
 Cost per round grows with what changed: enabledness is recomputed only for transitions that
 read a place whose marking changed, guards only for those reading a symbol or event that
 changed (or taking its edge, which also "changes back" one scan later).
+
+Limits (core/limits.py): the counts are checked after a round that can have grown the net
+(a transition producing more than it takes, a three-phase completion), vectorised over the
+marking, so a round of token-conserving transitions pays nothing; coloured records are
+reserved before they are built, binding tries are counted per round. Exceeding a limit
+raises PlcFault(FaultCode.LIMIT, ...) naming the place or transition; a token field of a
+value the runtime cannot carry raises PlcFault(FaultCode.PROGRAM, ...).
 """
 
 from __future__ import annotations
@@ -17,11 +24,16 @@ from collections.abc import Collection, Iterable, Mapping, MutableSequence
 from dataclasses import dataclass
 from types import MappingProxyType
 
+import numpy as np
+
 from softplc.core.expr import Compiled, EvalContext, Value
 from softplc.core.net import ActionKind, Busy, CompiledNet, IntArray, NetState, Token, Transition
+from softplc.core.problems import FaultCode, PlcFault
+from softplc.core.values import value_problem
 
 MAX_BINDINGS = 1000  # coloured binding search bound per transition and round
 MAX_DIAGNOSTICS = 100
+SMALL_NET = 64  # places: below this a Python reduction is cheaper than a numpy call
 _NO_TOKENS: Mapping[str, Token] = MappingProxyType({})
 # How a transition's enabledness is computed (Engine._enable_kind): its input and test arcs
 # only; those and inhibitors, guard or a busy check; or the general path (colour, capacity).
@@ -91,6 +103,12 @@ class Engine:
         self._remoore: set[str] = set()  # place-driven outputs an action overwrote
         self._outputs_pending = True  # rewrite every place-driven output this round
         self.diagnostics: list[str] = []
+        self._limits = net.limits
+        self._work = 0  # binding tries in this round (limits.bindings_per_scan)
+        self._high = True  # total above limits.place_tokens (any round may concentrate it),
+        # or not known yet: the first round checks and learns it
+        self._planned: dict[int, int] = {}  # coloured place -> records reserved this round
+        self._coloured_now = 0  # records in the net when this round's productions began
         self._tables(net, plain_paths)
         self._marr = self.state.marking
         self._m = _counts(self._marr)
@@ -119,6 +137,9 @@ class Engine:
         self._plain_fire = [s and t.duration_ns == 0 and not t.actions
                             for s, t in zip(simple, ts, strict=True)]
         self._post = [tuple((o.place, o.weight) for o in t.post) for t in ts]
+        # Only a firing that puts more tokens than it takes can raise a count past a limit.
+        self._growers = frozenset(t.index for t in ts if sum(o.weight for o in t.post)
+                                  > sum(a.weight for a in t.pre))
         self._delays = [t.delay_ns for t in ts]
         self._any_coloured = any(t.coloured for t in ts)
         self._any_actions = any(t.actions for t in ts)
@@ -131,6 +152,7 @@ class Engine:
         if self.state.marking is not self._marr:
             self._marr = self.state.marking
             self._m = _counts(self._marr)
+            self._high = True  # another marking: its counts are checked after the next round
         return self._m
 
     def marking_enabled(self, t: Transition) -> bool:
@@ -184,17 +206,29 @@ class Engine:
             toks = self.state.tokens.get(a.place, [])
             used = taken.get(a.place, set())
             pools.append([i for i in range(len(toks)) if i not in used])
-        for count, combo in enumerate(itertools.product(*pools)):
-            if count >= MAX_BINDINGS:
-                self._diagnose(f"{t.name}: binding search stopped after {MAX_BINDINGS} tries")
-                return None
-            seen = [(a.place, i) for a, i in zip(arcs, combo, strict=True)]
-            if len(set(seen)) < len(seen):
-                continue
-            env = {a.var: self.state.tokens[a.place][i] for a, i in zip(arcs, combo, strict=True)}
-            if self._guard(t.guard, _Bound(ctx, env), t.name):  # type: ignore[arg-type]
-                return {a.var: (a.place, i) for a, i in zip(arcs, combo, strict=True)}  # type: ignore[misc]
-        return None
+        budget = self._limits.bindings_per_scan - self._work
+        tried = 0
+        try:
+            for combo in itertools.product(*pools):
+                if tried >= MAX_BINDINGS:
+                    self._diagnose(f"{t.name}: binding search stopped after {MAX_BINDINGS} tries")
+                    return None
+                if tried >= budget:
+                    raise PlcFault(FaultCode.LIMIT, (
+                        f"transition {t.name}: binding search exceeds the limit of "
+                        f"{self._limits.bindings_per_scan:,} tries in one scan "
+                        "(limits.bindings_per_scan)"))
+                tried += 1
+                seen = [(a.place, i) for a, i in zip(arcs, combo, strict=True)]
+                if len(set(seen)) < len(seen):
+                    continue
+                env = {a.var: self.state.tokens[a.place][i]
+                       for a, i in zip(arcs, combo, strict=True)}
+                if self._guard(t.guard, _Bound(ctx, env), t.name):  # type: ignore[arg-type]
+                    return {a.var: (a.place, i) for a, i in zip(arcs, combo, strict=True)}  # type: ignore[misc]
+            return None
+        finally:
+            self._work += tried
 
     def _refresh(self, ctx: EvalContext, now_ns: int, changed: Collection[str]) -> None:
         net = self.net
@@ -279,7 +313,9 @@ class Engine:
         only: int | None = None,
     ) -> Step:
         """One round at `now_ns`. `changed` names the symbols and events that differ from the
-        previous round. `only` restricts the step to one transition (interleaving analysis)."""
+        previous round. `only` restricts the step to one transition (interleaving analysis).
+        Raises PlcFault when the round exceeds a limit or produces a value that is not one."""
+        self._work = 0
         self._refresh(ctx, now_ns, changed)
         cands = self.candidates(now_ns)
         if only is not None:
@@ -371,6 +407,9 @@ class Engine:
                     changed.add(p)
                 since.pop(ti, None)
                 ready.discard(ti)
+        if self._high or completed or (self._growers
+                                       and not self._growers.isdisjoint(selected)):
+            self._check_counts()
         for ti in busy_changed:  # a busy transition is disabled; re-check it next round
             self._dirty_places.update(a.place for a in ts[ti].pre)
         self._recheck.update(selected)
@@ -384,6 +423,46 @@ class Engine:
         return Step(tuple(selected), tuple(completed), tuple(writes), tuple(emitted),
                     frozenset(changed))
 
+    def _check_counts(self) -> None:
+        """Tokens per place and in total after a round that may have grown them: two
+        reductions over the marking (numpy for a large net, where a call's overhead pays)."""
+        lim, m = self._limits, self._view()
+        if not len(m):
+            return
+        if len(m) > SMALL_NET:
+            marking = np.asarray(self.state.marking)
+            total, count = int(marking.sum()), int(marking.max())
+        else:
+            total, count = sum(m), max(m)
+        self._high = total > lim.place_tokens
+        if count <= lim.place_tokens and total <= lim.total_tokens:
+            return
+        fullest = self.net.place_names[list(m).index(count)]
+        if count > lim.place_tokens:
+            raise PlcFault(FaultCode.LIMIT, (
+                f"place {fullest}: {count:,} tokens exceed the limit "
+                f"{lim.place_tokens:,} (limits.place_tokens)"))
+        raise PlcFault(FaultCode.LIMIT, (
+            f"net {self.net.name}: {total:,} tokens exceed the limit {lim.total_tokens:,} "
+            f"(limits.total_tokens; most in place {fullest})"))
+
+    def _reserve(self, who: str, place: int, records: int) -> None:
+        """Room for `records` more records in coloured `place` this round, checked before
+        they are built: the limit holds long before memory runs out."""
+        lim, planned = self._limits, self._planned
+        planned[place] = planned.get(place, 0) + records
+        count = len(self.state.tokens.get(place, ())) + planned[place]
+        if count > lim.coloured_place:
+            raise PlcFault(FaultCode.LIMIT, (
+                f"place {self.net.place_names[place]}: {count:,} coloured tokens exceed the "
+                f"limit {lim.coloured_place:,} (limits.coloured_place; {who})"))
+        self._coloured_now += records
+        if self._coloured_now > lim.coloured_total:
+            raise PlcFault(FaultCode.LIMIT, (
+                f"net {self.net.name}: {self._coloured_now:,} coloured tokens exceed the limit "
+                f"{lim.coloured_total:,} (limits.coloured_total; {who} into place "
+                f"{self.net.place_names[place]})"))
+
     def _produce_all(self, selected: list[int], completed: list[int],
                      envs: Mapping[int, Mapping[str, Token]], ctx: EvalContext, now_ns: int,
                      changed: set[int]) -> set[int]:
@@ -391,8 +470,14 @@ class Engine:
         start their duration). Returns the transitions whose busy status changed."""
         st, ts, m = self.state, self.net.transitions, self._view()
         productions: list[tuple[int, int, Token | None]] = []
+        self._planned = {}
+        self._coloured_now = sum(map(len, st.tokens.values())) if st.tokens else 0
         for ti in completed:
-            productions.extend(st.busy.pop(ti).produce)
+            produce = st.busy.pop(ti).produce
+            for place, _, record in produce:
+                if record is not None:
+                    self._reserve(f"transition {ts[ti].name} completing", place, 1)
+            productions.extend(produce)
         busy_changed = set(completed)
         for ti in selected:
             t = ts[ti]
@@ -430,6 +515,7 @@ class Engine:
                 out.append((arc.place, arc.weight, None))
                 continue
             record: Token
+            self._reserve(f"transition {t.name}", arc.place, arc.weight)
             if arc.var is not None:
                 record = ctx.tokens[arc.var]
             elif arc.fields is not None:
@@ -443,10 +529,15 @@ class Engine:
         record: dict[str, Value] = {}
         for name, expr in fields.items():
             try:
-                record[name] = expr(ctx)
+                value = expr(ctx)
             except (KeyError, TypeError, ValueError, OverflowError) as exc:
                 self._diagnose(f"{t.name}: token field {name} = {expr.text!r} failed ({exc})")
-                record[name] = 0
+                value = 0
+            problem = value_problem(value)
+            if problem is not None:  # never truncated, never carried into retain or a view
+                raise PlcFault(FaultCode.PROGRAM, (
+                    f"transition {t.name}: token field {name} = {expr.text!r}: {problem}"))
+            record[name] = value
         return record
 
     # -- outputs ----------------------------------------------------------------------------
@@ -499,7 +590,10 @@ class Engine:
                 emitted.append(act.target)
             elif act.kind is ActionKind.WRITE and act.value is not None:
                 try:
-                    writes.append((act.target, int(act.value(ctx))))
+                    value = act.value(ctx)
+                    if isinstance(value, str):  # int('12') would silently turn text into 12
+                        raise TypeError("text cannot be written to a symbol")
+                    writes.append((act.target, int(value)))
                 except (KeyError, TypeError, ValueError, OverflowError) as exc:
                     self._diagnose(f"{t.name}: {act.target} = {act.value.text!r} failed ({exc})")
             else:
@@ -518,6 +612,7 @@ class Engine:
         self._fresh = True
         self._ready.clear()
         self._outputs_pending = True
+        self._high = True  # a new marking: check the counts after the next round
 
 
 def enabled_transitions(

@@ -16,6 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from softplc.core.expr import Compiled, Value
+from softplc.core.limits import DEFAULT, Limits
 from softplc.core.symbols import IoImage
 
 IntArray = npt.NDArray[np.int64]
@@ -96,6 +97,7 @@ class CompiledNet:
     edge_deps: Mapping[str, tuple[int, ...]]  # symbol -> transitions taking its edge
     emits: frozenset[str] = frozenset()
     subnets: tuple[str, ...] = ()
+    limits: Limits = DEFAULT  # checked by the engine at run time (core/limits.py)
 
     @property
     def rank(self) -> dict[int, int]:

@@ -9,21 +9,24 @@ Does not know: clocks, processes, sockets, YAML (programs arrive compiled).
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from softplc.core import events as event_conditions
 from softplc.core.expr import Value
+from softplc.core.faults import DeviceMonitor
 from softplc.core.firing import Engine
 from softplc.core.image import AREAS, OUTPUT_AREAS, Area, ProcessImage
 from softplc.core.lifecycle import Command, CommandRejected, PlcState, next_state
 from softplc.core.net import Busy, CompiledNet, NetState
+from softplc.core.problems import FaultCode, PlcFault
 from softplc.core.snapshot import CommandReply, HmiWrite
-from softplc.core.symbols import Direction
+from softplc.core.symbols import Direction, FaultPolicy
 
-FAULT_NONE, FAULT_WATCHDOG, FAULT_DEVICE = 0, 1, 2
+# Kept for readers of older code and tests: the codes are FaultCode's.
+FAULT_NONE, FAULT_WATCHDOG, FAULT_DEVICE = FaultCode.NONE, FaultCode.WATCHDOG, FaultCode.DEVICE
 
 
 @dataclass(frozen=True, slots=True)
@@ -34,6 +37,22 @@ class ProgramCommand:
     net: CompiledNet | None = None
     online: bool = False
     id: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class Observed:
+    """What the runtime measured for this scan, for the PLC to judge (the scan decides, so a
+    trace holding these replays every fault): each device's answer (name -> answering) and
+    why the silent ones are silent; a watchdog overrun of the previous scan or a stall of the
+    cycle, as the reason text ("" when none)."""
+
+    answering: Mapping[str, bool] = field(default_factory=dict)
+    why: Mapping[str, str] = field(default_factory=dict)
+    overrun: str = ""
+    stall: str = ""
+
+
+NOTHING_OBSERVED = Observed()
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,16 +105,27 @@ class Plc:
     held: tuple[np.ndarray, np.ndarray] | None = None  # outputs at stop, restored on resume
     written_last: set[str] = field(default_factory=set)
     scan_count: int = 0
-    fault_code: int = FAULT_NONE
+    fault_code: FaultCode = FaultCode.NONE
     fault_reason: str = ""  # what faulted the PLC, for people (status, events)
     stopped_at_ns: int | None = None
     locations: dict[str, tuple[str, int]] = field(default_factory=dict)
     by_location: dict[tuple[str, int], tuple[str, ...]] = field(default_factory=dict)
+    devices: DeviceMonitor = field(default_factory=DeviceMonitor)
+    _policies_of: CompiledNet | None = None
+    _policies: Mapping[str, FaultPolicy] = field(default_factory=dict)
 
     @classmethod
     def empty(cls, image: ProcessImage | None = None) -> Plc:
         image = image or ProcessImage()
         return cls(PlcState.EMPTY, image, image.copy())
+
+    def policies(self) -> Mapping[str, FaultPolicy]:
+        """The device fault policies of the program's io image (computed once per program)."""
+        if self._policies_of is not self.net:
+            self._policies_of = self.net
+            drivers = self.net.io.drivers if self.net is not None else {}
+            self._policies = {name: spec.policy for name, spec in drivers.items()}
+        return self._policies
 
     def marking(self) -> dict[str, int]:
         if self.net is None or self.engine is None:
@@ -201,8 +231,9 @@ class Plc:
         self._load(net, new)
         return f"online change to {net.name} ({net.program_hash[:12]})"
 
-    def fault(self, code: int, now_ns: int | None = None, reason: str = "") -> None:
-        """Watchdog or device fault: FAULTED, outputs safe (the next scan writes them).
+    def fault(self, code: FaultCode, now_ns: int | None = None, reason: str = "") -> None:
+        """Watchdog, device, program or limit fault: FAULTED, outputs safe (the caller or the
+        next scan writes them).
 
         With `now_ns`, timers freeze and the outputs are kept as at a stop, so that recover()
         can continue where the program was; without it nothing is kept for later."""
@@ -211,7 +242,7 @@ class Plc:
             self.held = None if now_ns is None else (self.image.qx.copy(), self.image.qw.copy())
         if self.state in (PlcState.RUNNING, PlcState.STOPPED):
             self.state = PlcState.FAULTED
-            self.fault_code, self.fault_reason = code, reason
+            self.fault_code, self.fault_reason = FaultCode(code), reason or code.name.lower()
             self.drive_safe()
 
     def recover(self, now_ns: int) -> bool:
@@ -269,9 +300,53 @@ class Plc:
 
 
 def scan(plc: Plc, inputs: ProcessImage, now_ns: int,
-         commands: Sequence[ProgramCommand] = (), hmi: Sequence[HmiWrite] = ()) -> ScanResult:
+         commands: Sequence[ProgramCommand] = (), hmi: Sequence[HmiWrite] = (),
+         observed: Observed = NOTHING_OBSERVED) -> ScanResult:
     """One scan. `plc` is advanced in place and must not be used by anyone else meanwhile;
-    `inputs` is only read (its %I areas are latched)."""
+    `inputs` is only read (its %I areas are latched).
+
+    `observed` is what the runtime measured (device answers, an overrun, a stall): the scan
+    judges it before the program runs, per the fault policies (DESIGN.md section 9).
+    Nothing raised inside a scan escapes it: PlcFault (a limit, a program error) and any
+    other exception (a bug) fault the PLC with safe outputs and the reason, and the scan
+    returns as a scan of a FAULTED PLC would: faults, not deaths."""
+    judged = judge(plc, observed, now_ns)
+    replies = _apply_commands(plc, commands, now_ns)
+    killed = any(c.command is Command.KILL and r.ok for c, r in zip(commands, replies, strict=True))
+    try:
+        result = _scan_body(plc, inputs, now_ns, commands, hmi, replies, killed)
+    except PlcFault as exc:
+        result = _faulted(plc, inputs, now_ns, replies, exc.code, exc.reason)
+    except Exception as exc:  # a bug of softplc or of a program path we did not foresee
+        reason = f"internal error in the scan: {type(exc).__name__}: {exc}"
+        result = _faulted(plc, inputs, now_ns, replies, FaultCode.INTERNAL, reason)
+    after = plc.devices.after_scan(plc, now_ns) if observed.answering else []
+    if judged or after:
+        events = (*judged, *result.events, *after)
+        result = ScanResult(result.outputs, events, result.fired, result.completed,
+                            result.marking_changes, result.replies, True)
+    return result
+
+
+def judge(plc: Plc, observed: Observed, now_ns: int) -> list[str]:
+    """The runtime's measurements, judged before the scan's commands and program. The
+    runtime also calls it between scans for a watchdog overrun, so safe outputs go out at
+    once; the trace then carries the observation with the next scan."""
+    events: list[str] = []
+    for code, reason in ((FaultCode.WATCHDOG, observed.overrun),
+                         (FaultCode.STALL, observed.stall)):
+        if reason and plc.state is PlcState.RUNNING:
+            plc.fault(code, None, reason)
+            events.append(f"plc_fault:{code.name.lower()}")
+    if observed.answering:
+        events += plc.devices.before_scan(plc, observed.answering, plc.policies(),
+                                          lambda name: observed.why.get(name, "not answering"),
+                                          now_ns)
+    return events
+
+
+def _apply_commands(plc: Plc, commands: Sequence[ProgramCommand],
+                    now_ns: int) -> list[CommandReply]:
     replies = []
     for cmd in commands:
         try:
@@ -279,7 +354,34 @@ def scan(plc: Plc, inputs: ProcessImage, now_ns: int,
             replies.append(CommandReply(cmd.id, True, message, plc.state))
         except CommandRejected as exc:
             replies.append(CommandReply(cmd.id, False, exc.reason, plc.state))
-    killed = any(c.command is Command.KILL and r.ok for c, r in zip(commands, replies, strict=True))
+        except Exception as exc:  # a swap that failed half-way: the PLC must not go on with it
+            reason = f"{cmd.command.value} failed: {type(exc).__name__}: {exc}"
+            plc.fault(FaultCode.INTERNAL, None, reason)
+            replies.append(CommandReply(cmd.id, False, reason, plc.state))
+    return replies
+
+
+def _faulted(plc: Plc, inputs: ProcessImage, now_ns: int, replies: list[CommandReply],
+             code: FaultCode, reason: str) -> ScanResult:
+    """The end of a scan whose execution raised: FAULTED (from any state that runs a program),
+    outputs safe, inputs latched, the scan counted."""
+    if plc.state is PlcState.RUNNING or plc.state is PlcState.STOPPED:
+        plc.fault(code, now_ns if plc.state is PlcState.RUNNING else None, reason)
+    plc.drive_safe()
+    plc.last_events = plc.true_last = frozenset()
+    np.copyto(plc.image.ix, inputs.ix)
+    np.copyto(plc.image.iw, inputs.iw)
+    if plc.engine is not None:
+        plc.engine.invalidate()  # a round that raised half-way leaves no cached enabling
+    plc.image.copy_into(plc.prev)
+    plc.scan_count += 1
+    return ScanResult(plc.image, (f"plc_fault:{code.name.lower()}",), (), (), {},
+                      tuple(replies), True)
+
+
+def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
+               commands: Sequence[ProgramCommand], hmi: Sequence[HmiWrite],
+               replies: list[CommandReply], killed: bool) -> ScanResult:
     if not killed:
         plc.apply_hmi(hmi)
         if plc.engine is not None and any(w.address.area is not Area.INPUT for w in hmi):

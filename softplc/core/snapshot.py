@@ -6,7 +6,7 @@ Does not know: shared memory, sockets, Modbus function codes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 from softplc.core.image import Address, ProcessImage
@@ -22,8 +22,13 @@ class Status:
     p99_lateness_us: int = 0
     overruns: int = 0
     program_hash: str = ""  # hex sha256 of the program text, "" when EMPTY
-    fault_code: int = 0  # 0 none, 1 watchdog, 2 device
+    fault_code: int = 0  # a FaultCode (core/problems.py)
     period_us: int = 0
+    # About the snapshot, not the PLC (so not part of equality): CLOCK_MONOTONIC when the scan
+    # process published it (0: never), and a reader's verdict that it is older than the PLC's
+    # cycle allows (the scan process is frozen or dead).
+    published_ns: int = field(default=0, compare=False)
+    stale: bool = field(default=False, compare=False)
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,13 +52,17 @@ class HmiWrite:
 @dataclass(frozen=True, slots=True)
 class CommandRequest:
     """A program command sent to the scan process. `program_text` is the YAML of a download;
-    `program_path` names it in messages and resolves its relative `io_image:`/subnet paths."""
+    `program_path` names it in messages and resolves its relative `io_image:`/subnet paths.
+    `deadline_ns` (CLOCK_MONOTONIC, shared by every process of the machine; 0: none) is the
+    last moment the scan may apply it: later, it is refused as expired and never applied, so
+    a sender that gave up waiting never sees it happen afterwards."""
 
     id: int
     command: Command
     program_text: str | None = None
     program_path: str | None = None
     online: bool = False
+    deadline_ns: int = 0
 
 
 @dataclass(frozen=True, slots=True)

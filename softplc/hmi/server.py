@@ -1,9 +1,10 @@
 """The HMI Modbus TCP slave: a pymodbus 3.16 ModbusTcpServer whose connections we own.
 
-Owns: listening, the connection limit, the idle timeout, flow control, and moving bytes
-between sockets and the pure Responder (frames.py); a thread helper for tests and the CLI.
-Does not know: the register map (map.py), Modbus semantics (frames.py), how snapshots are
-published or journaled writes applied.
+Owns: listening, applying the connection rule of admission.py (evict the idle-longest or
+refuse), the idle timeout, flow control, and moving bytes between sockets and the pure
+Responder (frames.py); a thread helper for tests and the CLI.
+Does not know: the register map (map.py), Modbus semantics (frames.py), the admission rule
+itself, how snapshots are published or journaled writes applied.
 
 pymodbus gives the listener and the connection registry that `shutdown()` closes. Every
 byte a client sends is handled by `_Connection.data_received`; pymodbus' framer, decoder,
@@ -17,6 +18,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from types import TracebackType
 from typing import Any, cast
 
@@ -26,6 +28,17 @@ from pymodbus.transport import CommParams, CommType, ModbusProtocol
 
 from softplc.core.image import ImageSizes
 from softplc.core.snapshot import HmiWrite, SnapshotSource
+from softplc.hmi.admission import (
+    DEFAULT_IDLE_TIMEOUT_S,
+    DEFAULT_LIVE_WINDOW_S,
+    DEFAULT_MAX_CONNECTIONS,
+    DEFAULT_MAX_PER_PEER,
+    ConnectionStats,
+    Limits,
+    Slot,
+    Verdict,
+    decide,
+)
 from softplc.hmi.frames import (
     Adu,
     FramingError,
@@ -65,26 +78,34 @@ class _Connection(ModbusProtocol):
     the client pipelines; nothing is awaited, so a reply is written before the next request
     is looked at."""
 
-    def __init__(self, owner: _Listener, refuse: bool) -> None:
+    def __init__(self, owner: _Listener) -> None:
         params = CommParams(comm_name="hmi", comm_type=CommType.TCP)
         params.source_address = owner.comm_params.source_address
         super().__init__(params, True)
+        self._owner = owner
         self._responder = owner.responder
         self._errors = owner.errors
-        self._idle_timeout_s = owner.idle_timeout_s
-        self._refuse = refuse
+        self._idle_timeout_s = owner.limits.idle_timeout_s
         self._buffer = b""
         self._writing_paused = False
-        self._last_request_s = 0.0
+        self.admitted = False
+        self.peer = ""
+        self._connected_s = 0.0
+        self._last_request_s: float | None = None
         self._idle_timer: asyncio.TimerHandle | None = None
 
     def callback_connected(self) -> None:
-        if self._refuse:
-            log.info("HMI connection refused: connection limit reached")
+        peername = self.transport.get_extra_info("peername")
+        self.peer = str(peername[0]) if peername else "?"
+        self._connected_s = self.loop.time()
+        if not self._owner.admit(self):
             self.close()
             return
-        self._last_request_s = self.loop.time()
+        self.admitted = True
         self._idle_timer = self.loop.call_later(self._idle_timeout_s, self._check_idle)
+
+    def slot(self) -> Slot:
+        return Slot(self.unique_id, self.peer, self._connected_s, self._last_request_s)
 
     def callback_disconnected(self, exc: Exception | None) -> None:
         self._stop_idle_timer()
@@ -158,10 +179,11 @@ class _Connection(ModbusProtocol):
             return encode_adu(adu.transaction_id, adu.unit_id, pdu)
 
     def _check_idle(self) -> None:
-        idle_s = self.loop.time() - self._last_request_s
+        idle_s = self.loop.time() - self.slot().last_active_s
         if idle_s >= self._idle_timeout_s:
-            log.info("HMI connection closed: idle for %.1f s", idle_s)
+            log.info("HMI connection from %s closed: idle for %.1f s", self.peer, idle_s)
             self._idle_timer = None
+            self._owner.count("idle_closed")
             self.close()
             return
         remaining_s = self._idle_timeout_s - idle_s
@@ -179,24 +201,50 @@ def _placeholder_device() -> SimDevice:
 
 
 class _Listener(ModbusTcpServer):
-    """The pymodbus listener, with our connection class and the connection limit."""
+    """The pymodbus listener, with our connection class and the admission rule."""
 
-    def __init__(
-        self,
-        responder: Responder,
-        address: tuple[str, int],
-        max_connections: int,
-        idle_timeout_s: float,
-    ) -> None:
+    def __init__(self, responder: Responder, address: tuple[str, int], limits: Limits) -> None:
         super().__init__(_placeholder_device(), address=address)
         self.responder = responder
         self.errors = _RateLimitedErrors()
-        self.max_connections = max_connections
-        self.idle_timeout_s = idle_timeout_s
+        self.limits = limits
+        self.stats = ConnectionStats()
 
     def callback_new_connection(self) -> _Connection:
-        refuse = len(self.active_connections) >= self.max_connections
-        return _Connection(self, refuse)
+        # The peer is not known yet: the connection asks `admit` once it is connected.
+        return _Connection(self)
+
+    def admitted(self) -> list[_Connection]:
+        # One C-level copy first: a test thread may ask while the loop thread changes the dict.
+        connections = list(self.active_connections.values())
+        return [c for c in connections if isinstance(c, _Connection) and c.admitted]
+
+    def admit(self, new: _Connection) -> bool:
+        """Apply the admission rule to `new`; closes the evicted connection, if any."""
+        slots = {c.unique_id: c for c in self.admitted() if c is not new}
+        decision = decide(
+            new.peer, [c.slot() for c in slots.values()], self.loop.time(), self.limits
+        )
+        if decision.verdict is Verdict.REFUSE:
+            log.debug("HMI connection from %s refused: %s", new.peer, decision.reason)
+            self.count("refused")
+            return False
+        if decision.verdict is Verdict.EVICT and decision.victim is not None:
+            victim = slots[decision.victim]
+            log.debug(
+                "HMI connection from %s closed for one from %s: %s",
+                victim.peer,
+                new.peer,
+                decision.reason,
+            )
+            self.count("evicted")
+            victim.close()
+        self.count("admitted")
+        return True
+
+    def count(self, outcome: str) -> None:
+        # A new frozen value each time: another thread may read `stats` at any moment.
+        self.stats = replace(self.stats, **{outcome: getattr(self.stats, outcome) + 1})
 
 
 class ModbusSlave:
@@ -214,17 +262,21 @@ class ModbusSlave:
         port: int = DEFAULT_PORT,
         writable: Writable | None = None,
         read_only: bool = False,
-        max_connections: int = 16,
-        idle_timeout_s: float = 60.0,
+        max_connections: int = DEFAULT_MAX_CONNECTIONS,
+        max_per_peer: int | None = None,
+        idle_timeout_s: float = DEFAULT_IDLE_TIMEOUT_S,
+        live_window_s: float = DEFAULT_LIVE_WINDOW_S,
     ) -> None:
-        if max_connections < 1 or idle_timeout_s <= 0:
-            raise ValueError("max_connections must be >= 1 and idle_timeout_s > 0")
+        per_peer = (
+            min(DEFAULT_MAX_PER_PEER, max_connections) if max_per_peer is None else max_per_peer
+        )
+        self.limits = Limits(
+            max_connections, per_peer, idle_timeout_s, min(live_window_s, idle_timeout_s)
+        )
         self.map = RegisterMap(sizes, writable=writable, read_only=read_only)
         self._responder = Responder(self.map, source, sink)
         self.host = host
         self.port = port
-        self.max_connections = max_connections
-        self.idle_timeout_s = idle_timeout_s
         self._listener: _Listener | None = None
         self._server: asyncio.Server | None = None
 
@@ -232,9 +284,7 @@ class ModbusSlave:
         """Listen; returns once connections are accepted. Port 0 picks a free port."""
         if self._listener is not None:
             raise RuntimeError("the Modbus slave is already started")
-        listener = _Listener(
-            self._responder, (self.host, self.port), self.max_connections, self.idle_timeout_s
-        )
+        listener = _Listener(self._responder, (self.host, self.port), self.limits)
         try:
             await listener.serve_forever(background=True)
         except RuntimeError as exc:
@@ -258,8 +308,21 @@ class ModbusSlave:
         return int(self._server.sockets[0].getsockname()[1])
 
     @property
+    def max_connections(self) -> int:
+        return self.limits.max_connections
+
+    @property
+    def idle_timeout_s(self) -> float:
+        return self.limits.idle_timeout_s
+
+    @property
     def connection_count(self) -> int:
-        return 0 if self._listener is None else len(self._listener.active_connections)
+        """Admitted connections that are open."""
+        return 0 if self._listener is None else len(self._listener.admitted())
+
+    @property
+    def connection_stats(self) -> ConnectionStats:
+        return ConnectionStats() if self._listener is None else self._listener.stats
 
     @property
     def buffered_bytes(self) -> int:

@@ -17,6 +17,7 @@ from types import MappingProxyType
 import numpy as np
 
 from softplc.core.expr import Compiled, ExprError, NameKind, Scope, compile_expr
+from softplc.core.limits import DEFAULT, Limits
 from softplc.core.net import (
     Action,
     ActionKind,
@@ -28,6 +29,7 @@ from softplc.core.net import (
 )
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.symbols import Direction, IoImage, SymType
+from softplc.core.values import MAX_FIELDS, field_name_problem
 from softplc.program.io_image import load_io_image
 from softplc.program.spec import ArcSpec, ProgramSpec, TransitionSpec, Where, parse_program, resolve
 
@@ -66,6 +68,7 @@ class _Compiler:
             names[ev] = NameKind.EVENT
         self.names = names
         self.scope = Scope(names)  # shared by every expression that binds no token
+        self.limits: Limits = DEFAULT.with_overrides({k: v for k, (v, _) in spec.limits.items()})
 
     def problem(self, where: Where, message: str, path: str | None = None) -> None:
         self.problems.append(Problem(where.file, where.line, path or where.path, message))
@@ -146,6 +149,9 @@ class _Compiler:
         index = self.places.get(arc.place)
         if index is None:
             self.problem(arc.where, f"arc to unknown place {arc.place!r}")
+        elif arc.weight > self.limits.weight:
+            self.problem(arc.where, f"arc weight {arc.weight:,} of {arc.place!r} exceeds the "
+                                    f"limit {self.limits.weight:,} (limits.weight)")
         return index
 
     def transition(self, index: int, spec: TransitionSpec, coloured: list[bool]) -> Transition:
@@ -186,11 +192,21 @@ class _Compiler:
         if not coloured[p]:
             self.problem(arc.where, f"token: place {arc.place} holds no records")
             return None
+        if arc.weight > self.limits.coloured_place:  # each unit of weight is a record
+            self.problem(arc.where, f"arc weight {arc.weight:,} to coloured place {arc.place!r} "
+                                    f"exceeds the limit {self.limits.coloured_place:,} "
+                                    "(limits.coloured_place)")
+            return None
         if isinstance(arc.token, str):
             if arc.token not in tokens:
                 self.problem(arc.where, f"token {arc.token!r} is not bound by an input arc")
                 return None
             return OutputArc(p, arc.weight, var=arc.token)
+        if len(arc.token) > MAX_FIELDS:
+            self.problem(arc.where, f"a record of {len(arc.token)} fields (at most {MAX_FIELDS})")
+        for name in arc.token:
+            if (problem := field_name_problem(name)) is not None:
+                self.problem(arc.where, problem)
         fields = {k: c for k, v in arc.token.items() if (c := self.expr(v, arc.where, tokens))}
         return OutputArc(p, arc.weight, fields=MappingProxyType(fields))
 
@@ -216,6 +232,7 @@ def _build(spec: ProgramSpec, io: IoImage, c: _Compiler) -> CompiledNet:
         c.outputs(p.outputs)
         if p.capacity is not None and p.tokens > p.capacity:
             c.problem(p.where, f"initial tokens ({p.tokens}) exceed the capacity ({p.capacity})")
+    _initial_limits(spec, c)
     transitions = tuple(c.transition(i, t, coloured) for i, t in enumerate(spec.transitions))
     if c.problems:
         raise ProgramError(sorted(set(c.problems)))
@@ -259,8 +276,28 @@ def _build(spec: ProgramSpec, io: IoImage, c: _Compiler) -> CompiledNet:
         np.array(coloured, np.bool_), MappingProxyType(initial_tokens), transitions, order,
         MappingProxyType(place_outputs), _frozen(moore), _frozen(busy_drivers),
         tuple(tuple(sorted(s)) for s in touching), _frozen(guard_deps), _frozen(edge_deps),
-        frozenset(c.events), tuple(spec.subnets),
+        frozenset(c.events), tuple(spec.subnets), c.limits,
     )
+
+
+def _initial_limits(spec: ProgramSpec, c: _Compiler) -> None:
+    """The initial marking within the limits: a program that starts over them never runs."""
+    lim = c.limits
+    for p in spec.places:
+        top, key = (lim.coloured_place, "coloured_place") if p.coloured else \
+            (lim.place_tokens, "place_tokens")
+        if p.tokens > top:
+            c.problem(p.where, f"initial tokens ({p.tokens:,}) exceed the limit {top:,} "
+                               f"(limits.{key})")
+    where = spec.places[0].where if spec.places else None
+    records = sum(p.tokens for p in spec.places if p.coloured)
+    total = sum(p.tokens for p in spec.places)
+    if where is not None and records > lim.coloured_total:
+        c.problem(where, f"initial coloured tokens ({records:,}) exceed the limit "
+                         f"{lim.coloured_total:,} (limits.coloured_total)")
+    if where is not None and total > lim.total_tokens:
+        c.problem(where, f"initial tokens ({total:,}) exceed the limit {lim.total_tokens:,} "
+                         "(limits.total_tokens)")
 
 
 def _frozen(d: dict[str, list[tuple[int, int]]] | dict[str, set[int]]) -> MappingProxyType:  # type: ignore[type-arg]

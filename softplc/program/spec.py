@@ -11,13 +11,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from softplc.core import limits
 from softplc.core.expr import ExprError, Value, substitute
 from softplc.core.problems import Problem
 from softplc.core.units import parse_duration_ns
+from softplc.core.values import record_problems
 from softplc.program.yamlload import YList, YMap, line_of, load_yaml, trap_hint
 
 TOP_KEYS = {"program", "net", "description", "io_image", "params", "places", "transitions",
-            "subnets", "events"}
+            "subnets", "events", "limits"}
 PLACE_KEYS = {"tokens", "capacity", "outputs", "coloured", "description"}
 TRANSITION_KEYS = {"from", "to", "read", "inhibit", "priority", "when", "do", "delay",
                    "duration", "outputs", "description"}
@@ -78,6 +80,7 @@ class ProgramSpec:
     subnets: list[str] = field(default_factory=list)
     texts: list[str] = field(default_factory=list)  # every file's text, for the program hash
     place_names: set[str] = field(default_factory=set)  # of `places`, for lookups
+    limits: dict[str, tuple[int, Where]] = field(default_factory=dict)  # `limits:` overrides
 
 
 class _Parser:
@@ -127,6 +130,8 @@ class _Parser:
             self.spec.name = str(data.get("program", data.get("net", Path(self.file).stem)))
             if "io_image" in data:
                 self.io_image(data)
+        if "limits" in data:
+            self.limits(data, top)
         for name, line in self.named(data, "events"):
             self.spec.events.append((self.prefix + name, Where(self.file, line, f"events.{name}")))
         places = data.get("places", YMap())
@@ -157,6 +162,22 @@ class _Parser:
             return
         self.spec.io_image = (ref, where)
 
+    def limits(self, data: YMap, top: bool) -> None:
+        raw, line = data["limits"], line_of(data, "limits")
+        if not top:
+            self.problem(line, "limits", "limits: belongs in the main program, not in a subnet")
+            return
+        if not isinstance(raw, YMap):
+            self.problem(line, "limits", "expected a mapping of limit: whole number")
+            return
+        for key, value in raw.items():
+            where = self.where(raw, key, f"limits.{key}")
+            problem = limits.override_problem(key, value)
+            if problem is not None:
+                self.problem(where.line, where.path, f"{problem}{trap_hint(value)}")
+            else:
+                self.spec.limits[str(key)] = (value, where)
+
     def named(self, data: YMap, key: str) -> list[tuple[str, int]]:
         value = data.get(key, YList())
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
@@ -175,10 +196,7 @@ class _Parser:
         tokens, records = 0, None
         raw = data.get("tokens", 0)
         if isinstance(raw, list):
-            if not all(isinstance(r, dict) for r in raw):
-                self.problem(line_of(data, "tokens"), f"{where.path}.tokens",
-                             "coloured tokens are records, e.g. [{id: 1}]")
-            else:
+            if self.records_ok(raw, f"{where.path}.tokens"):
                 records = tuple(dict(r) for r in raw)
                 tokens = len(records)
         elif isinstance(raw, int) and not isinstance(raw, bool) and raw >= 0:
@@ -201,6 +219,20 @@ class _Parser:
                                           records if coloured else None, coloured,
                                           capacity, outputs, where))
         self.spec.place_names.add(self.prefix + name)
+
+    def records_ok(self, raw: list[Any], path: str) -> bool:
+        """Every record of a coloured place's `tokens:` carries only values the runtime can
+        carry (core/values.py); each problem at the line of its record or field."""
+        ok = True
+        for i, record in enumerate(raw):
+            for name, message in record_problems(record):
+                line = line_of(record, name) if isinstance(record, YMap) and name is not None \
+                    else line_of(raw, i)
+                self.problem(line, f"{path}[{i}]" + ("" if name is None else f".{name}"),
+                             message + ("; coloured tokens are records, e.g. [{id: 1}]"
+                                        if name is None and not isinstance(record, dict) else ""))
+                ok = False
+        return ok
 
     def outputs(self, data: YMap, where: Where) -> tuple[tuple[str, Value, Where], ...]:
         raw = data.get("outputs")

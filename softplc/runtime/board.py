@@ -40,6 +40,19 @@ class StatusBoard:
         return board
 
     @classmethod
+    def open_or_create(cls, name: str) -> tuple[StatusBoard, bool]:
+        """Publish into board `name` if a supervisor created it, else create it; returns the
+        board and whether this call created it."""
+        try:
+            board = cls(shared_memory.SharedMemory(name=name), False)
+        except FileNotFoundError:
+            return cls.create(name), True
+        buf = board._shm.buf
+        assert buf is not None
+        board._seq = _HEADER.unpack_from(buf, 0)[0] // 2 + 1
+        return board, False
+
+    @classmethod
     def attach(cls, name: str) -> StatusBoard:
         # Readers are children of the same supervisor and share its resource tracker, so
         # the registration Python 3.11 makes on attach is the owner's one: leave it alone.
@@ -71,6 +84,10 @@ class StatusBoard:
                 result: dict[str, Any] = json.loads(payload) if payload else {}
                 return result
         raise TimeoutError("status board is being rewritten continuously")
+
+    def detach(self) -> None:
+        """Unmap without removing: the segment belongs to whoever created it."""
+        self._shm.close()
 
     def close(self) -> None:
         self._shm.close()

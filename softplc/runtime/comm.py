@@ -16,14 +16,15 @@ import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from multiprocessing.synchronize import Event
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final, Literal, Protocol, get_args
 
 from softplc.core.image import Address, AddressError, ImageSizes, parse_address
 from softplc.core.snapshot import HmiWrite, SnapshotSource
+from softplc.hmi.admission import Limits
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
+from softplc.runtime.procs import Flag as Event
 from softplc.runtime.shm import SnapshotReader
 
 if TYPE_CHECKING:
@@ -46,11 +47,25 @@ class CommConfig:
     state_dir: str = "state"
     sizes: ImageSizes = ImageSizes()
     modbus_writes: ModbusWrites = "open"
+    # Connection slots, per-IP slots, idle timeout (hmi/admission.py, docs/modbus.md).
+    modbus_max_connections: int = 16
+    modbus_max_per_peer: int = 8
+    modbus_idle_timeout_s: float = 60.0
 
     def __post_init__(self) -> None:
         if self.modbus_writes not in MODBUS_WRITES:
             raise ValueError(f"modbus_writes must be one of {', '.join(MODBUS_WRITES)}, "
                              f"not {self.modbus_writes!r}")
+        Limits(self.modbus_max_connections, self.modbus_max_per_peer,
+               self.modbus_idle_timeout_s)  # raises ValueError naming the bad one
+
+
+def modbus_limits(args: Any) -> dict[str, Any]:
+    """CommConfig's Modbus connection fields from `softplc run` arguments (cli.py):
+    `CommConfig(..., **modbus_limits(args))`."""
+    return {"modbus_max_connections": getattr(args, "modbus_max_connections", 16),
+            "modbus_max_per_peer": getattr(args, "modbus_max_per_peer", 8),
+            "modbus_idle_timeout_s": getattr(args, "modbus_idle_timeout", 60_000_000_000) / 1e9}
 
 
 def _writable_addresses(document: dict[str, Any]) -> frozenset[Address]:
@@ -113,7 +128,10 @@ def modbus_slave(config: CommConfig, source: SnapshotSource, sink: Callable[[Hmi
     writable = (ProgramWritable(read_board, source) if config.modbus_writes == "symbols"
                 else None)
     return ModbusSlave(source, sink, sizes=config.sizes, host=host, port=port,
-                       writable=writable, read_only=config.modbus_writes == "none")
+                       writable=writable, read_only=config.modbus_writes == "none",
+                       max_connections=config.modbus_max_connections,
+                       max_per_peer=config.modbus_max_per_peer,
+                       idle_timeout_s=config.modbus_idle_timeout_s)
 
 
 async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name: str,
@@ -147,7 +165,7 @@ async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name
 
 def comm_process_main(config: CommConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: Event, stop: Event) -> None:
-    from softplc.runtime.supervisor import die_with_parent
+    from softplc.runtime.procs import die_with_parent
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: stop.set())

@@ -14,9 +14,9 @@ from collections import deque
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 from softplc.core.lifecycle import Command
-from softplc.core.net import CompiledNet
 from softplc.core.snapshot import CommandRequest
 from softplc.runtime.realtime import background_thread
 
@@ -33,19 +33,19 @@ class Decided:
     one, neither for any other command."""
 
     request: CommandRequest
-    net: CompiledNet | None = None
+    net: Any = None  # what the compile function returned (the loop's Prepared download)
     error: BaseException | None = None
 
 
 class DownloadQueue:
     """`put()` what the channel drained; `take()` at each scan boundary what may apply now."""
 
-    def __init__(self, compile_program: Callable[[CommandRequest], CompiledNet],
+    def __init__(self, compile_program: Callable[[CommandRequest], Any],
                  switch_interval_s: float = COMPILE_SWITCH_INTERVAL_S) -> None:
         self._compile = compile_program
         self._switch_interval_s = switch_interval_s
         self._default_interval_s = sys.getswitchinterval()
-        self._queue: deque[tuple[CommandRequest, Future[CompiledNet] | None]] = deque()
+        self._queue: deque[tuple[CommandRequest, Future[Any] | None]] = deque()
         self._executor: ThreadPoolExecutor | None = None
         self._compiling = 0
 

@@ -1,12 +1,12 @@
 """The real-time scan loop: the scan process of DESIGN.md section 7.
 
 Owns: absolute deadlines on the monotonic clock, skipped slots counted as overruns, the
-watchdog (execution time over period x sensitivity -> FAULTED, safe outputs), commands and
-HMI writes drained at the scan boundary (downloads compiled off the scan by downloads.py and
-applied at the first boundary after, so a bad program never reaches the PLC), the snapshot
-published to shared memory after every scan,
-retain captures at scan boundaries (written by retain.py's thread), the cold or warm start,
-and safe outputs on shutdown.
+cycle supervision (a whole scan longer than period x watchdog, or a cycle that starts that
+late: a stall), measured here and judged by the pure scan; commands and HMI writes drained
+at the scan boundary, expired commands refused unapplied; downloads compiled and their
+devices opened off the scan (downloads.py's thread), so the scan only swaps; the boot
+program; the snapshot published after every scan; retain captures at scan boundaries; the
+cold or warm start; safe outputs, confirmed by the devices, on every way out.
 Does not know: Modbus, HTTP (the communication process), terminals (the CLI).
 """
 
@@ -16,10 +16,11 @@ import os
 import signal
 import sys
 import threading
+import time
 from collections import deque
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from multiprocessing.synchronize import Event
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -27,12 +28,15 @@ from softplc.core.image import ImageSizes
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.net import CompiledNet
 from softplc.core.problems import ProgramError
-from softplc.core.scan import FAULT_WATCHDOG, Plc, ProgramCommand
+from softplc.core.problems import FaultCode
+from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
-from softplc.devices.driver import SAFE_TIMEOUT_S, go_safe_all
+from softplc.devices.driver import Driver
 from softplc.program.compiler import compile_file, compile_text
+from softplc.runtime import boot
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
+from softplc.runtime.procs import Flag as Event
 from softplc.runtime.clock import Clock, MonotonicClock, Schedule
 from softplc.runtime.downloads import DownloadQueue
 from softplc.runtime.realtime import NORMAL, Realtime, apply
@@ -48,7 +52,7 @@ from softplc.runtime.retain import (
     load_plant,
     restore,
 )
-from softplc.runtime.runner import ScanRunner, open_drivers
+from softplc.runtime.runner import ScanRunner, open_drivers, plant_conflict
 from softplc.runtime.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
 from softplc.runtime.trace import TraceWriter
@@ -70,6 +74,26 @@ class LoopConfig:
     retain_interval_ns: int = 1_000_000_000  # 0: only on stop
     warm_start: str = "run"  # a warm restart of a RUNNING snapshot: "run" resumes, "stop" waits
     realtime: Realtime = NORMAL  # SCHED_FIFO priority and CPU of the scan process
+    on_stall: str = "fault"  # a cycle that starts period x watchdog late: "fault" or "continue"
+    restarts: int = 0  # how often the supervisor restarted the scan process before this one
+    restart_reason: str = ""  # why it restarted it last
+    boot: bool = True  # no program given: run the boot program of state_dir, if any
+
+
+@dataclass(slots=True)
+class Prepared:
+    """A download compiled and its devices opened off the scan: the scan only swaps. `drivers`
+    is None when the program's io image declares the drivers already running."""
+
+    net: CompiledNet
+    request: CommandRequest
+    drivers: list[Driver] | None = None
+    specs: tuple[object, ...] = field(default=())
+
+    def discard(self) -> None:
+        for driver in self.drivers or ():
+            driver.close()
+        self.drivers = None
 
 
 class ScanLoop:
@@ -82,21 +106,28 @@ class ScanLoop:
         self.writer = writer
         self.board = board
         self.board_every = max(1, 50_000_000 // config.period_ns)  # about every 50 ms
+        self.budget_ns = int(config.period_ns * config.watchdog)
         self.events: deque[dict[str, Any]] = deque(maxlen=256)
         self.event_seq = 0
         self.start_mode = "cold"
         self.start_reason = "retain off (no state directory)"
+        self.program_source = config.program or "none"
         self.realtime = "normal scheduling"  # what scan_process_main obtained
         self.clock: Clock = clock or MonotonicClock()
         self.stats = TimingStats()
+        self.stalls = 0
+        self.longest_gap_ns = 0
+        self.internal_errors = 0
         self.summary = self.stats.summary()  # refreshed every board_every scans, not every scan
         self.runner = ScanRunner(Plc.empty(), [], TraceWriter(config.trace) if config.trace else None)
         self.pending: list[ProgramCommand] = []
-        self.downloads = DownloadQueue(self._compile)
+        self.downloads = DownloadQueue(self._prepare)
         self._driver_specs: tuple[object, ...] = ()
+        self._boot_writer: ThreadPoolExecutor | None = None
         self.retain: RetainWriter | None = None
         self._retained_ns = 0
-        net = compile_file(config.program) if config.program else None  # the CLI reports errors
+        self._prepared: dict[int, Prepared] = {}  # downloads handed to the scan, by request id
+        net, self._boot = self._program()
         decision = StartDecision("cold", self.start_reason)
         if config.state_dir is not None:
             store = RetainStore.open(config.state_dir)  # StateDirBusy: another runtime has it
@@ -107,20 +138,55 @@ class ScanLoop:
             self._warm(net, decision.snapshot)
         elif net is not None:
             self._cold(net)
+        if config.restarts:
+            self._event(f"plc_restarted:{config.restarts}", 0)
+
+    def _program(self) -> tuple[CompiledNet | None, boot.BootProgram | None]:
+        """The program to run: the command line's, else the boot program of the state dir.
+        The command line's is compiled by the CLI first, which reports its errors."""
+        config = self.config
+        if config.program:
+            if config.plant and (why := plant_conflict(compile_file(config.program).io,
+                                                       config.plant)):
+                raise ValueError(why)
+            program = boot.from_file(config.program)
+            if config.state_dir is not None:  # the program the PLC runs is its boot program
+                boot.save(config.state_dir, program)
+            return compile_file(config.program), program
+        if config.state_dir is None or not config.boot:
+            return None, None
+        try:
+            program = boot.load(config.state_dir)
+        except boot.BootUnreadable as exc:
+            self.program_source = f"none ({exc})"
+            return None, None
+        if program is None:
+            return None, None
+        try:
+            net = compile_text(program.text, program.filename,
+                               Path(program.root) if program.root else None)
+        except ProgramError as exc:
+            self.program_source = f"none ({program.describe()} no longer compiles: {exc})"
+            return None, None
+        self.program_source = program.describe()
+        return net, program
 
     # -- retain -----------------------------------------------------------------------------
 
     def _cold(self, net: CompiledNet) -> None:
-        """Download `net` (and start it, if asked) on the first scan, from its initial marking."""
+        """Download `net` (and start it, if asked) on the first scan, from its initial marking.
+        A restart after a crash with no usable snapshot waits STOPPED: nothing says whether the
+        program was running, and starting a machine from its initial marking is a person's call."""
         self.pending = [ProgramCommand(Command.DOWNLOAD, net, id=0)]
-        if self.config.start:
+        if self.config.start and not self.config.restarts:
             self.pending.append(ProgramCommand(Command.START, id=0))
 
     def _warm(self, net: CompiledNet, snap: Loaded) -> None:
         """Download `net`, open its devices and put the snapshot in; on a snapshot that does
         not fit after all (same hash, unusable content) fall back to a cold start."""
         payload = snap.payload
-        resume = self.config.start and self.config.warm_start == "run"
+        resume = (self.config.start or self.config.restarts > 0) and (
+            self.config.warm_start == "run" or self.config.restarts > 0)
         plc = self.runner.plc
         plc.apply(ProgramCommand(Command.DOWNLOAD, net), payload["now_ns"])
         try:
@@ -133,7 +199,7 @@ class ScanLoop:
             self.start_mode = "cold"
             self.start_reason = f"snapshot {snap.path.name} unusable ({type(exc).__name__}: {exc})"
             return
-        self._after(())  # the program's devices, opened before the first scan
+        self._swap_drivers(None)  # the program's devices, opened before the first scan
         for driver in self.runner.drivers:
             if driver.name in plants and hasattr(driver, "plant"):
                 driver.plant = plants[driver.name]  # simulation only: the field side
@@ -157,66 +223,136 @@ class ScanLoop:
 
     def _due_commands(self) -> list[ProgramCommand]:
         """The drained commands whose turn has come, in arrival order: downloads compiled
-        (off the scan, runtime/downloads.py) or refused with every problem listed."""
+        (off the scan, runtime/downloads.py) or refused with every problem listed; commands
+        past their deadline refused unapplied (their sender has told its user so)."""
         commands = []
         for item in self.downloads.take():
             req = item.request
+            prepared = item.net if isinstance(item.net, Prepared) else (
+                Prepared(item.net, req) if item.net is not None else None)
+            if req.deadline_ns and time.monotonic_ns() > req.deadline_ns:
+                late_ms = (time.monotonic_ns() - req.deadline_ns) / 1e6
+                self._refuse(req, f"{req.command.value} expired: not applied (its deadline "
+                             f"passed {late_ms:.0f} ms before the scan could take it)")
+                if prepared is not None:
+                    prepared.discard()
+                continue
             if req.command is not Command.DOWNLOAD:
                 commands.append(ProgramCommand(req.command, online=req.online, id=req.id))
             elif isinstance(item.error, ProgramError):
                 self._refuse(req, f"download refused:\n{item.error}")
-            elif item.error is not None:  # a compiler bug must never stop the scan
-                self._refuse(req, "download refused: internal compiler error "
-                             f"({type(item.error).__name__}: {item.error})")
-            elif item.net is not None and item.net.io.sizes != self.config.sizes:
+            elif item.error is not None:  # a device that cannot open, or a compiler bug
+                self._refuse(req, f"download refused: {_describe(item.error)}")
+            elif prepared is not None and prepared.net.io.sizes != self.config.sizes:
+                prepared.discard()
                 self._refuse(req, "download refused: the program's image sizes "
-                             f"{item.net.io.sizes} differ from the runtime's")
-            else:
-                commands.append(ProgramCommand(Command.DOWNLOAD, item.net, req.online, req.id))
+                             f"{prepared.net.io.sizes} differ from the runtime's")
+            elif prepared is not None:
+                self._prepared[req.id] = prepared
+                commands.append(ProgramCommand(Command.DOWNLOAD, prepared.net, req.online, req.id))
         return commands
 
     def _refuse(self, req: CommandRequest, message: str) -> None:
         self._reply(CommandReply(req.id, False, message, self.runner.plc.state))
 
-    def _compile(self, req: CommandRequest):  # type: ignore[no-untyped-def]
+    def _compile(self, req: CommandRequest) -> CompiledNet:
         root = Path(self.config.root) if self.config.root else None
         name = req.program_path or "downloaded.yaml"
         if req.program_text is None:
             return compile_file(name, root)
-        base = (root or Path.cwd()) / "programs"
-        filename = str(base / Path(name).name) if not Path(name).is_absolute() else name
-        return compile_text(req.program_text, filename, root)
+        return compile_text(req.program_text, self._download_name(name), root)
+
+    def _download_name(self, name: str) -> str:
+        root = Path(self.config.root) if self.config.root else Path.cwd()
+        return str(root / "programs" / Path(name).name) if not Path(name).is_absolute() else name
+
+    def _prepare(self, req: CommandRequest) -> Prepared:
+        """On the compile thread: compile, then open the devices the new io image declares if
+        they are not the running ones, so that a program whose devices cannot be opened is
+        refused before anything changes (the reconfiguration of the seed paper, checked)."""
+        net = self._compile(req)
+        specs = tuple(net.io.drivers.values())
+        prepared = Prepared(net, req, None, specs)
+        if specs != self._driver_specs:
+            prepared.drivers = open_drivers(net.io, self.config.seed, None)
+        return prepared
 
     def _reply(self, reply: CommandReply) -> None:
         if reply.id == 0 or self.channel is None:
             return  # startup commands come from the command line, not from a client
         self.channel.reply(reply)
 
-    def _after(self, replies: Sequence[CommandReply]) -> None:
+    def _after(self, commands: Sequence[ProgramCommand],
+               replies: Sequence[CommandReply]) -> None:
+        """Swap in the devices of an accepted download, keep it as the boot program, answer."""
+        accepted = None
+        for reply in replies:
+            prepared = self._prepared.pop(reply.id, None)
+            if prepared is not None and reply.ok:
+                accepted = prepared
+            elif prepared is not None:
+                prepared.discard()
+        if accepted is not None:
+            self._swap_drivers(accepted)
+            self._keep_boot(accepted.request)
+        elif any(c.command is Command.DOWNLOAD and c.id == 0 for c in commands):
+            self._swap_drivers(None)
         for reply in replies:
             self._reply(reply)
+
+    def _swap_drivers(self, prepared: Prepared | None) -> None:
         net = self.runner.plc.net
-        if net is not None and tuple(net.io.drivers.values()) != self._driver_specs:
-            # Another io image (reconfiguration): its devices replace the old ones.
-            self._driver_specs = tuple(net.io.drivers.values())
-            self.runner.set_drivers(open_drivers(net.io, self.config.seed, self.config.plant))
+        if net is None:
+            return
+        specs = tuple(net.io.drivers.values())
+        if specs == self._driver_specs:
+            if prepared is not None:
+                prepared.discard()  # opened for nothing: another download changed the devices
+            return
+        self._driver_specs = specs
+        drivers = prepared.drivers if prepared is not None else None
+        if drivers is None:  # the command line's program, or a race with another download
+            drivers = open_drivers(net.io, self.config.seed, self.config.plant)
+        self.runner.set_drivers(drivers)
+
+    def _keep_boot(self, req: CommandRequest) -> None:
+        """The accepted download becomes the boot program (written off the scan)."""
+        if self.config.state_dir is None or req.program_text is None:
+            return
+        name = self._download_name(req.program_path or "downloaded.yaml")
+        program = boot.BootProgram(name, req.program_text, self.config.root)
+        if self._boot_writer is None:
+            self._boot_writer = ThreadPoolExecutor(1, thread_name_prefix="boot")
+        self._boot_writer.submit(boot.save, self.config.state_dir, program)
+        self.program_source = program.describe()
 
     # -- the loop ---------------------------------------------------------------------------
 
-    def scan_once(self, now_ns: int) -> bool:
+    def scan_once(self, now_ns: int, observed: Observed = NOTHING_OBSERVED) -> bool:
         """One scan; True if it applied program commands (exempt from the watchdog: a
         download swaps the net and may open devices, not the program's execution time)."""
         requests, writes = self.channel.drain() if self.channel else ([], [])
         self.downloads.put(requests)
         commands = self.pending + self._due_commands()
         self.pending = []
-        result = self.runner.step(now_ns, commands, writes)
-        self._after(result.replies)
+        was_running = self.runner.plc.state is PlcState.RUNNING
+        result = self.runner.step(now_ns, commands, writes, observed=observed)
+        if was_running and self.runner.plc.state is not PlcState.RUNNING:
+            self._confirm_safe(now_ns)  # stop, kill, fault: the devices confirm before replies
+        self._after(commands, result.replies)
         for name in result.events:
-            self.event_seq += 1
-            self.events.append({"seq": self.event_seq, "scan": self.runner.plc.scan_count,
-                                "t_ns": now_ns, "name": name})
+            self._event(name, now_ns)
         return bool(commands)
+
+    def _confirm_safe(self, now_ns: int) -> None:
+        timeout_s = min(0.5, max(0.05, 5 * self.config.period_ns / 1e9))
+        if failed := self.runner.go_safe(now_ns, timeout_s):
+            self._event("safe_unconfirmed:" + ",".join(failed), now_ns)
+
+    def _event(self, name: str, now_ns: int) -> None:
+        self.event_seq += 1
+        self.events.append({"seq": self.event_seq, "scan": self.runner.plc.scan_count,
+                            "t_ns": now_ns, "name": name})
 
     def document(self) -> dict[str, Any]:
         """The status board: what `softplc status` and the HTTP API show."""
@@ -224,20 +360,27 @@ class ScanLoop:
         timing: dict[str, Any] = dict(self.summary.as_dict())
         timing["p99_lateness_us"] = timing.get("lateness_p99_us", 0)
         timing["overruns"] = self.stats.overruns
+        timing["stalls"] = self.stalls
+        timing["longest_gap_us"] = self.longest_gap_ns // 1000
         net = plc.net
         symbols = {} if net is None else {
             s.name: {"address": str(s.address), "type": s.type.value,
                      "direction": s.direction.value, "value": plc.image.get(s.address),
-                     "hmi_writable": s.hmi_writable}
+                     "hmi_writable": s.hmi_writable, "description": s.description}
             for s in net.io.symbols.values()}
         return {
             "state": plc.state.name, "program": net.name if net else None,
             "program_hash": net.program_hash if net else None, "scan_count": plc.scan_count,
             "period_us": self.config.period_ns // 1000, "marking": plc.marking(),
-            "timing": timing, "fault_code": plc.fault_code,
+            "timing": timing, "fault_code": int(plc.fault_code),
+            "fault_name": plc.fault_code.name.lower(),
             "fault_reason": plc.fault_reason, "devices": self.runner.device_report(),
             "start_mode": self.start_mode,
-            "start_reason": self.start_reason, "realtime": self.realtime,
+            "start_reason": self.start_reason, "program_source": self.program_source,
+            "realtime": self.realtime,
+            "restarts": self.config.restarts, "restart_reason": self.config.restart_reason,
+            "on_stall": self.config.on_stall, "watchdog_ms": self.budget_ns / 1e6,
+            "internal_errors": self.internal_errors,
             "retain": self.retain.info() if self.retain else None,
             "health": {name: h.value for name, h in self.runner.health().items()},
             "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
@@ -249,7 +392,7 @@ class ScanLoop:
         return Status(plc.state, plc.scan_count, self.stats.last_exec_ns // 1000,
                       self.stats.max_exec_ns // 1000, int(self.summary.lateness_p99_us),
                       self.stats.overruns,
-                      plc.net.program_hash if plc.net else "", plc.fault_code,
+                      plc.net.program_hash if plc.net else "", int(plc.fault_code),
                       self.config.period_ns // 1000)
 
     def run(self, stop: Event | None = None) -> None:
@@ -259,80 +402,119 @@ class ScanLoop:
                 self.config.max_scans is None or self.runner.plc.scan_count < self.config.max_scans):
             deadline = schedule.deadline_ns
             reached = schedule.wait()
-            handled_commands = self.scan_once(reached)
+            late = reached - deadline
+            observed = self._stall(late) if late > self.budget_ns else NOTHING_OBSERVED
+            handled_commands = self._guarded_scan(reached, observed)
+            self._publish(reached)
             done = self.clock.now_ns()
-            exec_ns = done - reached
-            if (exec_ns > period * self.config.watchdog and not handled_commands
+            exec_ns = done - reached  # the whole scan: I/O, round, publish, retain, board
+            if (exec_ns > self.budget_ns and not handled_commands
                     and self.runner.plc.state is PlcState.RUNNING):
-                self._watchdog()
-            self.stats.record(exec_ns, reached - deadline, skipped=schedule.advance(done))
+                self._watchdog(exec_ns, done)
+            self.stats.record(exec_ns, late, skipped=schedule.advance(done))
+        self.shutdown()
+
+    def _stall(self, late_ns: int) -> Observed:
+        """A cycle that started more than the watchdog budget late: the process was paused or
+        starved, and for that long nothing read inputs or wrote outputs."""
+        self.stalls += 1
+        self.longest_gap_ns = max(self.longest_gap_ns, late_ns)
+        self._event(f"stall:{late_ns // 1_000_000}ms", self.clock.now_ns())
+        if self.config.on_stall != "fault":
+            return NOTHING_OBSERVED
+        return Observed(stall=f"cycle started {late_ns / 1e6:.0f} ms late (budget "
+                        f"{self.budget_ns / 1e6:g} ms): inputs and outputs were frozen meanwhile")
+
+    def _guarded_scan(self, now_ns: int, observed: Observed) -> bool:
+        """scan_once, and whatever it raises outside the pure scan (the channel, the download
+        queue, a swap of devices) faults the PLC with safe outputs instead of ending the
+        scan process: the PLC keeps serving status and commands."""
+        try:
+            return self.scan_once(now_ns, observed)
+        except Exception as exc:
+            self._internal(f"scan shell: {type(exc).__name__}: {exc}", now_ns)
+            return True
+
+    def _publish(self, now_ns: int) -> None:
+        try:
             refresh = self.runner.plc.scan_count % self.board_every == 0
             if refresh:  # percentiles cost ~20 µs: not on every scan
                 self.summary = self.stats.summary()
             if self.writer is not None:
                 self.writer.publish(self.runner.plc.image, self.status())
             interval = self.config.retain_interval_ns
-            self._retain(reached, interval > 0 and reached - self._retained_ns >= interval)
+            self._retain(now_ns, interval > 0 and now_ns - self._retained_ns >= interval)
             if self.board is not None and refresh:
                 self.board.publish(self.document())
-        self.shutdown()
+        except Exception as exc:
+            self._internal(f"publishing: {type(exc).__name__}: {exc}", now_ns)
 
-    def _watchdog(self) -> None:
+    def _internal(self, reason: str, now_ns: int) -> None:
+        self.internal_errors += 1
+        print(f"softplc: internal error, PLC faulted: {reason}", file=sys.stderr, flush=True)
         plc = self.runner.plc
-        plc.fault(FAULT_WATCHDOG)
-        go_safe_all(self.runner.drivers, plc.image, SAFE_TIMEOUT_S)  # now, confirmed
+        plc.fault(FaultCode.INTERNAL, None, reason)
+        plc.drive_safe()
+        self._confirm_safe(now_ns)
+        self._event("plc_fault:internal", now_ns)
+
+    def _watchdog(self, exec_ns: int, now_ns: int) -> None:
+        reason = (f"scan {self.runner.plc.scan_count - 1} took {exec_ns / 1e6:.1f} ms "
+                  f"(budget {self.budget_ns / 1e6:g} ms = period x watchdog)")
+        for name in self.runner.judge_now(Observed(overrun=reason), now_ns):
+            self._event(name, now_ns)
 
     def shutdown(self) -> None:
-        """Outputs to their safe values, written through the drivers, then close."""
+        """Outputs to their safe values, written through the drivers and confirmed, then close."""
         self.summary = self.stats.summary()
         plc = self.runner.plc
         # Retained before the outputs go safe: a warm restart resumes what the program drove.
         self._retain(self.clock.now_ns(), True)
         plc.drive_safe()
-        go_safe_all(self.runner.drivers, plc.image, SAFE_TIMEOUT_S)  # written and confirmed
+        self._confirm_safe(self.clock.now_ns())
         if self.writer is not None:
             self.writer.publish(plc.image, self.status())
         if self.board is not None:
             self.board.publish(self.document())
         self.runner.close()
         self.downloads.close()
+        for prepared in self._prepared.values():
+            prepared.discard()
+        if self._boot_writer is not None:
+            self._boot_writer.shutdown(wait=True)
         if self.retain is not None:
             self.retain.close()  # waits for the last snapshot to be on disk
 
 
-def _once(action: Callable[[], object]) -> Callable[[int, object], None]:
-    """A SIGTERM handler that acts on the first signal only. A dying supervisor can deliver
-    SIGTERM more than once (PR_SET_PDEATHSIG fires as each of its threads exits), and one
-    arriving inside stop.set() re-entered it and deadlocked on its lock, outputs still on."""
-    done: dict[str, bool] = {}
+def _describe(error: BaseException) -> str:
+    """A refused download's reason in one line: a device, or an internal compiler error."""
+    from softplc.devices.driver import DeviceError
 
-    def handler(signum: int, frame: object) -> None:
-        if not done:
-            done["yes"] = True  # no call before this store: no other handler can run first
-            action()
-
-    return handler
+    if isinstance(error, DeviceError | ValueError | OSError):
+        return f"its devices cannot be opened: {error}"
+    return f"internal compiler error ({type(error).__name__}: {error})"
 
 
 def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: Event, stop: Event) -> None:
-    """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`."""
-    from softplc.runtime.supervisor import die_with_parent
+    """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`.
+    Exit codes: 0 stopped, 3 state directory busy, 4 cannot start (program, devices)."""
+    from softplc.runtime.procs import die_with_parent
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, _once(stop.set))
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     die_with_parent()
     parent = os.getppid()
 
     def watch_parent() -> None:
         while not stop.wait(0.5):
             if os.getppid() != parent:
-                stop.set()
+                stop.set()  # the supervisor is gone: go safe and end
 
     threading.Thread(target=watch_parent, name="watch-parent", daemon=True).start()
     realtime = apply(config.realtime)  # after the watcher: it keeps normal scheduling
-    writer = SnapshotWriter.create(config.sizes, name=shm_name)
-    board = StatusBoard.create(board_name)
+    writer, own_segment = SnapshotWriter.open_or_create(config.sizes, shm_name)
+    board, own_board = StatusBoard.open_or_create(board_name)
     try:
         try:
             loop = ScanLoop(config, channel, writer, board=board)
@@ -340,11 +522,18 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
         except StateDirBusy as exc:
             print(f"softplc: {exc}", file=sys.stderr)
             raise SystemExit(3) from None
+        except (ProgramError, ValueError, OSError) as exc:
+            print(f"softplc: cannot start the scan: {exc}", file=sys.stderr)
+            raise SystemExit(4) from None
         writer.publish(loop.runner.plc.image, loop.status())
         board.publish(loop.document())
         ready.set()
         loop.run(stop)
     finally:
         writer.close()
-        writer.unlink()
-        board.close()
+        if own_segment:
+            writer.unlink()
+        if own_board:
+            board.close()
+        else:
+            board.detach()

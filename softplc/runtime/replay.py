@@ -16,6 +16,7 @@ from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
 from softplc.core.scan import Plc, ProgramCommand, scan
 from softplc.core.snapshot import HmiWrite
+from softplc.runtime.runner import observed_from
 from softplc.runtime.trace import image_digest, read_trace
 
 
@@ -55,12 +56,16 @@ def replay(trace_path: str | Path, net: CompiledNet) -> ReplayResult:
     inputs = ProcessImage(net.io.sizes)
     note = ""
     count = 0
+    drivers = list(net.io.drivers)
     for count, record in enumerate(read_trace(trace_path), 1):
         _apply_inputs(inputs, record.get("in", {}))
         commands, why = _commands(record, net)
         note = note or why
         hmi = [HmiWrite(parse_address(a), tuple(v)) for a, v in record.get("hmi", [])]
-        result = scan(plc, inputs, int(record["t"]), commands, hmi)
+        # Device answers, watchdog overruns and stalls were judged by the scan: fed back, the
+        # replay reproduces every fault they caused.
+        observed = observed_from(record.get("obs", {}), drivers)
+        result = scan(plc, inputs, int(record["t"]), commands, hmi, observed)
         fired = list(result.fired)
         if image_digest(result.outputs) != record["out"] or fired != record.get("fired", []):
             return ReplayResult(count, (

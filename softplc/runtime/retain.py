@@ -2,9 +2,12 @@
 
 Owns: what is retained (marking, coloured tokens, timers, the image's outputs and %M memory,
 the lifecycle state, scan count and scan clock, program name and hash; a sim plant's state,
-labelled simulation-only), the file format (a header line with format version, length and
-sha256, then the JSON payload), the atomic write (temp file, fsync, rename, fsync of the
-directory), choosing the newest valid snapshot, the state-directory lock, and the writer thread.
+labelled simulation-only), restoring it, the start decision, and the writer thread, which
+cannot die: any failure (a full disk, a value that is not JSON, a bug) is counted by stage in
+`info()` and the next capture is tried at the next interval; a clean stop writes its final
+snapshot synchronously and says whether it did (`RetainWriter.stop`).
+The files themselves (format, checked write, read-back, keeping two valid snapshots, the lock)
+are runtime/retain_store.py; its names are re-exported here.
 Does not know: scan timing, Modbus, HTTP, other processes than the one holding the lock.
 
 Time across a restart: every timer (enabling delays, three-phase firings, the stop instant)
@@ -18,16 +21,11 @@ crash (at most one retain interval) is lost and runs again.
 from __future__ import annotations
 
 import base64
-import fcntl
-import hashlib
 import io
-import json
-import os
 import pickle
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,23 +33,40 @@ import numpy as np
 from softplc.core.events import EventMemory
 from softplc.core.image import AREAS, ProcessImage
 from softplc.core.lifecycle import PlcState
-from softplc.core.net import Busy, CompiledNet, NetState
+from softplc.core.net import Busy, CompiledNet, NetState, Token
+from softplc.core.problems import FaultCode
 from softplc.core.scan import Plc
+from softplc.core.values import record_problems, value_problem
 from softplc.runtime.clock import Clock
 from softplc.runtime.realtime import background_thread
+from softplc.runtime.retain_store import (
+    FORMAT,
+    KEEP,
+    LOCK_FILE,
+    PREFIX,
+    SUFFIX,
+    FileOps,
+    Loaded,
+    RetainStore,
+    SnapshotInvalid,
+    Stage,
+    StateDirBusy,
+    WriteFailed,
+    check_state_dir,
+    from_bytes,
+    lock_state_dir,
+    to_bytes,
+)
 
-FORMAT = 1
-PREFIX, SUFFIX = "retain-", ".json"
-LOCK_FILE = "lock"
-KEEP = 2  # a crash while writing the newest leaves the one before it valid
+__all__ = ["FORMAT", "KEEP", "LOCK_FILE", "PREFIX", "SUFFIX", "Capture", "ContinuedClock",
+           "FileOps", "FinalWrite", "Loaded", "RetainStore", "RetainWriter", "SnapshotInvalid",
+           "Stage", "StartDecision", "StateDirBusy", "WriteFailed", "capture", "check_state_dir",
+           "decide", "encode", "from_bytes", "load_plant", "lock_state_dir", "restore",
+           "to_bytes"]
 
 
-class StateDirBusy(RuntimeError):
-    """Another live runtime holds the state directory's lock."""
-
-
-class SnapshotInvalid(ValueError):
-    """A snapshot file that is partial, corrupt or of an unknown format."""
+class RetainValueError(ValueError):
+    """A token in the PLC's state holds a value the runtime cannot carry (core/values.py)."""
 
 
 # -- capture (scan thread) and encoding (writer thread) ---------------------------------------
@@ -94,10 +109,12 @@ def encode(cap: Capture, seq: int, wall_ns: int) -> dict[str, Any]:
         "state": cap.state.name, "fault_code": cap.fault_code,
         "scan_count": cap.scan_count, "now_ns": cap.now_ns, "stopped_at_ns": cap.stopped_at_ns,
         "marking": {places[p]: int(n) for p, n in enumerate(st.marking)},
-        "tokens": {places[p]: [dict(t) for t in toks] for p, toks in st.tokens.items()},
+        "tokens": {places[p]: [_record(places[p], i, t) for i, t in enumerate(toks)]
+                   for p, toks in st.tokens.items()},
         "enabled_since_ns": {transitions[t].name: ns for t, ns in st.enabled_since.items()},
         "busy": {transitions[t].name: {"end_ns": b.end_ns, "produce": [
-            [places[p], n, None if r is None else dict(r)] for p, n, r in b.produce]}
+            [places[p], n, None if r is None else _record(places[p], 0, r)]
+            for p, n, r in b.produce]}
             for t, b in st.busy.items()},
         "image": {area: _pack(getattr(cap.image, area)) for area in AREAS},
         "held": None if cap.held is None else [_pack(a) for a in cap.held],
@@ -105,6 +122,18 @@ def encode(cap: Capture, seq: int, wall_ns: int) -> dict[str, Any]:
         "field_simulation_only": {name: base64.b64encode(blob).decode()
                                   for name, blob in cap.field.items()},
     }
+
+
+def _record(place: str, index: int, token: Any) -> dict[str, Any]:
+    """A token as JSON can hold it, or RetainValueError naming it: never a TypeError from deep
+    inside json (that once killed the writer thread for good)."""
+    record = dict(token)
+    for name, value in record.items():
+        problem = value_problem(value)
+        if problem is not None or not isinstance(name, str):
+            raise RetainValueError(f"place {place}: token {index} field {name!r}: "
+                                   f"{problem or 'field name is not text'}")
+    return record
 
 
 def _pack(values: np.ndarray) -> str:
@@ -117,37 +146,6 @@ def _unpack(text: str, like: np.ndarray) -> np.ndarray:
     if values.shape != like.shape:
         raise SnapshotInvalid(f"image area of {values.size} values instead of {like.size}")
     return values.astype(like.dtype)
-
-
-def to_bytes(payload: dict[str, Any]) -> bytes:
-    body = json.dumps(payload, separators=(",", ":"), sort_keys=True).encode()
-    header = json.dumps({"format": FORMAT, "length": len(body),
-                         "sha256": hashlib.sha256(body).hexdigest()}, sort_keys=True)
-    return header.encode() + b"\n" + body
-
-
-def from_bytes(data: bytes) -> dict[str, Any]:
-    """The payload of a snapshot file. Raises SnapshotInvalid saying what is wrong."""
-    head, sep, body = data.partition(b"\n")
-    if not sep:
-        raise SnapshotInvalid("no header line (partial file)")
-    try:
-        header = json.loads(head)
-    except ValueError:
-        raise SnapshotInvalid("unreadable header") from None
-    if not isinstance(header, dict):
-        raise SnapshotInvalid("unreadable header")
-    if header.get("format") != FORMAT:
-        raise SnapshotInvalid(f"unknown format {header.get('format')!r}")
-    if header.get("length") != len(body):
-        raise SnapshotInvalid(f"length {len(body)} instead of {header.get('length')} "
-                              "(partial file)")
-    if hashlib.sha256(body).hexdigest() != header.get("sha256"):
-        raise SnapshotInvalid("checksum mismatch")
-    payload = json.loads(body)
-    if not isinstance(payload, dict) or not isinstance(payload.get("program_hash"), str):
-        raise SnapshotInvalid("payload without a program hash")
-    return payload
 
 
 # -- restore ------------------------------------------------------------------------------
@@ -163,7 +161,7 @@ def restore(plc: Plc, payload: dict[str, Any], resume: bool) -> PlcState:
     state.marking[:] = 0
     for name, count in payload["marking"].items():
         state.marking[places[name]] = count
-    state.tokens = {places[name]: list(toks) for name, toks in payload["tokens"].items()}
+    state.tokens = {places[name]: _tokens(name, toks) for name, toks in payload["tokens"].items()}
     state.enabled_since = {names[t]: ns for t, ns in payload["enabled_since_ns"].items()}
     state.busy = {names[t]: Busy(b["end_ns"], tuple((places[p], n, r) for p, n, r in b["produce"]))
                   for t, b in payload["busy"].items()}
@@ -175,7 +173,7 @@ def restore(plc: Plc, payload: dict[str, Any], resume: bool) -> PlcState:
     plc.image.copy_into(plc.prev)
     plc.events = EventMemory(dict(payload["events"]["last"]), dict(payload["events"]["armed"]))
     plc.scan_count = payload["scan_count"]
-    plc.fault_code = payload["fault_code"]
+    plc.fault_code = FaultCode(payload["fault_code"])
     was = PlcState[payload["state"]]
     held = payload["held"]
     plc.held = None if held is None else (_unpack(held[0], plc.image.qx),
@@ -187,6 +185,14 @@ def restore(plc: Plc, payload: dict[str, Any], resume: bool) -> PlcState:
         plc.stopped_at_ns = payload["now_ns"]
         plc.held = (plc.image.qx.copy(), plc.image.qw.copy())
     return plc.state
+
+
+def _tokens(place: str, records: list[Any]) -> list[Token]:
+    """Restored records carry only token values (a file is data from outside)."""
+    for i, record in enumerate(records):
+        for _, problem in record_problems(record):
+            raise SnapshotInvalid(f"place {place}: token {i}: {problem}")
+    return [dict(r) for r in records]
 
 
 class _PlantUnpickler(pickle.Unpickler):
@@ -223,108 +229,6 @@ class ContinuedClock:
         return self.base.wait_until(deadline_ns - self.offset_ns) + self.offset_ns
 
 
-# -- the state directory --------------------------------------------------------------------
-
-@dataclass(frozen=True, slots=True)
-class Loaded:
-    path: Path
-    payload: dict[str, Any]
-
-
-def _seq(path: Path) -> int:
-    stem = path.name[len(PREFIX):-len(SUFFIX)]
-    return int(stem) if stem.isdigit() else -1
-
-
-class RetainStore:
-    """The snapshot files of one state directory, locked for this process while open."""
-
-    def __init__(self, directory: Path, lock_fd: int, keep: int = KEEP) -> None:
-        self.directory = directory
-        self._lock_fd = lock_fd
-        self.keep = keep
-        self.seq = max((_seq(p) for p in self.files()), default=0)
-
-    @classmethod
-    def open(cls, directory: Path | str, keep: int = KEEP) -> RetainStore:
-        """Lock `directory` (created if missing) and remove temp files of a killed writer.
-        Raises StateDirBusy if a live process holds it; a dead one's lock is gone with it."""
-        path = Path(directory)
-        path.mkdir(parents=True, exist_ok=True, mode=0o700)
-        fd = lock_state_dir(path)
-        for tmp in path.glob(f".{PREFIX}*.tmp"):
-            tmp.unlink(missing_ok=True)  # half-written by a killed run: never a snapshot
-        return cls(path, fd, keep)
-
-    def files(self) -> list[Path]:
-        """Snapshot files, newest first."""
-        found = [p for p in self.directory.glob(f"{PREFIX}*{SUFFIX}") if _seq(p) >= 0]
-        return sorted(found, key=_seq, reverse=True)
-
-    def write(self, payload: dict[str, Any]) -> Path:
-        """Atomically: after a crash at any instant the file is absent or complete."""
-        self.seq = max(self.seq, int(payload["seq"]))
-        final = self.directory / f"{PREFIX}{payload['seq']:09d}{SUFFIX}"
-        tmp = self.directory / f".{final.name}.{os.getpid()}.tmp"
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        try:
-            os.write(fd, to_bytes(payload))  # one write: a payload is well under 2 GB
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, final)
-        _fsync_dir(self.directory)  # the rename itself must survive a power loss
-        for old in self.files()[self.keep:]:
-            old.unlink(missing_ok=True)
-        return final
-
-    def load_newest(self) -> tuple[Loaded | None, list[str]]:
-        """The newest valid snapshot, and why each newer one was skipped."""
-        problems: list[str] = []
-        for path in self.files():
-            try:
-                return Loaded(path, from_bytes(path.read_bytes())), problems
-            except (OSError, SnapshotInvalid, ValueError) as exc:
-                problems.append(f"snapshot {path}: {exc}")
-        return None, problems
-
-    def close(self) -> None:
-        if self._lock_fd >= 0:
-            os.close(self._lock_fd)  # releases the flock
-            self._lock_fd = -1
-
-
-def lock_state_dir(directory: Path) -> int:
-    """flock on DIR/lock, held until the fd is closed (or the process dies, even by SIGKILL:
-    a stale lock file never blocks). Returns the fd; raises StateDirBusy naming the holder."""
-    fd = os.open(directory / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o600)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
-        os.close(fd)
-        raise StateDirBusy(f"state directory {directory} is in use by another softplc "
-                           f"(pid {holder}); give each runtime its own --state-dir") from None
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-    return fd
-
-
-def check_state_dir(directory: Path | str) -> None:
-    """Raise StateDirBusy if another live runtime uses `directory` (lock taken and released)."""
-    path = Path(directory)
-    if path.is_dir():
-        os.close(lock_state_dir(path))
-
-
-def _fsync_dir(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 # -- the decision at start ------------------------------------------------------------------
 
 @dataclass(frozen=True, slots=True)
@@ -355,10 +259,25 @@ def decide(store: RetainStore, net: CompiledNet | None) -> StartDecision:
 
 # -- the writer thread ----------------------------------------------------------------------
 
+@dataclass(frozen=True, slots=True)
+class FinalWrite:
+    """What became of the snapshot of a clean stop: the shutdown says it, status shows it."""
+
+    written: bool
+    path: str = ""
+    error: str = ""
+
+    def __str__(self) -> str:
+        if self.written:
+            return f"final snapshot {self.path} written"
+        return f"final snapshot NOT written: {self.error}"
+
+
 class RetainWriter:
     """One background thread writes snapshots, so fsync never stalls a scan. The scan hands
     over a Capture; if the previous one is still being written, the newer replaces the
-    pending one (a single writer, newest wins)."""
+    pending one (a single writer, newest wins). The thread cannot die: every failure is
+    counted by stage and the next capture is written at the next interval."""
 
     def __init__(self, store: RetainStore) -> None:
         self.store = store
@@ -367,28 +286,76 @@ class RetainWriter:
         self._closing = False
         self.writes = 0
         self.errors = 0
+        self.errors_by_stage: dict[str, int] = {stage.value: 0 for stage in Stage}
+        self.consecutive_errors = 0
         self.last_error = ""
         self.last_write_us = 0
         self.max_write_us = 0
         self.last_path = ""
-        self._thread = threading.Thread(target=self._run, name="retain-writer", daemon=True)
-        self._thread.start()
+        self.restarts = 0
+        self.final: FinalWrite | None = None
+        self._last = FinalWrite(False, "", "nothing written yet")
+        self._thread = self._start()
+
+    def _start(self) -> threading.Thread:
+        thread = threading.Thread(target=self._run, name="retain-writer", daemon=True)
+        thread.start()
+        return thread
 
     def submit(self, cap: Capture) -> None:
         with self._cond:
+            if self._closing:
+                return
             self._pending = cap
             self._cond.notify()
+        if not self._thread.is_alive():  # only a BaseException could end it: start anew
+            self.restarts += 1
+            self._failed(Stage.OTHER, "writer thread had ended; restarted")
+            self._thread = self._start()
 
-    def close(self, timeout_s: float = 10.0) -> None:
-        """Write what is pending, then stop the thread and release the state directory."""
+    def stop(self, cap: Capture | None, timeout_s: float = 10.0) -> FinalWrite:
+        """At a clean stop: wait (bounded) for a write in progress, drop what is pending (`cap`
+        is newer), write `cap` synchronously in the caller's thread, release the state
+        directory. Returns whether the final snapshot is on disk, and why not."""
+        with self._cond:
+            self._closing = True
+            self._pending = None
+            self._cond.notify()
+        self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            result = FinalWrite(False, "", f"the writer was still busy after {timeout_s:g} s")
+        elif cap is None:
+            result = FinalWrite(False, "", "no program to retain")
+        else:
+            result = self._write(cap)
+        return self._finish(result)
+
+    def close(self, timeout_s: float = 10.0) -> FinalWrite:
+        """Write what is pending (synchronously), then stop the thread and release the state
+        directory. Returns the fate of the last capture submitted."""
+        with self._cond:
+            cap, self._pending = self._pending, None
+        if cap is not None:
+            return self.stop(cap, timeout_s)
         with self._cond:
             self._closing = True
             self._cond.notify()
         self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            return self._finish(FinalWrite(False, "", f"the writer was still busy after "
+                                                      f"{timeout_s:g} s"))
+        return self._finish(self._last)
+
+    def _finish(self, result: FinalWrite) -> FinalWrite:
+        self.final = result
         self.store.close()
+        return result
 
     def _run(self) -> None:
-        background_thread()
+        try:
+            background_thread()
+        except Exception as exc:  # scheduling is a preference; writing is the job
+            self._failed(Stage.OTHER, f"background scheduling: {type(exc).__name__}: {exc}")
         while True:
             with self._cond:
                 while self._pending is None and not self._closing:
@@ -398,20 +365,42 @@ class RetainWriter:
                     return
             self._write(cap)
 
-    def _write(self, cap: Capture) -> None:
+    def _write(self, cap: Capture) -> FinalWrite:
+        """Encode and write one capture. Never raises: a failure is counted and returned."""
         began = time.perf_counter_ns()
         try:
             path = self.store.write(encode(cap, self.store.seq + 1, time.time_ns()))
-        except OSError as exc:  # a full disk must not stop the PLC: status shows it
-            self.errors += 1
-            self.last_error = f"{type(exc).__name__}: {exc}"
-            return
+        except WriteFailed as exc:  # a full disk must not stop the PLC: status shows it
+            return self._failed(exc.stage, str(exc))
+        except (RetainValueError, TypeError, ValueError) as exc:
+            return self._failed(Stage.ENCODE, f"{type(exc).__name__}: {exc}")
+        except Exception as exc:  # a bug must not end retain for good either
+            return self._failed(Stage.OTHER, f"{type(exc).__name__}: {exc}")
         self.last_write_us = (time.perf_counter_ns() - began) // 1000
         self.max_write_us = max(self.max_write_us, self.last_write_us)
         self.writes += 1
+        self.consecutive_errors = 0
         self.last_path = path.name
+        self._last = FinalWrite(True, path.name)
+        return self._last
+
+    def _failed(self, stage: Stage, message: str) -> FinalWrite:
+        self.errors += 1
+        self.errors_by_stage[stage.value] += 1
+        self.consecutive_errors += 1
+        self.last_error = message if message.startswith(stage.value) else \
+            f"{stage.value}: {message}"
+        self._last = FinalWrite(False, "", self.last_error)
+        return self._last
 
     def info(self) -> dict[str, Any]:
+        final = self.final
         return {"dir": str(self.store.directory), "writes": self.writes, "last": self.last_path,
                 "last_write_us": self.last_write_us, "max_write_us": self.max_write_us,
-                "errors": self.errors, "last_error": self.last_error}
+                "errors": self.errors, "last_error": self.last_error,
+                "errors_by_stage": dict(self.errors_by_stage),
+                "consecutive_errors": self.consecutive_errors,
+                "temps_removed": self.store.temps_removed,
+                "cleanup_errors": self.store.cleanup_errors, "restarts": self.restarts,
+                "final": None if final is None else {"written": final.written,
+                                                     "path": final.path, "error": final.error}}

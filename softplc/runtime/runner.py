@@ -8,39 +8,68 @@ Does not know: which clock drives it, processes, sockets.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import replace
+from collections.abc import Sequence
 from typing import Any
 
 from softplc.core.faults import DeviceMonitor
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
-from softplc.core.scan import Plc, ProgramCommand, ScanResult, scan
+from softplc.core.scan import (
+    NOTHING_OBSERVED,
+    Observed,
+    Plc,
+    ProgramCommand,
+    ScanResult,
+    judge,
+    scan,
+)
 from softplc.core.snapshot import HmiWrite
-from softplc.core.symbols import FaultPolicy, IoImage
+from softplc.core.symbols import IoImage
 from softplc.devices.driver import Diagnosed, Driver, Health
 from softplc.runtime.trace import TraceWriter, image_digest, input_changes
 
 
 def open_drivers(io: IoImage, seed: int = 0, plant: str | None = None) -> list[Driver]:
-    """The drivers `io` declares, opened. `plant` replaces the plant model of sim drivers."""
+    """The drivers `io` declares, opened. `plant` is the plant model of sim drivers whose io
+    image names none: an io image that names its plant keeps it (see plant_conflict). A driver
+    that cannot be opened raises DeviceError (or ValueError for an unknown plant); the ones
+    opened before it are closed again."""
     drivers: list[Driver] = []
     symbols = list(io.symbols.values())
-    for spec in io.drivers.values():
-        if spec.kind == "sim":
-            from softplc.devices.plants.registry import make_plant
-            from softplc.devices.sim import SimDriver
+    try:
+        for spec in io.drivers.values():
+            if spec.kind == "sim":
+                from softplc.devices.plants.registry import make_plant
+                from softplc.devices.sim import SimDriver
 
-            model = make_plant(plant, seed) if plant else None
-            drivers.append(SimDriver(spec, symbols, plant=model, seed=seed))
-        elif spec.kind == "modbus":
-            from softplc.devices.modbus_io import ModbusIoDriver
+                own = spec.params.get("plant")
+                model = make_plant(plant, seed) if plant and not own else None
+                drivers.append(SimDriver(spec, symbols, plant=model, seed=seed))
+            elif spec.kind == "modbus":
+                from softplc.devices.modbus_io import ModbusIoDriver
 
-            drivers.append(ModbusIoDriver(spec, [s for s in symbols if s.driver == spec.name]))
-    for driver in drivers:
-        driver.open()
+                drivers.append(ModbusIoDriver(spec, [s for s in symbols if s.driver == spec.name]))
+            else:
+                continue
+            drivers[-1].open()
+    except BaseException:
+        for driver in drivers:
+            driver.close()
+        raise
     return drivers
+
+
+def plant_conflict(io: IoImage, plant: str | None) -> str | None:
+    """Why `--plant plant` cannot run this io image (its sim driver names another plant), or
+    None. The io image wins over the flag; a contradiction is refused, never guessed."""
+    for spec in io.drivers.values():
+        own = spec.params.get("plant")
+        if spec.kind == "sim" and plant and own and own != plant:
+            return (f"{io.path}: sim driver {spec.name} names plant {own!r}, "
+                    f"--plant asks for {plant!r}: drop --plant (the io image's plant is used) "
+                    "or use an io image for that plant")
+    return None
 
 
 class ScanRunner:
@@ -54,9 +83,8 @@ class ScanRunner:
         self._last_inputs: ProcessImage | None = None
         self._digest = ""
         self.fired_counts: dict[str, int] = {}
-        self.devices = DeviceMonitor()
-        self._policies_of: CompiledNet | None = None
-        self._policy_map: dict[str, FaultPolicy] = {}
+        self._noted: Observed | None = None  # judged between scans; traced with the next one
+        self._raised: dict[str, str] = {}  # drivers whose call raised this scan, and how
 
     def set_drivers(self, drivers: Sequence[Driver]) -> None:
         for driver in self.drivers:
@@ -66,6 +94,10 @@ class ScanRunner:
         self.inputs = ProcessImage(self.plc.image.sizes)
         self._last_inputs = None
 
+    @property
+    def devices(self) -> DeviceMonitor:
+        return self.plc.devices
+
     def health(self) -> dict[str, Health]:
         return {d.name: d.health() for d in self.drivers}
 
@@ -74,39 +106,70 @@ class ScanRunner:
         return self.devices.report()
 
     def step(self, now_ns: int, commands: Sequence[ProgramCommand] = (),
-             hmi: Sequence[HmiWrite] = (), timing: dict[str, int] | None = None) -> ScanResult:
+             hmi: Sequence[HmiWrite] = (), timing: dict[str, int] | None = None,
+             observed: Observed = NOTHING_OBSERVED) -> ScanResult:
+        """Read inputs, scan, write outputs, trace. A driver that raises is a device that did
+        not answer this scan (its exception is the reason): the PLC never dies of a driver."""
         for driver in self.drivers:
-            driver.read_inputs(self.inputs, now_ns)
-        before = self._check_devices(now_ns) if self.drivers else []
-        result = scan(self.plc, self.inputs, now_ns, commands, hmi)
-        after = self.devices.after_scan(self.plc, now_ns) if self.drivers else []
-        if before or after:
-            result = replace(result, events=(*before, *result.events, *after), outputs_changed=True)
-        for driver in self.drivers:
-            driver.write_outputs(result.outputs, now_ns)
+            try:
+                driver.read_inputs(self.inputs, now_ns)
+            except Exception as exc:
+                self._raised[driver.name] = f"read raised {type(exc).__name__}: {exc}"
+        if self.drivers:
+            observed = self._observe(observed)
+        result = scan(self.plc, self.inputs, now_ns, commands, hmi, observed)
+        self._write(result.outputs, now_ns)
         for name in result.fired:
             self.fired_counts[name] = self.fired_counts.get(name, 0) + 1
         if self.trace is not None:
-            self.trace.record(self._record(now_ns, commands, hmi, result), timing)
+            self.trace.record(self._record(now_ns, commands, hmi, result, observed), timing)
         if self._last_inputs is None:
             self._last_inputs = self.inputs.copy()
         else:
             self.inputs.copy_into(self._last_inputs)
         return result
 
-    def _check_devices(self, now_ns: int) -> list[str]:
-        # Health after read_inputs: the inputs this scan uses are the ones it judges.
-        answering = {d.name: d.health() is Health.OK for d in self.drivers}
-        return self.devices.before_scan(self.plc, answering, self._policies(), self._why, now_ns)
+    def _write(self, outputs: ProcessImage, now_ns: int) -> None:
+        for driver in self.drivers:
+            try:
+                driver.write_outputs(outputs, now_ns)
+            except Exception as exc:
+                self._raised[driver.name] = f"write raised {type(exc).__name__}: {exc}"
 
-    def _policies(self) -> Mapping[str, FaultPolicy]:
-        net = self.plc.net
-        if net is None:
-            return {}
-        if self._policies_of is not net:  # once per program, not once per scan
-            self._policies_of = net
-            self._policy_map = {name: spec.policy for name, spec in net.io.drivers.items()}
-        return self._policy_map
+    def judge_now(self, observed: Observed, now_ns: int) -> list[str]:
+        """A measurement judged between scans (the watchdog): the PLC decides at once and the
+        drivers get its outputs at once; the trace carries it with the next scan."""
+        events = judge(self.plc, observed, now_ns)
+        self._noted = observed
+        if events:
+            self.go_safe(now_ns)
+        return events
+
+    def go_safe(self, now_ns: int, timeout_s: float = 0.5) -> list[str]:
+        """The PLC's output image (safe values, unless RUNNING) to every device now, confirmed
+        where the driver can confirm it; returns the devices that did not confirm."""
+        failed = []
+        for driver in self.drivers:
+            try:
+                confirm = getattr(driver, "go_safe", None)
+                if confirm is None:
+                    driver.write_outputs(self.plc.image, now_ns)
+                elif not confirm(self.plc.image, timeout_s):
+                    failed.append(driver.name)
+            except Exception:
+                failed.append(driver.name)
+        return failed
+
+    def _observe(self, observed: Observed) -> Observed:
+        # Health after read_inputs: the inputs this scan uses are the ones it judges.
+        raised, self._raised = self._raised, {}
+        answering = {d.name: d.health() is Health.OK and d.name not in raised
+                     for d in self.drivers}
+        why = {}
+        if not all(answering.values()):
+            why = {name: raised.get(name) or self._why(name)
+                   for name, ok in answering.items() if not ok}
+        return Observed(answering, why, observed.overrun, observed.stall)
 
     def _why(self, name: str) -> str:
         driver = next(d for d in self.drivers if d.name == name)
@@ -115,10 +178,15 @@ class ScanRunner:
         return driver.health().value
 
     def _record(self, now_ns: int, commands: Sequence[ProgramCommand],
-                hmi: Sequence[HmiWrite], result: ScanResult) -> dict[str, Any]:
+                hmi: Sequence[HmiWrite], result: ScanResult, observed: Observed
+                ) -> dict[str, Any]:
         record: dict[str, Any] = {"k": self.plc.scan_count - 1, "t": now_ns,
                                   "in": input_changes(self.inputs, self._last_inputs),
                                   "out": self._output_digest(result), "state": self.plc.state.name}
+        obs = _observation(observed, self._noted)
+        self._noted = None
+        if obs:
+            record["obs"] = obs
         if commands:
             record["cmd"] = [_command(c) for c in commands]
         if hmi:
@@ -144,6 +212,30 @@ class ScanRunner:
         self.devices.forget()  # a closed device is not a failed one; reopened, it boots again
         if self.trace is not None:
             self.trace.close()
+
+
+def _observation(observed: Observed, noted: Observed | None) -> dict[str, Any]:
+    """The judged measurements of one scan as a trace entry ({} in the steady state)."""
+    obs: dict[str, Any] = {}
+    silent = {name: observed.why.get(name, "") for name, ok in observed.answering.items()
+              if not ok}
+    if silent:
+        obs["dev"] = silent
+        obs["devs"] = sorted(observed.answering)
+    for source in (noted, observed):
+        if source is not None and source.overrun:
+            obs["overrun"] = source.overrun
+        if source is not None and source.stall:
+            obs["stall"] = source.stall
+    return obs
+
+
+def observed_from(obs: dict[str, Any], drivers: Sequence[str]) -> Observed:
+    """The Observed a trace entry stands for (replay); `drivers` answer unless listed."""
+    silent = obs.get("dev", {})
+    names = obs.get("devs") or list(drivers)
+    answering = {name: name not in silent for name in names}
+    return Observed(answering, silent, obs.get("overrun", ""), obs.get("stall", ""))
 
 
 def _command(cmd: ProgramCommand) -> dict[str, Any]:

@@ -25,8 +25,8 @@ program order; that is the platform this targets. Weakly ordered CPUs (ARM) woul
 that Python cannot express.
 
 Layout, native byte order: header (64 bytes: magic, version, header size, bits, words, total
-size, latest, the two slot counters), then two slots of: status (8 int64 + 64-byte program
-hash), %IX %QX %MX as one byte per bit, %IW %QW %MW as uint16.
+size, latest, the two slot counters), then two slots of: status (9 int64, the last the
+CLOCK_MONOTONIC time of the publish, + 64-byte program hash), %IX %QX %MX as one byte per bit, %IW %QW %MW as uint16.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ import mmap
 import os
 import secrets
 import struct
+import time
 from multiprocessing import resource_tracker
 from multiprocessing.shared_memory import SharedMemory
 from types import TracebackType
@@ -49,11 +50,11 @@ from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import Snapshot, Status
 
 MAGIC: Final = b"SPLCSNAP"
-VERSION: Final = 1
+VERSION: Final = 2  # 2: status carries published_ns
 _HEADER = struct.Struct("=8sIIIIQ")  # magic, version, header bytes, bits, words, total bytes
 _HEADER_BYTES: Final = 64
 _CONTROL_OFFSET: Final = 32  # uint64 latest, slot 0 counter, slot 1 counter
-_STATUS = struct.Struct("=8q64s")
+_STATUS = struct.Struct("=9q64s")
 _HASH_BYTES: Final = 64
 _BIT_AREAS: Final = ("ix", "qx", "mx")
 _WORD_AREAS: Final = ("iw", "qw", "mw")
@@ -94,7 +95,7 @@ def _area_layout(sizes: ImageSizes) -> list[tuple[str, int, int, type[np.generic
     return layout
 
 
-def _pack_status(status: Status) -> bytes:
+def _pack_status(status: Status, published_ns: int = 0) -> bytes:
     program_hash = status.program_hash.encode("ascii")
     if len(program_hash) > _HASH_BYTES:
         raise ValueError(f"program_hash is {len(program_hash)} characters, at most 64 fit")
@@ -107,12 +108,13 @@ def _pack_status(status: Status) -> bytes:
         status.overruns,
         status.fault_code,
         status.period_us,
+        published_ns,
         program_hash,
     )
 
 
 def _unpack_status(raw: npt.NDArray[np.uint8]) -> Status:
-    state, scans, last_exec, max_exec, p99_late, overruns, fault, period, program_hash = (
+    state, scans, last_exec, max_exec, p99_late, overruns, fault, period, published, program_hash = (
         _STATUS.unpack_from(raw.data)
     )
     return Status(
@@ -125,6 +127,7 @@ def _unpack_status(raw: npt.NDArray[np.uint8]) -> Status:
         program_hash=program_hash.rstrip(b"\0").decode("ascii"),
         fault_code=fault,
         period_us=period,
+        published_ns=published,
     )
 
 
@@ -170,6 +173,24 @@ class SnapshotWriter:
         writer._init_header()
         return writer
 
+    @classmethod
+    def open_or_create(cls, sizes: ImageSizes, name: str) -> tuple[SnapshotWriter, bool]:
+        """Publish into segment `name` if a supervisor created it (it outlives scan processes,
+        so readers keep their mapping across a restart), else create it. Returns the writer
+        and whether this call created the segment (then its caller unlinks it)."""
+        try:
+            shm = SharedMemory(name=name)
+        except FileNotFoundError:
+            return cls.create(sizes, name), True
+        if shm.size < _segment_bytes(sizes):
+            shm.close()
+            return cls.create(sizes, name), True
+        writer = cls(shm, sizes)
+        writer._seq = int(writer._control[0])  # readers only ever see the sequence grow
+        if writer._seq == 0:
+            writer._init_header()
+        return writer, False
+
     def _buf(self) -> memoryview:
         buf = self._shm.buf
         if buf is None:
@@ -201,7 +222,9 @@ class SnapshotWriter:
         """Copy `image` and `status` in as one snapshot; return its sequence number (1, 2, ...)."""
         if image.sizes != self.sizes:
             raise ValueError(f"image sizes {image.sizes} differ from the segment's {self.sizes}")
-        packed = _pack_status(status)
+        # Stamped here, on the machine-wide monotonic clock, so that a reader in another
+        # process can tell a frozen scan process from a live one (the snapshot's age).
+        packed = _pack_status(status, time.monotonic_ns())
         seq = self._seq + 1
         slot = seq & 1
         at = self._slot_at[slot]

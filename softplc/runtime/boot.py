@@ -1,0 +1,82 @@
+"""The boot program: the last program the PLC accepted, kept in the state directory.
+
+Owns: writing the accepted program's source (its text, the name it was downloaded under and
+the directory its relative `io_image:`/subnet paths resolve against) atomically beside the
+retain snapshots, and reading it back for `softplc run` without a program argument and for a
+scan process the supervisor restarts. Does not know: compiling, the scan, retain snapshots.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Final
+
+BOOT_FILE: Final = "boot_program.json"
+FORMAT: Final = 1
+
+
+class BootUnreadable(ValueError):
+    """The boot program file exists but cannot be used (truncated, edited, wrong format)."""
+
+
+@dataclass(frozen=True, slots=True)
+class BootProgram:
+    """`filename` names the program in messages and anchors its relative paths; `root`
+    bounds where they may lead (None: anywhere, as for a program on the command line)."""
+
+    filename: str
+    text: str
+    root: str | None
+
+    def describe(self) -> str:
+        return f"boot program {Path(self.filename).name} (last accepted)"
+
+
+def save(state_dir: str | Path, program: BootProgram) -> None:
+    """Write atomically: a crash leaves the previous boot program or the new one, never half."""
+    directory = Path(state_dir)
+    directory.mkdir(parents=True, exist_ok=True)
+    blob = json.dumps({"format": FORMAT, "filename": program.filename, "root": program.root,
+                       "text": program.text}).encode()
+    fd, tmp = tempfile.mkstemp(prefix=".boot-", dir=directory)
+    try:
+        with os.fdopen(fd, "wb") as out:
+            out.write(blob)
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(tmp, directory / BOOT_FILE)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load(state_dir: str | Path) -> BootProgram | None:
+    """The boot program, None when there is none; BootUnreadable when it cannot be used."""
+    path = Path(state_dir) / BOOT_FILE
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise BootUnreadable(f"{path}: {exc.strerror}") from None
+    try:
+        data = json.loads(raw)
+        if data.get("format") != FORMAT:
+            raise BootUnreadable(f"{path}: format {data.get('format')!r}, expected {FORMAT}")
+        root = data["root"]
+        return BootProgram(str(data["filename"]), str(data["text"]),
+                           None if root is None else str(root))
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        if isinstance(exc, BootUnreadable):
+            raise
+        raise BootUnreadable(f"{path}: not a boot program file ({exc})") from None
+
+
+def from_file(path: str | Path) -> BootProgram:
+    """The boot program for a program file given on the command line."""
+    resolved = Path(path).resolve()
+    return BootProgram(str(resolved), resolved.read_text(encoding="utf-8"), None)
