@@ -1,40 +1,64 @@
 # softplc: every developer and CI goes through these targets.
+#
+# Installs are split by what a target needs, each with its own stamp in the venv: `make run`
+# installs the runtime dependencies only; `make test`/`make lint` add the dev extra (pytest,
+# mypy, ...) and the bench extra (SNAKES, matplotlib: the bench tests import them); `make bench`
+# adds the bench extra. `make setup` installs everything (a developer's venv).
 VENV ?= .venv
 PY := $(VENV)/bin/python
-STAMP := $(VENV)/.installed
+PIP := $(PY) -m pip install --quiet
+RUN_STAMP := $(VENV)/.installed-run
+DEV_STAMP := $(VENV)/.installed-dev
+BENCH_STAMP := $(VENV)/.installed-bench
 PROGRAM ?= programs/transport.yaml
 PLANT ?= transport
 
-.PHONY: setup run test lint bench fuzz clean
+.PHONY: setup run test lint bench fuzz shell clean
 
-setup: $(STAMP)
+setup: $(DEV_STAMP) $(BENCH_STAMP)
 
-$(STAMP): pyproject.toml
-	test -x $(PY) || python3 -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dev,bench]'
-	touch $(STAMP)
+$(PY):
+	python3 -m venv $(VENV)
+	$(PIP) --upgrade pip
 
-run: setup
+$(RUN_STAMP): pyproject.toml | $(PY)
+	$(PIP) -e .
+	touch $@
+
+$(DEV_STAMP): pyproject.toml $(RUN_STAMP)
+	$(PIP) -e '.[dev]'
+	touch $@
+
+$(BENCH_STAMP): pyproject.toml $(RUN_STAMP)
+	$(PIP) -e '.[bench]'
+	touch $@
+
+run: $(RUN_STAMP)
 	$(VENV)/bin/softplc run $(PROGRAM) --plant $(PLANT) --start
 
-test: setup
+test: $(DEV_STAMP) $(BENCH_STAMP)
 	$(PY) -m pytest
 
-lint: setup
+lint: $(DEV_STAMP) $(BENCH_STAMP)
 	$(VENV)/bin/ruff check softplc tests
 	$(VENV)/bin/mypy
 
-bench: setup
+bench: $(BENCH_STAMP)
 	$(VENV)/bin/softplc bench --json bench.json --plots docs/bench --markdown BENCHMARKS.md
 
 # Long fuzz run (about 10 min here): the same fuzz tests as `make test` at 50x the cases; what
 # was tried is appended to fuzz-report.jsonl (figures quoted in RELIABILITY.md).
 FUZZ_SCALE ?= 50
-fuzz: setup
+fuzz: $(DEV_STAMP) $(BENCH_STAMP)
 	rm -f fuzz-report.jsonl
 	SOFTPLC_FUZZ_SCALE=$(FUZZ_SCALE) SOFTPLC_FUZZ_REPORT=fuzz-report.jsonl \
 		$(PY) -m pytest tests/fuzz -q -p no:cacheprovider
+
+# A shell with the venv active: `softplc` is on the PATH there (`exit` leaves it). The same
+# without make: `. .venv/bin/activate`.
+shell: $(RUN_STAMP)
+	@echo "softplc is on the PATH in this shell ($(abspath $(VENV))/bin); exit to leave"
+	@VIRTUAL_ENV="$(abspath $(VENV))" PATH="$(abspath $(VENV))/bin:$$PATH" "$${SHELL:-/bin/sh}" -i
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache .hypothesis

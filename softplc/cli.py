@@ -1,4 +1,5 @@
-"""Command line: `softplc check|run|simulate|replay|download|start|stop|resume|reset|kill|status|bench`.
+"""Command line: `softplc check|run|simulate|replay|download|start|stop|resume|reset|kill|
+force|unforce|status|bench`.
 
 Owns: argument parsing, exit codes, what a person sees. Does not know: how any of it works.
 """
@@ -9,37 +10,96 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
-from softplc.core.problems import ProgramError
+from softplc.core.problems import Problem, ProgramError
 from softplc.core.units import parse_duration_ns
 from softplc.program.compiler import compile_file, summarize
+from softplc.program.io_image import load_io_image
+from softplc.program.spec import TOP_KEYS
+from softplc.program.yamlload import load_yaml
+
+PROGRAM_KEYS = TOP_KEYS - {"description", "events"}  # only a program or subnet has these
+
+
+def _report_problems(path: str, problems: Sequence[Problem]) -> None:
+    for problem in problems:
+        print(problem, file=sys.stderr)
+    print(f"{path}: {len(problems)} problem(s)", file=sys.stderr)
 
 
 def _compile_or_report(path: str):  # type: ignore[no-untyped-def]
     try:
         return compile_file(path)
     except ProgramError as exc:
-        for problem in exc.problems:
-            print(problem, file=sys.stderr)
-        print(f"{path}: {len(exc.problems)} problem(s)", file=sys.stderr)
+        _report_problems(path, exc.problems)
         return None
 
 
+def _is_symbols_file(path: str) -> bool:
+    """A symbols file (io_images/*.yaml) rather than a program: `symbols:` and no net keys."""
+    try:
+        data, _ = load_yaml(Path(path).read_text(encoding="utf-8"), path)
+    except (OSError, UnicodeDecodeError):
+        return False  # compile_file reports it
+    return isinstance(data, dict) and "symbols" in data and not PROGRAM_KEYS & set(data)
+
+
 def cmd_check(args: argparse.Namespace) -> int:
+    """Validate everything that can be known without opening a device: the program, its
+    symbols file, and the drivers' plants and channels. Given a symbols file, just that."""
+    from softplc.devices.check import check_devices
+
+    if _is_symbols_file(args.program):
+        try:
+            io = load_io_image(args.program)
+        except ProgramError as exc:
+            _report_problems(args.program, exc.problems)
+            return 1
+        problems = check_devices(io, args.plant, need_plant=False)
+        if problems:
+            _report_problems(args.program, problems)
+            return 1
+        kinds = ", ".join(f"{d.name} ({d.kind})" for d in io.drivers.values()) or "none"
+        print(f"symbols {args.program}: {len(io.symbols)} symbols, {len(io.events)} events, "
+              f"drivers: {kinds}")
+        return 0
     net = _compile_or_report(args.program)
     if net is None:
+        return 1
+    problems = check_devices(net.io, args.plant, need_plant=False)
+    if problems:
+        _report_problems(args.program, problems)
         return 1
     print(summarize(net))
     return 0
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from softplc.runtime.simulate import simulate
+    from softplc.devices.check import check_devices
+    from softplc.devices.driver import DeviceError
+    from softplc.runtime.simscript import load_script
+    from softplc.runtime.simulate import format_timeline, simulate
 
     net = _compile_or_report(args.program)
     if net is None:
         return 1
-    report = simulate(net, args.duration, args.period, args.seed, args.trace, plant=args.plant)
+    problems = check_devices(net.io, args.plant)
+    script = None
+    if args.script:
+        try:
+            script = load_script(args.script, net.io)
+        except ProgramError as exc:
+            problems = [*problems, *exc.problems]
+    if problems:
+        _report_problems(args.program, problems)
+        return 1
+    try:
+        report = simulate(net, args.duration, args.period, args.seed, args.trace,
+                          plant=args.plant, script=script, timeline=args.timeline)
+    except (DeviceError, ValueError, OSError) as exc:  # a device or file the checks let by
+        print(f"{args.program}: {exc}", file=sys.stderr)
+        return 1
     if args.json:
         print(json.dumps(report, sort_keys=True))
         return 0
@@ -51,7 +111,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
               f"{plant['parts_drilled']} drilled, {len(plant['faults'])} fault(s)")
         for fault in plant["faults"]:
             print(f"  fault: {fault}")
+    if script is not None:
+        print(f"script: {script.file}, {len(script.steps)} step(s)")
     print(f"fired: {report['fired']}")
+    for line in format_timeline(report["timeline"]) if args.timeline else []:
+        print(line)
     print(f"trace sha256: {report['trace_sha256']}")
     return 0
 
@@ -118,8 +182,11 @@ def _endpoint(text: str) -> tuple[str, int] | None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="softplc", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    check = sub.add_parser("check", help="validate and compile a program; print a summary")
-    check.add_argument("program")
+    check = sub.add_parser("check", help="validate and compile a program (or check a symbols "
+                           "file), its drivers' plants and channels; opens nothing")
+    check.add_argument("program", help="a program, or a symbols file (io_images/*.yaml)")
+    check.add_argument("--plant", help="plant model for sim drivers that name none "
+                       "(as run and simulate take it)")
     check.set_defaults(func=cmd_check)
 
     run = sub.add_parser("run", help="run a soft PLC (scan process + Modbus/HTTP process)")
@@ -131,6 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="Modbus TCP slave HOST:PORT, or off (127.0.0.1:5020)")
     run.add_argument("--api", type=_endpoint, default=("127.0.0.1", 8080),
                      help="HTTP API HOST:PORT, or off (127.0.0.1:8080)")
+    run.add_argument("--opcua", type=_endpoint, default=("127.0.0.1", 4840),
+                     help="OPC UA server HOST:PORT, or off (127.0.0.1:4840; docs/opcua.md)")
     run.add_argument("--plant", help="plant model for sim drivers whose io image names none "
                      "(transport, drilling); an io image that names its plant keeps it, and a "
                      "contradicting --plant is refused")
@@ -178,6 +247,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--seed", type=int, default=0)
     sim.add_argument("--json", action="store_true", help="print one JSON object")
     sim.add_argument("--trace", help="record every scan to this JSON Lines file")
+    sim.add_argument("--script", help="YAML of timed HMI writes and input overrides "
+                     "(- at: 5s / write: {hold: true}; docs/simulate.md)")
+    sim.add_argument("--timeline", action="store_true",
+                     help="list the scans where outputs, memory, marking or events changed")
     sim.set_defaults(func=cmd_simulate)
 
     rep = sub.add_parser("replay", help="re-run a trace's inputs and compare outputs bit for bit")
@@ -191,7 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--plots", help="write PNG plots into this directory")
     bench.add_argument("--markdown", help="write the report (e.g. BENCHMARKS.md)")
     bench.add_argument("--only", help="comma-separated sections: engine, scan, modbus, "
-                       "online_change, memory")
+                       "online_change, memory, web")
     bench.add_argument("--quiet", action="store_true", help="no progress display")
     bench.set_defaults(func=cmd_bench)
 

@@ -43,6 +43,15 @@ def add_client_commands(subparsers: Any) -> None:
         parser = subparsers.add_parser(command, help=_HELP[command])
         _connection_options(parser)
         parser.set_defaults(func=cmd_lifecycle, api_command=command)
+    force = subparsers.add_parser("force", help="force a symbol (input or output) to a value")
+    force.add_argument("symbol")
+    force.add_argument("value", help="0/1, true/false or a word 0..65535")
+    _connection_options(force)
+    force.set_defaults(func=cmd_force)
+    unforce = subparsers.add_parser("unforce", help="release a forced symbol (all without one)")
+    unforce.add_argument("symbol", nargs="?", default=None)
+    _connection_options(unforce)
+    unforce.set_defaults(func=cmd_unforce)
     status = subparsers.add_parser("status", help="state, program, scans, timing, marking")
     status.add_argument("--json", action="store_true", help="print the status as JSON")
     _connection_options(status)
@@ -105,6 +114,37 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
     return code
 
 
+def _force_value(text: str) -> int | None:
+    lowered = text.strip().lower()
+    if lowered in ("true", "on"):
+        return 1
+    if lowered in ("false", "off"):
+        return 0
+    try:
+        return int(lowered, 0)
+    except ValueError:
+        return None
+
+
+def cmd_force(args: argparse.Namespace) -> int:
+    value = _force_value(args.value)
+    if value is None:
+        print(f"softplc force: value {args.value!r} is not 0/1, true/false or an integer",
+              file=sys.stderr)
+        return EXIT_REFUSED
+    code, reply = _call(args, "force", lambda client: client.force(args.symbol, value))
+    if code == EXIT_OK:
+        print(f"{reply.get('message')} (state {reply.get('state')})")
+    return code
+
+
+def cmd_unforce(args: argparse.Namespace) -> int:
+    code, reply = _call(args, "unforce", lambda client: client.unforce(args.symbol))
+    if code == EXIT_OK:
+        print(f"{reply.get('message')} (state {reply.get('state')})")
+    return code
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     code, status = _call(args, "status", lambda client: client.status())
     if code == EXIT_OK:
@@ -136,6 +176,9 @@ def format_status(status: dict[str, Any]) -> str:
     marked = {place: tokens for place, tokens in marking.items() if tokens}
     lines.append("marking" + ("" if marked else "     (no tokens)"))
     lines += [f"  {place:<24} {tokens}" for place, tokens in sorted(marked.items())]
+    forced = status.get("forced") or {}
+    lines.append("forced" + ("      (nothing)" if not forced else ""))
+    lines += [f"  {name:<24} {value}  FORCED" for name, value in sorted(forced.items())]
     lines += [f"diagnostic  {d}" for d in status.get("diagnostics") or []]
     return "\n".join(lines)
 

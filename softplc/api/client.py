@@ -120,6 +120,21 @@ class ApiClient:
         body = json.dumps({"value": value}).encode()
         return self._json("PUT", f"/symbols/{_quote(name)}", body, "application/json")
 
+    # -- forcing (docs/web.md) ----------------------------------------------------------------
+
+    def forces(self) -> dict[str, int]:
+        forced: dict[str, int] = self._json("GET", "/forces").get("forced") or {}
+        return forced
+
+    def force(self, name: str, value: bool | int) -> dict[str, Any]:
+        """Force `name` to `value` from the next scan on, until released."""
+        body = json.dumps({"value": value}).encode()
+        return self._json("PUT", f"/forces/{_quote(name)}", body, "application/json")
+
+    def unforce(self, name: str | None = None) -> dict[str, Any]:
+        """Release one force, or every force when `name` is None."""
+        return self._json("DELETE", "/forces" if name is None else f"/forces/{_quote(name)}")
+
     def openapi(self) -> dict[str, Any]:
         return self._json("GET", "/openapi.json")
 

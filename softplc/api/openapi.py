@@ -35,10 +35,11 @@ def _errors(*codes: int) -> dict[str, Any]:
         401: "Missing or wrong bearer token (only when a token is required).",
         403: "Refused: cross-origin request, foreign Host header, or an input symbol.",
         404: "No such symbol or path.",
-        409: "The program lifecycle refuses the command in the current state.",
+        409: "Refused by the program lifecycle in the current state, or expired (`outcome`): "
+             "never applied.",
         413: "Request body larger than 1 MiB.",
         422: "Invalid program or value; `problems` lists every problem.",
-        503: "The scan process did not answer in time or its queue is full.",
+        503: "Not sent, never applied: the PLC is not responding (stale) or its queue is full.",
     }
     return {str(code): _json("Error", text[code]) for code in codes}
 
@@ -49,12 +50,22 @@ def _command_path(command: str) -> dict[str, Any]:
             "operationId": command,
             "summary": _COMMAND_HELP[command],
             "tags": ["program"],
+            "parameters": [_IDEMPOTENCY],
             "responses": {
-                "200": _json("CommandResult", "Accepted; `state` is the new state."),
+                "200": _json("CommandResult", "Applied; `state` is the new state."),
+                "202": _json("CommandPending", "No reply yet: applied before its deadline or "
+                             "never; ask `outcome` for it."),
                 **_errors(401, 403, 409, 503),
             },
         }
     }
+
+
+_IDEMPOTENCY: Final = {
+    "name": "Idempotency-Key", "in": "header", "required": False,
+    "schema": {"type": "string", "pattern": r"^[\x21-\x7e]{1,64}$"},
+    "description": "A retry with the same key returns the first attempt's outcome; the "
+    "command is never sent twice."}
 
 
 _PROGRAM: Final[dict[str, Any]] = {
@@ -71,6 +82,7 @@ _PROGRAM: Final[dict[str, Any]] = {
             {"name": "name", "in": "query",
              "schema": {"type": "string", "pattern": r"^[A-Za-z0-9._-]{1,128}$"},
              "description": "File name of the program, used in problem messages."},
+            _IDEMPOTENCY,
         ],
         "requestBody": {
             "required": True,
@@ -81,6 +93,7 @@ _PROGRAM: Final[dict[str, Any]] = {
         },
         "responses": {
             "200": _json("CommandResult", "Downloaded (or changed online)."),
+            "202": _json("CommandPending", "No reply yet: applied before its deadline or never."),
             **_errors(400, 401, 403, 409, 413, 422, 503),
         },
     }
@@ -103,8 +116,26 @@ _SCHEMAS: Final[dict[str, Any]] = {
         "type": "object",
         "required": ["ok", "message", "state"],
         "properties": {"ok": {"type": "boolean"}, "message": {"type": "string"},
+                       "id": {"type": "integer"},
                        "state": {"type": "string",
                                  "enum": ["EMPTY", "STOPPED", "RUNNING", "KILLED", "FAULTED"]}},
+    },
+    "CommandPending": {
+        "type": "object",
+        "required": ["id", "status", "outcome"],
+        "properties": {"id": {"type": "integer"}, "pending": {"type": "boolean"},
+                       "status": {"type": "string"}, "outcome": {"type": "string"},
+                       "message": {"type": "string"}},
+    },
+    "CommandOutcome": {
+        "type": "object",
+        "required": ["id", "command", "status"],
+        "properties": {
+            "id": {"type": "integer"}, "command": {"type": "string"},
+            "status": {"type": "string",
+                       "enum": ["pending", "applied", "refused", "expired", "unknown"]},
+            "message": {"type": "string"}, "state": {"type": ["string", "null"]},
+            "deadline_in_ms": {"type": "integer"}},
     },
     "Status": {
         "type": "object",
@@ -127,6 +158,10 @@ _SCHEMAS: Final[dict[str, Any]] = {
             "retain": {"type": ["object", "null"]},
             "diagnostics": {"type": "array", "items": {}},
             "last_event_seq": {"type": "integer"},
+            "stale": {"type": "boolean"},
+            "snapshot_age_ms": {"type": ["number", "null"]},
+            "restarts": {"type": "integer"},
+            "restart_reason": {"type": "string"},
         },
     },
     "Symbol": {
@@ -173,6 +208,13 @@ def openapi_document() -> dict[str, Any]:
                           **_errors(401, 403, 503)}}},
         f"{API_PREFIX}/program": _PROGRAM,
         **{f"{API_PREFIX}/{c}": _command_path(c) for c in LIFECYCLE_COMMANDS},
+        f"{API_PREFIX}/commands/{{id}}": {"get": {
+            "operationId": "commandOutcome", "tags": ["program"],
+            "summary": "The outcome of a recent command (by the id of its reply).",
+            "parameters": [{"name": "id", "in": "path", "required": True,
+                            "schema": {"type": "integer"}}],
+            "responses": {"200": _json("CommandOutcome", "The command's outcome."),
+                          **_errors(401, 403, 404)}}},
         f"{API_PREFIX}/symbols": {"get": {
             "operationId": "listSymbols", "tags": ["symbols"],
             "summary": "Every symbol of the loaded program with its live value.",
@@ -209,6 +251,9 @@ def openapi_document() -> dict[str, Any]:
             "responses": {"200": {"description": "OpenAPI 3.1", "content": {
                 "application/json": {"schema": {"type": "object"}}}}, **_errors(401, 403)}}},
     }
+    from softplc.api.web import openapi_paths  # the page, live stream and forcing
+
+    paths.update(openapi_paths(API_PREFIX))
     return copy.deepcopy({
         "openapi": "3.1.0",
         "info": {"title": "softplc management API", "version": "1.0.0",

@@ -26,12 +26,22 @@ from typing import Any, Final, Protocol
 from aiohttp import web
 
 from softplc.api import auth
+from softplc.api import web as web_page
 from softplc.api.limits import HttpBounds, HttpLimits
 from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
 from softplc.core.image import AddressError, parse_address
 from softplc.core.lifecycle import Command
 from softplc.core.snapshot import CommandReply, CommandRequest, HmiWrite, SnapshotSource
-from softplc.runtime.channel import ChannelFull
+from softplc.api.commands import (
+    DOWNLOAD_DEADLINE_S,
+    KEEP,
+    REPLY_GRACE_S,
+    CommandBook,
+    Outcome,
+    Record,
+)
+from softplc.runtime.channel import ChannelFull, NotQueued
+from softplc.runtime.fresh import FreshSource
 from softplc.runtime.shm import SnapshotUnavailable
 
 log = logging.getLogger(__name__)
@@ -39,14 +49,12 @@ log = logging.getLogger(__name__)
 DEFAULT_HOST: Final = "127.0.0.1"
 DEFAULT_PORT: Final = 8080
 MAX_BODY_BYTES: Final = 1 << 20
-COMMAND_TIMEOUT_S: Final = 8.0  # below the client's 10 s: a 503 says more than a timeout
-# A download compiles off the scan (runtime/downloads.py); a big net takes seconds. Below the
-# client's 65 s for downloads, for the same reason.
-DOWNLOAD_TIMEOUT_S: Final = 60.0
+COMMAND_TIMEOUT_S: Final = 5.0  # a lifecycle command's deadline; below the client's 10 s
 HEARTBEAT_S: Final = 15.0
 BOARD_POLL_S: Final = 0.05  # the scan process refreshes the board about every 50 ms
 EVENT_QUEUE: Final = 1024  # per client; a slower client loses the oldest and is told
 _NAME: Final = re.compile(r"[A-Za-z0-9._-]{1,128}")
+_KEY: Final = re.compile(r"[\x21-\x7e]{1,64}")
 _TRUE: Final = frozenset({"1", "true", "yes", "on"})
 _FALSE: Final = frozenset({"0", "false", "no", "off", ""})
 _REFUSED_PROGRAM: Final = "download refused"  # the scan's prefix for a program that failed
@@ -215,7 +223,7 @@ class ApiServer:
         self._channel = channel
         self._snapshots = snapshots
         self._board = board
-        self._ids = itertools.count(1)  # 0 is the scan's own (command-line) commands
+        self._book = CommandBook()  # ids (never 0: the scan's own), deadlines, outcomes
         self._token: str | None = None
         self._hub = _EventHub(self._board_document)
         self._runner: web.AppRunner | None = None
@@ -258,11 +266,13 @@ class ApiServer:
         app.router.add_post(f"{p}/program", self._download)
         for command in LIFECYCLE_COMMANDS:
             app.router.add_post(f"{p}/{command}", self._lifecycle)
+        app.router.add_get(f"{p}/commands/{{id}}", self._command_outcome)
         app.router.add_get(f"{p}/symbols", self._symbols)
         app.router.add_get(f"{p}/symbols/{{name}}", self._symbol)
         app.router.add_put(f"{p}/symbols/{{name}}", self._write_symbol)
         app.router.add_get(f"{p}/events", self._events)
         app.router.add_get(f"{p}/openapi.json", self._openapi)
+        web_page.register(app, self)  # the operator's page, live stream, forcing (docs/web.md)
         return app
 
     # -- middlewares ------------------------------------------------------------------------
@@ -297,7 +307,8 @@ class ApiServer:
             raise ApiProblem(403, "this service answers requests to a loopback host only")
         if not auth.same_origin(request.headers.get("Origin"), host):
             raise ApiProblem(403, "cross-origin requests are refused")
-        if self._token is not None and not auth.bearer_matches(
+        public = web_page.is_public(request.method, request.path)  # the page, to ask a token
+        if self._token is not None and not public and not auth.bearer_matches(
                 request.headers.get("Authorization"), self._token):
             raise ApiProblem(401, "missing or wrong bearer token (see STATE_DIR/api_token)",
                              headers={"WWW-Authenticate": 'Bearer realm="softplc"'})
@@ -315,21 +326,87 @@ class ApiServer:
         return document
 
     async def _command(self, command: Command, text: str | None = None,
-                       name: str | None = None, online: bool = False) -> CommandReply:
-        request = CommandRequest(next(self._ids), command, program_text=text,
-                                 program_path=name, online=online)
+                       name: str | None = None, online: bool = False,
+                       key: str | None = None, symbol: str | None = None,
+                       value: int = 0) -> CommandReply | Record:
+        """Send a command with an id and a deadline. Returns its reply, or its pending Record
+        when no reply came in time (it is then applied before its deadline or never)."""
+        if key is not None and (known := self._book.by_key(key)) is not None:
+            return known  # a retry: the first attempt's outcome, never a second command
+        self._refuse_if_stale()
+        deadline_s = DOWNLOAD_DEADLINE_S if command is Command.DOWNLOAD else self.command_timeout_s
+        request = self._book.request(command, deadline_s, key, program_text=text,
+                                     program_path=name, online=online, symbol=symbol,
+                                     value=value)
         try:
-            timeout_s = self.command_timeout_s
-            if command is Command.DOWNLOAD:
-                timeout_s = max(timeout_s, DOWNLOAD_TIMEOUT_S)
-            return await asyncio.to_thread(self._channel.send_command, request, timeout_s)
-        except (TimeoutError, ChannelFull) as exc:
-            raise ApiProblem(503, str(exc), headers={"Retry-After": "1"}) from None
+            reply = await asyncio.to_thread(self._channel.send_command, request,
+                                            deadline_s + REPLY_GRACE_S, self._book.settle)
+        except (NotQueued, ChannelFull) as exc:
+            self._book.drop(request.id, f"not queued: {exc}")
+            raise ApiProblem(503, f"{command.value} not sent, never applied: {exc}",
+                             headers={"Retry-After": "1"}) from None
+        except TimeoutError:
+            record = self._book.get(request.id)
+            assert record is not None
+            return record
+        self._book.settle(reply)
+        return reply
+
+    def _refuse_if_stale(self) -> None:
+        """A frozen or restarting scan process cannot take a command now: say so at once
+        instead of queueing it for some later moment."""
+        with contextlib.suppress(SnapshotUnavailable):
+            snapshot = self._snapshots.latest()
+            if snapshot.status.stale:
+                age = FreshSource.age_ns(snapshot)
+                raise ApiProblem(503, "PLC not responding: no scan published for "
+                                 + (f"{age / 1e6:.0f} ms" if age >= 0 else "ever")
+                                 + "; the command was not sent", headers={"Retry-After": "1"},
+                                 stale=True)
 
     @staticmethod
-    def _result(reply: CommandReply) -> web.Response:
+    def _pending(record: Record) -> web.Response:
+        body = {"ok": False, "pending": True, **record.as_dict(),
+                "outcome": f"{API_PREFIX}/commands/{record.id}",
+                "message": record.message or (
+                    f"no reply yet: {record.command} is applied before its deadline or never; "
+                    f"ask {API_PREFIX}/commands/{record.id} for the outcome")}
+        status = 202 if record.outcome is Outcome.PENDING else 200
+        return web.json_response(body, status=status,
+                                 headers={"Location": f"{API_PREFIX}/commands/{record.id}"})
+
+    def _answer(self, reply: CommandReply | Record) -> web.Response:
+        """A reply, or a retried command's record, as the HTTP answer."""
+        if isinstance(reply, Record):
+            if reply.outcome is Outcome.APPLIED:
+                return web.json_response({"ok": True, "message": reply.message,
+                                          "state": reply.state, "id": reply.id})
+            if reply.outcome in (Outcome.REFUSED, Outcome.EXPIRED):
+                raise ApiProblem(409, reply.message, state=reply.state, id=reply.id,
+                                 outcome=reply.outcome.value)
+            return self._pending(reply)
+        if not reply.ok:
+            raise ApiProblem(409, reply.message, state=reply.state.name, id=reply.id,
+                             outcome="expired" if reply.expired else "refused")
         return web.json_response({"ok": True, "message": reply.message,
-                                  "state": reply.state.name})
+                                  "state": reply.state.name, "id": reply.id})
+
+    async def _command_outcome(self, request: web.Request) -> web.Response:
+        try:
+            record = self._book.get(int(request.match_info["id"]))
+        except ValueError:
+            record = None
+        if record is None:
+            raise ApiProblem(404, f"no recent command {request.match_info['id'][:40]} "
+                             f"(the last {KEEP} are kept)")
+        return web.json_response(record.as_dict())
+
+    @staticmethod
+    def _key(request: web.Request) -> str | None:
+        key = request.headers.get("Idempotency-Key")
+        if key is not None and not _KEY.fullmatch(key):
+            raise ApiProblem(400, "Idempotency-Key must be 1 to 64 printable ASCII characters")
+        return key
 
     # -- handlers ---------------------------------------------------------------------------
 
@@ -346,10 +423,15 @@ class ApiServer:
         status.setdefault("program", None)
         status.setdefault("marking", {})
         status["board_scan_count"] = status.get("scan_count", 0)
+        status["stale"], status["snapshot_age_ms"] = True, None
         with contextlib.suppress(SnapshotUnavailable):
             # The snapshot follows every scan, the board every ~50 ms: a command's new state
             # shows at once. Marking and timing stay the board's (board_scan_count).
-            s = self._snapshots.latest().status
+            snapshot = self._snapshots.latest()
+            s = snapshot.status
+            age_ns = FreshSource.age_ns(snapshot)
+            status["stale"] = s.stale
+            status["snapshot_age_ms"] = round(age_ns / 1e6, 1) if age_ns >= 0 else None
             if s.scan_count >= status["board_scan_count"] or "state" not in status:
                 status.update(state=s.state.name, scan_count=s.scan_count,
                               fault_code=s.fault_code)
@@ -377,20 +459,17 @@ class ApiServer:
                              [f"{name or 'program'}:1: the request body holds no program"])
         if problems := _unprintable(text, name or "program"):
             raise ApiProblem(422, "download refused: not YAML text", problems)
-        reply = await self._command(Command.DOWNLOAD, text, name, online)
-        if reply.ok:
-            return self._result(reply)
-        if reply.message.startswith(_REFUSED_PROGRAM):
+        reply = await self._command(Command.DOWNLOAD, text, name, online, self._key(request))
+        if isinstance(reply, CommandReply) and not reply.ok and reply.message.startswith(
+                _REFUSED_PROGRAM):
             raise ApiProblem(422, reply.message.partition("\n")[0].rstrip(":"),
-                             _program_problems(reply.message), state=reply.state.name)
-        raise ApiProblem(409, reply.message, state=reply.state.name)
+                             _program_problems(reply.message), state=reply.state.name,
+                             id=reply.id)
+        return self._answer(reply)
 
     async def _lifecycle(self, request: web.Request) -> web.Response:
         command = Command(request.path.rsplit("/", 1)[1])
-        reply = await self._command(command)
-        if not reply.ok:
-            raise ApiProblem(409, reply.message, state=reply.state.name)
-        return self._result(reply)
+        return self._answer(await self._command(command, key=self._key(request)))
 
     async def _symbol_table(self) -> dict[str, dict[str, Any]]:
         symbols = (await self._board_document()).get("symbols") or {}

@@ -28,15 +28,16 @@ import numpy as np
 import numpy.typing as npt
 
 from softplc.core.image import ImageSizes
+from softplc.core.scan import NOTHING_OBSERVED, Observed
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.clock import MonotonicClock, Schedule
 from softplc.runtime.comm import CommConfig
 from softplc.runtime.loop import LoopConfig, ScanLoop, scan_process_main
+from softplc.runtime.procs import die_with_parent
 from softplc.runtime.realtime import NORMAL, Realtime, apply
 from softplc.runtime.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
-from softplc.runtime.procs import die_with_parent
 from softplc.runtime.supervisor import SHM_PREFIX, Supervisor
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout: programs/ and io_images/
@@ -142,9 +143,9 @@ class RecordingLoop(ScanLoop):
         self.summary = self.stats.summary()
         self.changes: list[dict[str, Any]] = []
 
-    def scan_once(self, now_ns: int) -> bool:
+    def scan_once(self, now_ns: int, observed: Observed = NOTHING_OBSERVED) -> bool:
         before = self.runner.plc.net
-        handled = super().scan_once(now_ns)
+        handled = super().scan_once(now_ns, observed)  # the loop passes what it observed
         net = self.runner.plc.net
         if net is not None and net is not before:
             # The first scan of the new net is this one: core.scan fires it after the download.
@@ -161,8 +162,10 @@ def bench_scan_main(config: LoopConfig, channel: Channel, shm_name: str, board_n
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     die_with_parent()
     realtime = apply(config.realtime)
-    writer = SnapshotWriter.create(config.sizes, name=shm_name)
-    board = StatusBoard.create(board_name)
+    # The supervisor created both segments (it owns them, as for `softplc run`): publish into
+    # them. Creating them here replaced the supervisor's, which then leaked in the harness.
+    writer, own_segment = SnapshotWriter.open_or_create(config.sizes, shm_name)
+    board, own_board = StatusBoard.open_or_create(board_name)
     try:
         loop = RecordingLoop(config, channel, writer, board, capacity)
         loop.realtime = realtime
@@ -173,8 +176,12 @@ def bench_scan_main(config: LoopConfig, channel: Channel, shm_name: str, board_n
         results.send(loop.stats.as_record(loop.changes))
     finally:
         writer.close()
-        writer.unlink()
-        board.close()
+        if own_segment:
+            writer.unlink()
+        if own_board:
+            board.close()
+        else:
+            board.detach()
 
 
 def floor_main(period_ns: int, duration_s: float, results: Connection,
@@ -297,6 +304,10 @@ class LiveRuntime:
         if self.board is not None:
             self.board.close()
             self.board = None
+        # Both processes have ended: this closes and unlinks the segments the supervisor owns
+        # (left open, they were garbage collected with numpy views still on them: BufferError
+        # tracebacks, then the resource tracker's "leaked shared_memory objects" at exit).
+        self.supervisor.stop()
         self._state_dir.cleanup()
         self._record = record
         return record

@@ -7,6 +7,7 @@ Does not know: how anything was measured.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,14 +28,64 @@ def _verdict(met: bool | None) -> str:
     return {True: "met", False: "MISSED", None: "not measured"}[met]
 
 
+def _with_unit(value: Any, unit: str) -> str:
+    if value is None:
+        return "—"
+    return f"{_fmt(value)}x" if unit == "x" else f"{_fmt(value)} {unit}"
+
+
+def _bound(row: dict[str, Any]) -> str:
+    op, _, bound = str(row["target"]).partition(" ")
+    unit = row.get("unit", "x")
+    return f"{op} {bound}x" if unit == "x" else f"{op} {bound}"
+
+
 def headline_table(results: dict[str, Any]) -> str:
-    lines = [f"{'key':42} {'value':>10}  {'target':>8}  verdict"]
-    for row in results["targets"]:
-        lines.append(
-            f"{row['key']:42} {_fmt(row['value']):>10}  {row['target']:>8}  {_verdict(row['met'])}"
-        )
+    """The headline figures: value with its unit (x: a ratio, times), the target, the verdict,
+    the scan period it was measured at and what it means."""
+    rows = [(r["key"], _with_unit(r["value"], r.get("unit", "x")), _bound(r),
+             _verdict(r["met"]), r.get("period") or "-", r["meaning"]) for r in results["targets"]]
     rss = results["headline"].get("memory.rss_mb")
-    lines.append(f"{'memory.rss_mb':42} {_fmt(rss):>10}  {'':>8}  (reported)")
+    memory = results.get("sections", {}).get("memory", {})
+    period = f"{memory['period_ms']} ms" if isinstance(memory, dict) and "period_ms" in memory \
+        else "-"
+    rows.append(("memory.rss_mb", _with_unit(rss, "MB"), "-", "reported", period,
+                 "resident memory of the scan process after the soak (4 Modbus clients + HTTP)"))
+    head = ("figure", "value", "target", "verdict", "period", "meaning")
+    widths = [max(len(str(r[i])) for r in [head, *rows]) for i in range(5)]
+    return "\n".join("  ".join(str(c).ljust(w) for c, w in zip(r, widths, strict=False))
+                     + "  " + r[5] for r in [head, *rows])
+
+
+def summary(results: dict[str, Any], written: Sequence[str] = ()) -> str:
+    """What `softplc bench` prints at the end: what ran, on what, the table, the verdict, and
+    where the full story is."""
+    machine = results.get("machine", {})
+    seconds = results.get("seconds", {})
+    quick = results.get("mode") == "quick"
+    targets = [t for t in results["targets"] if t["met"] is not None]
+    missed = [t["key"] for t in targets if not t["met"]]
+    load = machine.get("load_average", [None])[0]
+    lines = [
+        f"softplc bench ({results.get('mode')}): {len(seconds)} section(s) in "
+        f"{sum(seconds.values()):.0f} s on {machine.get('cpu')} ({machine.get('cores')} cores, "
+        f"load {_fmt(load)} at start)",
+        "Ratios (x) compare with a baseline measured in the same run on this machine, so "
+        "they hold across machines better than raw times; period = the PLC scan period.",
+        "",
+        headline_table(results),
+        "",
+        f"verdict: {len(targets) - len(missed)} of {len(targets)} measured target(s) met"
+        + (f"; missed: {', '.join(missed)}" if missed else "")
+        + (f"; not measured: {len(results['targets']) - len(targets)}"
+           if len(targets) < len(results["targets"]) else ""),
+    ]
+    if quick:
+        lines.append("quick mode: small sizes and short runs, figures are indicative; a shared "
+                     "or loaded machine misses the 1 ms targets more often.")
+    lines.append("what each figure measures, how, and why a target can be missed: BENCHMARKS.md "
+                 "(`make bench` regenerates it from a full run)"
+                 + (f"; this run written to {', '.join(written)}" if written else ""))
     return "\n".join(lines)
 
 

@@ -26,6 +26,10 @@ class Command(enum.Enum):
     RESUME = "resume"
     RESET = "reset"
     KILL = "kill"
+    # Forcing (DESIGN.md section 10): not in the table below, never changes the state. FORCE
+    # is accepted wherever a program is loaded, UNFORCE in every state (core/scan.py).
+    FORCE = "force"
+    UNFORCE = "unforce"
 
 
 class CommandRejected(Exception):

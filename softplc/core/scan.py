@@ -18,6 +18,7 @@ from softplc.core import events as event_conditions
 from softplc.core.expr import Value
 from softplc.core.faults import DeviceMonitor
 from softplc.core.firing import Engine
+from softplc.core.forcing import Force, ForceRefused, Forces
 from softplc.core.image import AREAS, OUTPUT_AREAS, Area, ProcessImage
 from softplc.core.lifecycle import Command, CommandRejected, PlcState, next_state
 from softplc.core.net import Busy, CompiledNet, NetState
@@ -37,6 +38,8 @@ class ProgramCommand:
     net: CompiledNet | None = None
     online: bool = False
     id: int = 0
+    symbol: str | None = None  # FORCE/UNFORCE: the symbol (UNFORCE None: release all)
+    value: int = 0  # FORCE: the forced value
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,6 +116,7 @@ class Plc:
     devices: DeviceMonitor = field(default_factory=DeviceMonitor)
     _policies_of: CompiledNet | None = None
     _policies: Mapping[str, FaultPolicy] = field(default_factory=dict)
+    forces: Forces = field(default_factory=Forces)  # DESIGN.md section 10
 
     @classmethod
     def empty(cls, image: ProcessImage | None = None) -> Plc:
@@ -136,6 +140,8 @@ class Plc:
 
     def apply(self, cmd: ProgramCommand, now_ns: int) -> str:
         """Apply one command. Raises CommandRejected and changes nothing when refused."""
+        if cmd.command is Command.FORCE or cmd.command is Command.UNFORCE:
+            return self._force(cmd)
         target = next_state(self.state, cmd.command)
         if cmd.command is Command.DOWNLOAD:
             if cmd.net is None:
@@ -146,6 +152,7 @@ class Plc:
         elif cmd.command is Command.START or cmd.command is Command.RESET:
             assert self.net is not None
             self._load(self.net, NetState.initial(self.net))
+            self.forces.release(None)  # a cold start drops every force (DESIGN.md section 10)
         elif cmd.command is Command.RESUME:
             self._thaw(now_ns)
         if target is not PlcState.RUNNING and self.state is PlcState.RUNNING:
@@ -172,6 +179,40 @@ class Plc:
             by_location.setdefault(loc, []).append(name)
         self.by_location = {k: tuple(v) for k, v in by_location.items()}
         self.events = event_conditions.EventMemory()
+        self.forces.rebind(net.io.symbols)  # forces on symbols the program lacks are dropped
+
+    # -- forcing (DESIGN.md section 10) -----------------------------------------------------
+
+    def _force(self, cmd: ProgramCommand) -> str:
+        """FORCE/UNFORCE: the state stays. Forced outputs act only while RUNNING (stopped,
+        killed or faulted outputs stay safe whatever is forced); forced inputs always."""
+        try:
+            if cmd.command is Command.UNFORCE:
+                released = self.forces.release(cmd.symbol)
+                for entry, shadow in released:
+                    self._unshadow(entry, shadow)
+                if self.engine is not None:
+                    self.engine.refresh_outputs()  # place-driven outputs: the marking's again
+                names = ", ".join(e.symbol for e, _ in released)
+                return f"unforce: released {names or 'nothing (no symbol was forced)'}"
+            if self.net is None or cmd.symbol is None:
+                raise ForceRefused("force needs a loaded program and a symbol")
+            entry = self.forces.force(self.net.io.symbols, cmd.symbol, cmd.value, self.image)
+        except ForceRefused as exc:
+            raise CommandRejected(self.state, cmd.command, f"{cmd.command.value} refused: "
+                                  f"{exc}") from None
+        return f"force: {entry.symbol} = {entry.value} (state {self.state.name})"
+
+    def _unshadow(self, entry: Force, shadow: int | None) -> None:
+        """A released output gets the program's value back (image while RUNNING, the outputs
+        held at a stop otherwise)."""
+        if shadow is None:
+            return
+        value = bool(shadow) if entry.area.endswith("x") else shadow
+        if self.state is PlcState.RUNNING:
+            getattr(self.image, entry.area)[entry.index] = value
+        elif self.held is not None and entry.area in ("qx", "qw"):
+            self.held[0 if entry.area == "qx" else 1][entry.index] = value
 
     def _thaw(self, now_ns: int) -> None:
         """Timers were frozen at stop: shift them by the time spent stopped."""
@@ -371,6 +412,7 @@ def _faulted(plc: Plc, inputs: ProcessImage, now_ns: int, replies: list[CommandR
     plc.last_events = plc.true_last = frozenset()
     np.copyto(plc.image.ix, inputs.ix)
     np.copyto(plc.image.iw, inputs.iw)
+    plc.forces.apply_inputs(plc.image)  # forced inputs show in every state
     if plc.engine is not None:
         plc.engine.invalidate()  # a round that raised half-way leaves no cached enabling
     plc.image.copy_into(plc.prev)
@@ -388,6 +430,7 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
             plc.engine.refresh_outputs()  # a program-driven output stays the program's
     np.copyto(plc.image.ix, inputs.ix)
     np.copyto(plc.image.iw, inputs.iw)
+    plc.forces.apply_inputs(plc.image)  # forcing: a forced input replaces the driver's value
     occurred: tuple[str, ...] = ()
     fired: tuple[str, ...] = ()
     completed: tuple[str, ...] = ()
@@ -397,6 +440,7 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
                                              plc.image, plc.events)
     if plc.state is PlcState.RUNNING and plc.engine is not None and plc.net is not None:
         now_events = frozenset(occurred) | plc.last_events
+        plc.forces.unapply_outputs(plc.image)  # forcing: the program sees its own values
         ctx = _Context(plc.image, plc.prev, plc.locations, now_events)
         # Symbols the program wrote last scan count as changed too: the end-of-scan image
         # already holds them, so the image difference alone would miss them.
@@ -404,6 +448,7 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
         before = plc.engine.state.marking.copy()
         step = plc.engine.fire_round(ctx, now_ns, changed)
         plc._write(step.writes)
+        plc.forces.apply_outputs(plc.image)  # forcing: after Moore/Mealy, before the drivers
         plc.written_last = {symbol for symbol, _ in step.writes}
         names = plc.net.transitions
         fired = tuple(names[t].name for t in step.fired)

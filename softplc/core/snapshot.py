@@ -24,6 +24,7 @@ class Status:
     program_hash: str = ""  # hex sha256 of the program text, "" when EMPTY
     fault_code: int = 0  # a FaultCode (core/problems.py)
     period_us: int = 0
+    forced: int = 0  # how many symbols are forced (DESIGN.md section 10)
     # About the snapshot, not the PLC (so not part of equality): CLOCK_MONOTONIC when the scan
     # process published it (0: never), and a reader's verdict that it is older than the PLC's
     # cycle allows (the scan process is frozen or dead).
@@ -62,15 +63,21 @@ class CommandRequest:
     program_text: str | None = None
     program_path: str | None = None
     online: bool = False
+    symbol: str | None = None  # FORCE/UNFORCE (DESIGN.md section 10); UNFORCE None: all
+    value: int = 0  # FORCE
     deadline_ns: int = 0
 
 
 @dataclass(frozen=True, slots=True)
 class CommandReply:
+    """`ok`: applied. Not ok: refused (the state unchanged), or `expired`: drained after its
+    deadline and never applied."""
+
     id: int
     ok: bool
     message: str
     state: PlcState
+    expired: bool = False
 
 
 class SnapshotSource(Protocol):

@@ -49,6 +49,7 @@ from softplc.devices.modbus_plan import (
     Channel,
     IoPlan,
     Table,
+    channel_problems,
     parse_channel,
     plan_channels,
 )
@@ -64,7 +65,7 @@ from softplc.devices.modbus_requests import (
 
 __all__ = [
     "MAX_OFFSET", "Block", "Channel", "Heartbeat", "IoPlan", "IoStats", "ModbusIoDriver",
-    "ModbusParams", "RemoteError", "Table", "parse_channel", "plan_channels",
+    "ModbusParams", "RemoteError", "Table", "channel_problems", "parse_channel", "plan_channels",
 ]
 
 log = logging.getLogger(__name__)

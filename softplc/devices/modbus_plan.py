@@ -1,8 +1,8 @@
 """Modbus remote-I/O channels: parsing `TABLE:OFFSET` and planning one request per contiguous
 range per table (pure: no socket, no thread).
 
-Owns: Table, Channel, Block, IoPlan, parse_channel, plan_channels and the protocol's
-per-request quantity limits. Does not know: pymodbus, the I/O thread, the scan.
+Owns: Table, Channel, Block, IoPlan, parse_channel, plan_channels, channel_problems and the
+protocol's per-request quantity limits. Does not know: pymodbus, the I/O thread, the scan.
 """
 
 from __future__ import annotations
@@ -94,12 +94,9 @@ def plan_channels(symbols: Iterable[Symbol]) -> IoPlan:
 
     Raises one ValueError listing every problem, each naming the symbol and what was expected.
     """
-    issues: list[str] = []
     used: dict[tuple[Area, Table, int], Symbol] = {}
-    for sym in symbols:
-        issue = _check_symbol(sym, used)
-        if issue:
-            issues.append(f"symbol {sym.name!r} (line {sym.line}): {issue}")
+    issues = [f"symbol {sym.name!r} (line {sym.line}): {issue}"
+              for sym, issue in channel_problems(symbols, used)]
     if issues:
         raise ValueError("modbus channels:\n  " + "\n  ".join(issues))
     groups: dict[tuple[Area, Table], list[tuple[int, int]]] = {}
@@ -108,6 +105,16 @@ def plan_channels(symbols: Iterable[Symbol]) -> IoPlan:
     return IoPlan(
         _blocks(groups, Area.INPUT, _READ_LIMIT), _blocks(groups, Area.OUTPUT, _WRITE_LIMIT)
     )
+
+
+def channel_problems(symbols: Iterable[Symbol],
+                     used: dict[tuple[Area, Table, int], Symbol] | None = None
+                     ) -> list[tuple[Symbol, str]]:
+    """Every symbol whose channel this driver would refuse, with why (`softplc check` reports
+    them without opening anything). `used` collects the valid channels, for planning."""
+    used = {} if used is None else used
+    found = ((sym, _check_symbol(sym, used)) for sym in symbols)
+    return [(sym, issue) for sym, issue in found if issue]
 
 
 def _check_symbol(sym: Symbol, used: dict[tuple[Area, Table, int], Symbol]) -> str | None:

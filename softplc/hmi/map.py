@@ -43,7 +43,7 @@ class MapError(Exception):
 # Offsets are relative to the base. u32 values take two registers, high word first, and
 # saturate at 0xFFFFFFFF.
 STATUS_STATE = 0  # PlcState as an int
-STATUS_FAULT_CODE = 1  # 0 none, 1 watchdog, 2 device
+STATUS_FAULT_CODE = 1  # a FaultCode: 0 none, 1 watchdog, 2 device, 3 program, 4 limit, ...
 STATUS_SCAN_COUNT = 2  # u32
 STATUS_LAST_EXEC_US = 4  # u32
 STATUS_MAX_EXEC_US = 6  # u32
@@ -51,7 +51,10 @@ STATUS_P99_LATENESS_US = 8  # u32
 STATUS_OVERRUNS = 10  # u32
 STATUS_PERIOD_US = 12  # u32
 STATUS_PROGRAM_HASH = 14  # first 64 bits of the sha256, 4 registers, high word first
-STATUS_WORDS = 18
+STATUS_FORCED = 18  # how many symbols are forced (0: none), saturates at 65535
+STATUS_FLAGS = 19  # bit 0: stale (the scan process has not published for too long)
+STATUS_WORDS = 20
+FLAG_STALE = 1
 
 U32_MAX = 0xFFFFFFFF
 
@@ -87,7 +90,8 @@ def status_registers(status: Status) -> list[int]:
         status.period_us,
     ):
         words += _u32(value)
-    return words + _hash_words(status.program_hash)
+    return words + _hash_words(status.program_hash) + [
+        min(max(status.forced, 0), WORD_MAX), FLAG_STALE if status.stale else 0]
 
 
 @dataclass(frozen=True, slots=True)

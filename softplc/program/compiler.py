@@ -9,6 +9,7 @@ Does not know: devices, clocks, the scan.
 from __future__ import annotations
 
 import hashlib
+import re
 from collections import ChainMap, defaultdict
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +33,9 @@ from softplc.core.symbols import Direction, IoImage, SymType
 from softplc.core.values import MAX_FIELDS, field_name_problem
 from softplc.program.io_image import load_io_image
 from softplc.program.spec import ArcSpec, ProgramSpec, TransitionSpec, Where, parse_program, resolve
+from softplc.program.suggest import did_you_mean
+
+_UNKNOWN_NAME = re.compile(r"unknown name '([^']+)'")
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,13 +97,16 @@ class _Compiler:
         try:
             return compile_expr(text, scope)
         except ExprError as exc:
-            self.problem(where, f"{exc.message} in {text!r}")
+            unknown = _UNKNOWN_NAME.match(exc.message)
+            hint = did_you_mean(unknown.group(1), [*self.names, *tokens]) if unknown else ""
+            self.problem(where, f"{exc.message} in {text!r}{hint}")
             return None
 
     def writable(self, symbol: str, where: Where, want: SymType | None) -> bool:
         sym = self.io.symbols.get(symbol)
         if sym is None:
-            self.problem(where, f"unknown symbol {symbol!r} (not in {self.io.path})")
+            self.problem(where, f"unknown symbol {symbol!r} (not in {self.io.path})"
+                                f"{did_you_mean(symbol, self.io.symbols)}")
             return False
         if sym.direction is Direction.IN:
             self.problem(where, f"{symbol} is an input ({sym.address}); a program cannot write it")
@@ -132,7 +139,8 @@ class _Compiler:
             return None
         if len(words) == 2 and words[0] == "emit":
             if words[1] not in self.events:
-                self.problem(where, f"event {words[1]!r} is not declared in the program's events:")
+                self.problem(where, f"event {words[1]!r} is not declared in the program's "
+                                    f"events:{did_you_mean(words[1], self.events)}")
                 return None
             return Action(ActionKind.EMIT, words[1])
         if "=" in text:
@@ -148,7 +156,8 @@ class _Compiler:
     def place_of(self, arc: ArcSpec) -> int | None:
         index = self.places.get(arc.place)
         if index is None:
-            self.problem(arc.where, f"arc to unknown place {arc.place!r}")
+            self.problem(arc.where, f"arc to unknown place {arc.place!r}"
+                                    f"{did_you_mean(arc.place, self.places)}")
         elif arc.weight > self.limits.weight:
             self.problem(arc.where, f"arc weight {arc.weight:,} of {arc.place!r} exceeds the "
                                     f"limit {self.limits.weight:,} (limits.weight)")

@@ -25,9 +25,10 @@ from softplc.core.symbols import (
     Symbol,
     SymType,
 )
+from softplc.program.suggest import did_you_mean, did_you_mean_key
 from softplc.program.yamlload import YMap, line_of, load_yaml, trap_hint
 
-DRIVER_KINDS = ("sim", "modbus")
+DRIVER_KINDS = ("sim", "modbus", "opcua")
 POLICY_KEYS = ("on_failure", "hold_scans", "auto_recover", "startup_s")  # any kind of driver
 SYMBOL_KEYS = {"address", "type", "dir", "safe", "driver", "channel", "description", "hmi_writable"}
 
@@ -61,7 +62,10 @@ class _Reader:
         for name, spec in section.items():
             line, path = line_of(section, name), f"drivers.{name}"
             if not isinstance(spec, dict) or spec.get("kind") not in DRIVER_KINDS:
-                self.problem(line, path, f"expected {{kind: {' | '.join(DRIVER_KINDS)}, ...}}")
+                kind = spec.get("kind") if isinstance(spec, dict) else None
+                hint = did_you_mean(kind, DRIVER_KINDS) if isinstance(kind, str) else ""
+                self.problem(line, path,
+                             f"expected {{kind: {' | '.join(DRIVER_KINDS)}, ...}}{hint}")
                 continue
             params = {k: v for k, v in spec.items() if k != "kind" and k not in POLICY_KEYS}
             policy = self.policy(spec, path)
@@ -115,7 +119,8 @@ class _Reader:
             return None
         for key in sorted(set(spec) - SYMBOL_KEYS, key=str):
             self.problem(line_of(spec, key), f"{path}.{key}",
-                         f"unknown key {key!r}; expected one of {', '.join(sorted(SYMBOL_KEYS))}")
+                         f"unknown key {key!r}{did_you_mean_key(key, SYMBOL_KEYS)}; "
+                         f"expected one of {', '.join(sorted(SYMBOL_KEYS))}")
         try:
             address = parse_address(str(spec["address"]))
             image.check(address)
@@ -134,7 +139,8 @@ class _Reader:
         if driver == "none":
             driver = None  # kept in the image only (e.g. a value shown to HMIs)
         if driver is not None and driver not in drivers:
-            self.problem(line_of(spec, "driver"), f"{path}.driver", f"unknown driver {driver!r}")
+            self.problem(line_of(spec, "driver"), f"{path}.driver",
+                         f"unknown driver {driver!r}{did_you_mean(driver, [*drivers, 'none'])}")
         safe = self._safe(spec, path, sym_type)
         return Symbol(name, address, sym_type, direction, safe, str(spec.get("description", "")),
                       driver, str(spec.get("channel", name)),
@@ -177,7 +183,7 @@ class _Reader:
             target = spec[kind.value]
             sym = symbols.get(str(target))
             if sym is None:
-                self.problem(line, path, f"unknown symbol {target!r}")
+                self.problem(line, path, f"unknown symbol {target!r}{did_you_mean(target, symbols)}")
                 continue
             if kind in (EventKind.RISING, EventKind.FALLING) and sym.type is not SymType.BOOL:
                 self.problem(line, path, f"{kind.value} needs a bool symbol; {sym.name} is a word")

@@ -16,6 +16,7 @@ from softplc.core.expr import ExprError, Value, substitute
 from softplc.core.problems import Problem
 from softplc.core.units import parse_duration_ns
 from softplc.core.values import record_problems
+from softplc.program.suggest import did_you_mean, did_you_mean_key
 from softplc.program.yamlload import YList, YMap, line_of, load_yaml, trap_hint
 
 TOP_KEYS = {"program", "net", "description", "io_image", "params", "places", "transitions",
@@ -119,7 +120,8 @@ class _Parser:
         for key in data:
             if key not in allowed:
                 self.problem(line_of(data, key), f"{path}.{key}".lstrip("."),
-                             f"unknown key {key!r}; expected one of {', '.join(sorted(allowed))}")
+                             f"unknown key {key!r}{did_you_mean_key(key, allowed)}; "
+                             f"expected one of {', '.join(sorted(allowed))}")
 
     def parse(self, data: Any, top: bool) -> None:
         if not isinstance(data, YMap):
@@ -378,7 +380,8 @@ class _Parser:
             self.problem(where.line, where.path, f"subnet {data['net']} needs parameter {missing!r}")
         for extra in sorted(set(given) - set(declared)):
             self.problem(line_of(given, extra), f"{where.path}.with.{extra}",
-                         f"subnet {data['net']} has no parameter {extra!r} "
+                         f"subnet {data['net']} has no parameter {extra!r}"
+                         f"{did_you_mean(extra, declared)} "
                          f"(it takes: {', '.join(declared) or 'none'})")
         params = {str(k): v if isinstance(v, int | bool) else self.resolve_param(str(v))
                   for k, v in given.items()}

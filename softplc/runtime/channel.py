@@ -34,7 +34,7 @@ import select
 import threading
 from array import array
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from multiprocessing.context import BaseContext
@@ -48,7 +48,18 @@ FRAME_BYTES: Final = select.PIPE_BUF - 4  # Connection.send_bytes adds a 4-byte 
 _CHUNK_BYTES: Final = FRAME_BYTES - 128  # room for the pickled (ticket, lane, i, n) tuple
 _MAX_PARTIAL: Final = 64  # half-received commands kept (their clients died or gave up)
 _MAX_BACKLOG: Final = 1024  # reply frames kept for a lane whose reader is not reading
+_MAX_ABANDONED: Final = 1024  # commands whose caller gave up, kept for a late reply
 _CLOCK: Final = MonotonicClock()
+
+
+class NotQueued(TimeoutError):
+    """A command that could not be put in the queue in time: the scan process will never see
+    it whole, so it is never applied."""
+
+
+class NoReply(TimeoutError):
+    """A command queued whose reply did not come in time: it may still be decided later (but
+    never applied after its deadline, if it has one)."""
 
 
 class ChannelFull(Exception):
@@ -61,6 +72,7 @@ class _Pending:
     done: threading.Event = field(default_factory=threading.Event)
     chunks: list[bytes] = field(default_factory=list)
     reply: CommandReply | None = None
+    late: Callable[[CommandReply], None] | None = None  # its caller gave up but wants to know
 
 
 @dataclass(slots=True)
@@ -199,10 +211,12 @@ class Channel:
 
     # -- client side -----------------------------------------------------------------------
 
-    def send_command(self, request: CommandRequest, timeout_s: float = 5.0) -> CommandReply:
-        """Queue `request` for the scan process and wait for its reply. Raises TimeoutError if
-        it cannot be queued or answered within `timeout_s` (the scan process is not running
-        or not draining)."""
+    def send_command(self, request: CommandRequest, timeout_s: float = 5.0,
+                     on_late: Callable[[CommandReply], None] | None = None) -> CommandReply:
+        """Queue `request` for the scan process and wait for its reply. Raises NotQueued if it
+        cannot be queued within `timeout_s`, NoReply if it is not answered in time (both are
+        TimeoutErrors: the scan process is not running or not draining). With `on_late`, a
+        reply that comes after NoReply is handed to it (from the reply thread)."""
         deadline_ns = _CLOCK.now_ns() + int(timeout_s * 1e9)
         client = self._client_state()
         ticket = next(client.tickets)
@@ -213,12 +227,14 @@ class Channel:
             blob = pickle.dumps(request, pickle.HIGHEST_PROTOCOL)
             for frame in _frames(blob, (ticket, client.lane)):
                 if not self._send_until(frame, deadline_ns):
-                    raise TimeoutError(
+                    raise NotQueued(
                         f"command {request.command.value} (id {request.id}) could not be queued "
                         f"within {timeout_s} s: the scan process is not draining its commands"
                     )
             if not pending.done.wait(max(0.0, (deadline_ns - _CLOCK.now_ns()) / 1e9)):
-                raise TimeoutError(
+                if on_late is not None:
+                    pending.late = on_late
+                raise NoReply(
                     f"no reply to command {request.command.value} (id {request.id}) within "
                     f"{timeout_s} s: is the scan process running?"
                 )
@@ -226,7 +242,10 @@ class Channel:
             return pending.reply
         finally:
             with client.lock:
-                del client.pending[ticket]
+                if pending.late is None or pending.done.is_set():
+                    del client.pending[ticket]
+                elif len(client.pending) > _MAX_ABANDONED:  # nobody answers: forget the oldest
+                    del client.pending[next(iter(client.pending))]
 
     def _send_until(self, frame: bytes, deadline_ns: int) -> bool:
         writer = self._commands[1]
@@ -289,6 +308,7 @@ class Channel:
                 ticket, index, count, chunk = pickle.loads(reader.recv_bytes())
             except (EOFError, OSError):
                 return
+            late = None
             with client.lock:
                 pending = client.pending.get(ticket)
                 if pending is None or index != len(pending.chunks):
@@ -297,6 +317,11 @@ class Channel:
                 if len(pending.chunks) == count:
                     pending.reply = pickle.loads(b"".join(pending.chunks))
                     pending.done.set()
+                    if pending.late is not None:
+                        late = pending.late
+                        del client.pending[ticket]
+            if late is not None and pending.reply is not None:
+                late(pending.reply)
 
 
 def _frames(blob: bytes, prefix: tuple[int, ...]) -> list[bytes]:

@@ -25,6 +25,7 @@ from softplc.hmi.admission import Limits
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.procs import Flag as Event
+from softplc.runtime.fresh import FreshSource
 from softplc.runtime.shm import SnapshotReader
 
 if TYPE_CHECKING:
@@ -51,6 +52,7 @@ class CommConfig:
     modbus_max_connections: int = 16
     modbus_max_per_peer: int = 8
     modbus_idle_timeout_s: float = 60.0
+    opcua: tuple[str, int] | None = None  # `softplc run` serves 127.0.0.1:4840 unless told off
 
     def __post_init__(self) -> None:
         if self.modbus_writes not in MODBUS_WRITES:
@@ -136,7 +138,8 @@ def modbus_slave(config: CommConfig, source: SnapshotSource, sink: Callable[[Hmi
 
 async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name: str,
                  ready: Event, stop: Event) -> None:
-    reader = SnapshotReader.attach(shm_name, config.sizes)
+    mapping = SnapshotReader.attach(shm_name, config.sizes)
+    reader = FreshSource(mapping)
     board = StatusBoard.attach(board_name)
     services: list[_Service] = []
     if config.modbus is not None:
@@ -151,6 +154,8 @@ async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name
                         state_dir=Path(config.state_dir))
         await api.start()
         services.append(api)
+    if config.opcua is not None:
+        services.extend(await _start_opcua(config, channel, reader, board))
     ready.set()
     parent = os.getppid()
     try:
@@ -159,8 +164,27 @@ async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name
     finally:
         for service in reversed(services):
             await service.stop()
-        reader.close()
+        mapping.close()
         board.close()
+
+
+async def _start_opcua(config: CommConfig, channel: Channel, reader: SnapshotReader,
+                       board: StatusBoard) -> list[_Service]:
+    """The OPC UA server, or none when it cannot start (port taken): Modbus and the API
+    keep serving, the failure is logged."""
+    from softplc.opcua.server import OpcUaServer
+
+    assert config.opcua is not None
+    host, port = config.opcua
+    server = OpcUaServer(channel, reader, board, host=host, port=port,
+                         state_dir=Path(config.state_dir), modbus_writes=config.modbus_writes)
+    try:
+        await server.start()
+    except Exception:
+        log.exception("OPC UA server not started on %s:%d", host, port)
+        await server.stop()
+        return []
+    return [server]
 
 
 def comm_process_main(config: CommConfig, channel: Channel, shm_name: str, board_name: str,

@@ -33,6 +33,7 @@ from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
 from softplc.devices.driver import Driver
 from softplc.program.compiler import compile_file, compile_text
+from softplc.runtime import netview
 from softplc.runtime import boot
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
@@ -232,17 +233,21 @@ class ScanLoop:
                 Prepared(item.net, req) if item.net is not None else None)
             if req.deadline_ns and time.monotonic_ns() > req.deadline_ns:
                 late_ms = (time.monotonic_ns() - req.deadline_ns) / 1e6
-                self._refuse(req, f"{req.command.value} expired: not applied (its deadline "
-                             f"passed {late_ms:.0f} ms before the scan could take it)")
+                self._reply(CommandReply(
+                    req.id, False, f"{req.command.value} expired: not applied (its deadline "
+                    f"passed {late_ms:.0f} ms before the scan could take it)",
+                    self.runner.plc.state, expired=True))
                 if prepared is not None:
                     prepared.discard()
                 continue
             if req.command is not Command.DOWNLOAD:
-                commands.append(ProgramCommand(req.command, online=req.online, id=req.id))
+                commands.append(ProgramCommand(req.command, online=req.online, id=req.id,
+                                               symbol=req.symbol, value=req.value))
             elif isinstance(item.error, ProgramError):
-                self._refuse(req, f"download refused:\n{item.error}")
+                self._refuse(req, f"download refused:\n{self._relative(str(item.error))}")
             elif item.error is not None:  # a device that cannot open, or a compiler bug
-                self._refuse(req, f"download refused: {_describe(item.error)}")
+                self._refuse(req, "download refused: "
+                             + self._relative(_describe(item.error)))
             elif prepared is not None and prepared.net.io.sizes != self.config.sizes:
                 prepared.discard()
                 self._refuse(req, "download refused: the program's image sizes "
@@ -251,6 +256,12 @@ class ScanLoop:
                 self._prepared[req.id] = prepared
                 commands.append(ProgramCommand(Command.DOWNLOAD, prepared.net, req.online, req.id))
         return commands
+
+    def _relative(self, message: str) -> str:
+        """Paths in a message as the sender knows them: relative to the programs' root, never
+        the server's absolute paths."""
+        root = Path(self.config.root).resolve() if self.config.root else Path.cwd()
+        return message.replace(f"{root}/", "")
 
     def _refuse(self, req: CommandRequest, message: str) -> None:
         self._reply(CommandReply(req.id, False, message, self.runner.plc.state))
@@ -379,12 +390,18 @@ class ScanLoop:
             "start_reason": self.start_reason, "program_source": self.program_source,
             "realtime": self.realtime,
             "restarts": self.config.restarts, "restart_reason": self.config.restart_reason,
+            "scan_pid": os.getpid(),
             "on_stall": self.config.on_stall, "watchdog_ms": self.budget_ns / 1e6,
             "internal_errors": self.internal_errors,
             "retain": self.retain.info() if self.retain else None,
             "health": {name: h.value for name, h in self.runner.health().items()},
             "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
             "symbols": symbols, "events": list(self.events),
+            "forced": plc.forces.values(),  # forcing (DESIGN.md section 10)
+            # The operator's page (docs/web.md): structure cached per program, live state.
+            "net": netview.structure(net) if net else None,
+            "net_live": netview.live(net, plc.engine.state if plc.engine else None,
+                                     self.clock.now_ns(), self.runner.fired_counts),
         }
 
     def status(self) -> Status:
@@ -393,7 +410,7 @@ class ScanLoop:
                       self.stats.max_exec_ns // 1000, int(self.summary.lateness_p99_us),
                       self.stats.overruns,
                       plc.net.program_hash if plc.net else "", int(plc.fault_code),
-                      self.config.period_ns // 1000)
+                      self.config.period_ns // 1000, len(plc.forces))
 
     def run(self, stop: Event | None = None) -> None:
         period = self.config.period_ns
@@ -413,6 +430,10 @@ class ScanLoop:
                 self._watchdog(exec_ns, done)
             self.stats.record(exec_ns, late, skipped=schedule.advance(done))
         self.shutdown()
+
+    @staticmethod
+    def _observed_none() -> Observed:
+        return NOTHING_OBSERVED
 
     def _stall(self, late_ns: int) -> Observed:
         """A cycle that started more than the watchdog budget late: the process was paused or
@@ -465,17 +486,17 @@ class ScanLoop:
             self._event(name, now_ns)
 
     def shutdown(self) -> None:
-        """Outputs to their safe values, written through the drivers and confirmed, then close."""
+        """Outputs to their safe values, written through the drivers and confirmed; the final
+        retain snapshot written synchronously (and said); then close."""
         self.summary = self.stats.summary()
         plc = self.runner.plc
-        # Retained before the outputs go safe: a warm restart resumes what the program drove.
-        self._retain(self.clock.now_ns(), True)
+        now_ns = self.clock.now_ns()
+        # Captured before the outputs go safe: a warm restart resumes what the program drove.
+        final = capture(plc, now_ns, self._sim_plants()) if self.retain is not None else None
         plc.drive_safe()
-        self._confirm_safe(self.clock.now_ns())
+        self._confirm_safe(now_ns)
         if self.writer is not None:
             self.writer.publish(plc.image, self.status())
-        if self.board is not None:
-            self.board.publish(self.document())
         self.runner.close()
         self.downloads.close()
         for prepared in self._prepared.values():
@@ -483,7 +504,12 @@ class ScanLoop:
         if self._boot_writer is not None:
             self._boot_writer.shutdown(wait=True)
         if self.retain is not None:
-            self.retain.close()  # waits for the last snapshot to be on disk
+            # Bounded: SIGTERM must end everything within the supervisor's STOP_S.
+            outcome = self.retain.stop(final, timeout_s=1.0)
+            if self.channel is not None:  # a real scan process: say it where people look
+                print(f"softplc: {outcome}", file=sys.stderr, flush=True)
+        if self.board is not None:
+            self.board.publish(self.document())
 
 
 def _describe(error: BaseException) -> str:

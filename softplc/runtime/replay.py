@@ -40,7 +40,8 @@ def _commands(record: dict[str, Any], net: CompiledNet) -> tuple[list[ProgramCom
                         f"{entry['hash'][:12]}, replay runs {net.name} {net.program_hash[:12]})")
             commands.append(ProgramCommand(command, net, bool(entry.get("online"))))
         else:
-            commands.append(ProgramCommand(command))
+            commands.append(ProgramCommand(command, symbol=entry.get("symbol"),
+                                           value=int(entry.get("value", 0))))
     return commands, note
 
 

@@ -87,6 +87,7 @@ class Capture:
     events_last: dict[str, int]
     events_armed: dict[str, bool]
     field: dict[str, bytes]  # driver name -> pickled sim plant (simulation only)
+    forces: tuple[tuple[str, int, int | None], ...] = ()  # (symbol, value, program's value)
 
 
 def capture(plc: Plc, now_ns: int, plants: dict[str, object]) -> Capture | None:
@@ -97,7 +98,8 @@ def capture(plc: Plc, now_ns: int, plants: dict[str, object]) -> Capture | None:
     return Capture(plc.net, plc.state, plc.fault_code, plc.scan_count, now_ns,
                    plc.engine.state.copy(), plc.image.copy(), held, plc.stopped_at_ns,
                    dict(plc.events.last), dict(plc.events.armed),
-                   {name: pickle.dumps(plant) for name, plant in plants.items()})
+                   {name: pickle.dumps(plant) for name, plant in plants.items()},
+                   tuple(plc.forces.triples()))
 
 
 def encode(cap: Capture, seq: int, wall_ns: int) -> dict[str, Any]:
@@ -121,6 +123,7 @@ def encode(cap: Capture, seq: int, wall_ns: int) -> dict[str, Any]:
         "events": {"last": cap.events_last, "armed": cap.events_armed},
         "field_simulation_only": {name: base64.b64encode(blob).decode()
                                   for name, blob in cap.field.items()},
+        "forces": [list(f) for f in cap.forces],  # kept across a warm restart
     }
 
 
@@ -174,6 +177,8 @@ def restore(plc: Plc, payload: dict[str, Any], resume: bool) -> PlcState:
     plc.events = EventMemory(dict(payload["events"]["last"]), dict(payload["events"]["armed"]))
     plc.scan_count = payload["scan_count"]
     plc.fault_code = FaultCode(payload["fault_code"])
+    plc.forces.restore(net.io.symbols, [(str(n), int(v), s) for n, v, s in
+                                        payload.get("forces", [])])
     was = PlcState[payload["state"]]
     held = payload["held"]
     plc.held = None if held is None else (_unpack(held[0], plc.image.qx),

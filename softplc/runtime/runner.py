@@ -50,6 +50,10 @@ def open_drivers(io: IoImage, seed: int = 0, plant: str | None = None) -> list[D
                 from softplc.devices.modbus_io import ModbusIoDriver
 
                 drivers.append(ModbusIoDriver(spec, [s for s in symbols if s.driver == spec.name]))
+            elif spec.kind == "opcua":
+                from softplc.opcua.driver import OpcUaIoDriver
+
+                drivers.append(OpcUaIoDriver(spec, [s for s in symbols if s.driver == spec.name]))
             else:
                 continue
             drivers[-1].open()
@@ -245,6 +249,8 @@ def _command(cmd: ProgramCommand) -> dict[str, Any]:
         out["hash"] = cmd.net.program_hash
     if cmd.online:
         out["online"] = True
+    if cmd.command in (Command.FORCE, Command.UNFORCE):  # replay reproduces forces
+        out["symbol"], out["value"] = cmd.symbol, cmd.value
     return out
 
 

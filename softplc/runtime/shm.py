@@ -25,8 +25,9 @@ program order; that is the platform this targets. Weakly ordered CPUs (ARM) woul
 that Python cannot express.
 
 Layout, native byte order: header (64 bytes: magic, version, header size, bits, words, total
-size, latest, the two slot counters), then two slots of: status (9 int64, the last the
-CLOCK_MONOTONIC time of the publish, + 64-byte program hash), %IX %QX %MX as one byte per bit, %IW %QW %MW as uint16.
+size, latest, the two slot counters), then two slots of: status (10 int64, the last two the
+number of forced symbols and the CLOCK_MONOTONIC time of the publish, + 64-byte program
+hash), %IX %QX %MX as one byte per bit, %IW %QW %MW as uint16.
 """
 
 from __future__ import annotations
@@ -50,11 +51,11 @@ from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import Snapshot, Status
 
 MAGIC: Final = b"SPLCSNAP"
-VERSION: Final = 2  # 2: status carries published_ns
+VERSION: Final = 3  # 2: status carries published_ns; 3: and `forced`
 _HEADER = struct.Struct("=8sIIIIQ")  # magic, version, header bytes, bits, words, total bytes
 _HEADER_BYTES: Final = 64
 _CONTROL_OFFSET: Final = 32  # uint64 latest, slot 0 counter, slot 1 counter
-_STATUS = struct.Struct("=9q64s")
+_STATUS = struct.Struct("=10q64s")
 _HASH_BYTES: Final = 64
 _BIT_AREAS: Final = ("ix", "qx", "mx")
 _WORD_AREAS: Final = ("iw", "qw", "mw")
@@ -108,15 +109,15 @@ def _pack_status(status: Status, published_ns: int = 0) -> bytes:
         status.overruns,
         status.fault_code,
         status.period_us,
+        status.forced,
         published_ns,
         program_hash,
     )
 
 
 def _unpack_status(raw: npt.NDArray[np.uint8]) -> Status:
-    state, scans, last_exec, max_exec, p99_late, overruns, fault, period, published, program_hash = (
-        _STATUS.unpack_from(raw.data)
-    )
+    (state, scans, last_exec, max_exec, p99_late, overruns, fault, period, forced, published,
+     program_hash) = _STATUS.unpack_from(raw.data)
     return Status(
         state=_STATES[state],
         scan_count=scans,
@@ -127,6 +128,7 @@ def _unpack_status(raw: npt.NDArray[np.uint8]) -> Status:
         program_hash=program_hash.rstrip(b"\0").decode("ascii"),
         fault_code=fault,
         period_us=period,
+        forced=forced,
         published_ns=published,
     )
 

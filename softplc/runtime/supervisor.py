@@ -37,7 +37,7 @@ from softplc.core.problems import ProgramError
 from softplc.program.compiler import compile_file
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel, pid_alive
-from softplc.runtime.comm import CommConfig, comm_process_main
+from softplc.runtime.comm import CommConfig, comm_process_main, modbus_limits
 from softplc.runtime.loop import LoopConfig, scan_process_main
 from softplc.runtime.procs import ReadySignal, StopFlag
 from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
@@ -136,7 +136,8 @@ class Supervisor:
             on_stall=getattr(args, "on_stall", "fault"),
             realtime=Realtime(getattr(args, "rt_priority", None), getattr(args, "scan_cpu", None)))
         comm_config = CommConfig(modbus=args.modbus, api=args.api, state_dir=args.state_dir,
-                                 sizes=sizes, modbus_writes=getattr(args, "modbus_writes", "open"))
+                                 sizes=sizes, modbus_writes=getattr(args, "modbus_writes", "open"),
+                                 opcua=getattr(args, "opcua", None), **modbus_limits(args))
         return cls(loop_config, comm_config)
 
     def start(self, timeout_s: float = 30.0) -> None:
@@ -164,7 +165,8 @@ class Supervisor:
                 raise RuntimeError(f"the scan process did not start within {timeout_s:g} s")
 
     def start_comm(self, timeout_s: float = 30.0) -> None:
-        if self.comm_config.modbus is None and self.comm_config.api is None:
+        if (self.comm_config.modbus is None and self.comm_config.api is None
+                and self.comm_config.opcua is None):
             return
         ready = ReadySignal(self.ctx)
         self.comm = self.ctx.Process(
@@ -406,4 +408,7 @@ def _banner(args: argparse.Namespace, doc: dict[str, Any]) -> None:
     if args.api:
         host, port = args.api
         print(f"  HTTP API on http://{host}:{port}; try: curl -s http://{host}:{port}/api/v1/status")
+    if getattr(args, "opcua", None):
+        host, port = args.opcua
+        print(f"  OPC UA server on opc.tcp://{host}:{port} (writes and methods: user token)")
     print("  Ctrl-C stops (outputs to their safe values first)", flush=True)

@@ -58,3 +58,38 @@ def test_unknown_section_is_refused_with_the_list_of_known_ones(capsys: Any) -> 
                               only="engine,warp", quiet=True)
     assert harness.main(args) == 2
     assert "unknown section(s) warp" in capsys.readouterr().err
+
+
+def test_the_summary_explains_itself() -> None:
+    """Units, period, meaning, verdict and the pointer to BENCHMARKS.md, from a result dict."""
+    values = {"engine.vs_snakes_1k": 120.0, "engine.scale_10k_over_10": None,
+              "scan.p99_ratio_loaded_over_floor_1ms": 1.5, "scan.overruns_loaded_1ms": 3,
+              "modbus.throughput_ratio_vs_pymodbus_4c": 1.2, "online_change.missed_scans": 0,
+              "memory.rss_mb": 90.0}
+    results: dict[str, Any] = {
+        "mode": "quick", "machine": {"cpu": "Test CPU", "cores": 2, "load_average": [0.5]},
+        "seconds": {"engine": 10.0, "scan": 20.0}, "headline": values,
+        "sections": {"memory": {"period_ms": 10}},
+        "targets": [{"key": t.key, "target": f"{t.op} {t.bound:g}", "meaning": t.meaning,
+                     "unit": t.unit, "period": t.period, "value": values.get(t.key),
+                     "met": t.met(values.get(t.key))} for t in harness.TARGETS],
+    }
+    text = harness_summary(results)
+    assert "softplc bench (quick): 2 section(s) in 30 s on Test CPU (2 cores" in text
+    lines = {line.split()[0]: line for line in text.splitlines() if line.strip()}
+    assert lines["engine.vs_snakes_1k"].split()[1:5] == ["120x", ">=", "100x", "met"]
+    assert "SNAKES round time / ours" in lines["engine.vs_snakes_1k"]
+    assert lines["scan.overruns_loaded_1ms"].split()[1:7] == ["3", "scans", "==", "0", "MISSED",
+                                                              "1"]
+    assert lines["engine.scale_10k_over_10"].split()[1:5] == ["—", "<=", "3x", "not"]
+    assert lines["memory.rss_mb"].split()[1:6] == ["90", "MB", "-", "reported", "10"]
+    unmeasured = len(harness.TARGETS) - 5  # the targets this test gives no value
+    assert "verdict: 4 of 5 measured target(s) met; missed: scan.overruns_loaded_1ms; " \
+           f"not measured: {unmeasured}" in text
+    assert "BENCHMARKS.md" in text and "period = the PLC scan period" in text
+
+
+def harness_summary(results: dict[str, Any]) -> str:
+    from softplc.bench.report import summary
+
+    return summary(results)

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 from softplc.core.image import parse_address
 from softplc.core.snapshot import HmiWrite
+from softplc.hmi.map import STATUS_WORDS
 
 COILS_SET = {0, 3, 799, 801, 1599}
 DI_SET = {2, 15, 799}
@@ -190,8 +191,8 @@ ILLEGAL_ADDRESS = [
         ("fc3-start-beyond", pdu(3, "HH", 2048, 1)),
         ("fc3-end-beyond", pdu(3, "HH", 2040, 9)),
         ("fc3-wraps-16-bits", pdu(3, "HH", 0xFFFF, 2)),
-        ("fc4-start-beyond", pdu(4, "HH", 1042, 1)),
-        ("fc4-end-beyond-status", pdu(4, "HH", 1040, 3)),
+        ("fc4-start-beyond", pdu(4, "HH", 1024 + STATUS_WORDS, 1)),
+        ("fc4-end-beyond-status", pdu(4, "HH", 1024 + STATUS_WORDS - 2, 3)),
         ("fc5-beyond", pdu(5, "HH", 1600, 0xFF00)),
         ("fc6-beyond", pdu(6, "HH", 2048, 1)),
         ("fc15-start-beyond", pdu(15, "HHB", 1600, 1, 1, data=b"\x01")),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -10,7 +12,10 @@ from softplc.core.image import Address, Area, ImageSizes, Width, parse_address
 from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import HmiWrite, Status
 from softplc.hmi.map import (
+    FLAG_STALE,
     STATUS_FAULT_CODE,
+    STATUS_FLAGS,
+    STATUS_FORCED,
     STATUS_LAST_EXEC_US,
     STATUS_MAX_EXEC_US,
     STATUS_OVERRUNS,
@@ -99,8 +104,15 @@ def test_status_block_layout() -> None:
     assert words[STATUS_P99_LATENESS_US : STATUS_P99_LATENESS_US + 2] == [0, 0]
     assert words[STATUS_OVERRUNS : STATUS_OVERRUNS + 2] == [0, 3]
     assert words[STATUS_PERIOD_US : STATUS_PERIOD_US + 2] == [0, 10_000]
-    assert words[STATUS_PROGRAM_HASH:] == [0x0123, 0x4567, 0x89AB, 0xCDEF]
-    assert status_registers(Status())[STATUS_PROGRAM_HASH:] == [0, 0, 0, 0]
+    assert words[STATUS_PROGRAM_HASH : STATUS_PROGRAM_HASH + 4] == [0x0123, 0x4567, 0x89AB, 0xCDEF]
+    assert status_registers(Status())[STATUS_PROGRAM_HASH : STATUS_PROGRAM_HASH + 4] == [0] * 4
+    # Appended after the hash (never renumbered): forced count, then flags.
+    assert STATUS_FORCED == STATUS_PROGRAM_HASH + 4 == STATUS_FLAGS - 1 == STATUS_WORDS - 2
+    assert words[STATUS_FORCED] == 0
+    assert status_registers(Status(forced=3))[STATUS_FORCED] == 3
+    assert status_registers(Status(forced=70_000))[STATUS_FORCED] == 0xFFFF
+    assert words[STATUS_FLAGS] == 0
+    assert status_registers(replace(status, stale=True))[STATUS_FLAGS] == FLAG_STALE
 
 
 def test_status_block_is_read_through_input_registers() -> None:
@@ -122,7 +134,7 @@ def test_status_block_is_read_through_input_registers() -> None:
         (Table.DISCRETE_INPUTS, 800, 1),
         (Table.DISCRETE_INPUTS, 0, 801),
         (Table.INPUT_REGISTERS, 1024 + STATUS_WORDS, 1),
-        (Table.INPUT_REGISTERS, 1040, 3),
+        (Table.INPUT_REGISTERS, 1024 + STATUS_WORDS - 2, 3),
         (Table.HOLDING_REGISTERS, 2048, 1),
         (Table.HOLDING_REGISTERS, 65535, 1),
     ],

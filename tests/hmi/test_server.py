@@ -85,6 +85,7 @@ def test_status_block_over_the_network() -> None:
         overruns=2,
         program_hash="deadbeef00112233" + "0" * 48,
         period_us=10_000,
+        forced=2,
     )
     src = ImageSource(ImageSizes(), status)
     with run_in_thread(ModbusSlave(src, src.sink, sizes=src.image.sizes, port=0)) as slave:
@@ -94,7 +95,7 @@ def test_status_block_over_the_network() -> None:
         finally:
             c.close()
     hash_words = [0xDEAD, 0xBEEF, 0x0011, 0x2233]
-    assert words == [2, 0, 1, 57920, 0, 250, 0, 900, 0, 40, 0, 2, 0, 10_000, *hash_words]
+    assert words == [2, 0, 1, 57920, 0, 250, 0, 900, 0, 40, 0, 2, 0, 10_000, *hash_words, 2, 0]
 
 
 def test_pymodbus_client_writes_are_journaled_and_seen_after_publish(

@@ -87,10 +87,19 @@ CORPUS: dict[str, list[str]] = {
         "(ns, us, ms, s, min, h), e.g. 10ms or 2s",
     ],
     "unknown_keys.yaml": [
-        "{F}:3: places.idle.colour: unknown key 'colour'; expected one of capacity, coloured, "
-        "description, outputs, tokens",
-        "{F}:9: transitions.go.guard: unknown key 'guard'; expected one of delay, description, "
-        "do, duration, from, inhibit, outputs, priority, read, to, when",
+        "{F}:3: places.idle.colour: unknown key 'colour' (did you mean 'coloured'?); expected "
+        "one of capacity, coloured, description, outputs, tokens",
+        "{F}:9: transitions.go.guard: unknown key 'guard' (did you mean 'when'?); expected one "
+        "of delay, description, do, duration, from, inhibit, outputs, priority, read, to, when",
+    ],
+    "misspelt_names.yaml": [
+        "{F}:9: transitions.go.to: arc to unknown place 'bussy' (did you mean 'busy'?)",
+        "{F}:10: transitions.go.when: unknown name 'strat': not a symbol, event or token "
+        "variable in 'strat and not flgg' (did you mean 'start'?)",
+        "{F}:11: transitions.go.do[0]: unknown symbol 'lmap' (not in {BAD}/io.yaml) "
+        "(did you mean 'lamp'?)",
+        "{F}:11: transitions.go.do[1]: event 'finishd' is not declared in the program's events: "
+        "(did you mean 'finished'?)",
     ],
     "missing_io_image.yaml": [
         "{F}:1: io_image: missing io_image: (the symbols file)",
@@ -198,8 +207,10 @@ def test_example_programs_compile_with_subnets_expanded() -> None:
     assert transport.subnets == ("c1", "c2")
     assert {"c1.idle", "c1.moving", "c1.full", "c2.idle", "handing_over"} <= set(
         transport.place_names)
-    start = transport.transition("c2.start")
-    assert start.guard is not None and start.guard.text == "s2_i"  # parameter substituted
+    start = transport.transition("c2.start")  # parameters substituted: a symbol, a literal
+    assert start.guard is not None and start.guard.text == "s2_i and (not False)"
+    feed = transport.transition("c1.start")  # the HMI's `hold` stops conveyor 1's feed only
+    assert feed.guard is not None and feed.guard.reads == {"s1_i", "hold"}
     assert transport.moore_drivers["m1"]  # c1.moving and handing_over drive m1
     drilling = compile_file(PROGRAMS / "drilling.yaml")
     assert drilling.transition("drill").duration_ns == 2_000_000_000

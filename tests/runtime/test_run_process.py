@@ -77,9 +77,10 @@ def test_run_serves_modbus_applies_hmi_writes_and_stops_safely(
         later = wait_for(lambda: (b := status_block(client)) and
                          ((b[STATUS_SCAN_COUNT] << 16) | b[STATUS_SCAN_COUNT + 1]) > scans + 10)
         assert later
-        # %MX0.0 (`hold`) is coil 800: an HMI write is journaled and visible after a scan
-        assert not client.write_coil(800, True, device_id=1).isError()
-        wait_for(lambda: client.read_coils(800, count=1, device_id=1).bits[0])
+        # %MX0.1 is coil 801: an HMI write is journaled and visible after a scan. (Not coil
+        # 800, `hold`: that stops the feed, tests/runtime/test_hmi_hold.py.)
+        assert not client.write_coil(801, True, device_id=1).isError()
+        wait_for(lambda: client.read_coils(801, count=1, device_id=1).bits[0])
         # the conveyor motor m1 (%QX0.0) is driven by the program once a part arrives (t=1 s)
         wait_for(lambda: client.read_coils(0, count=1, device_id=1).bits[0], timeout_s=30)
     finally:

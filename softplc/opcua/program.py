@@ -1,0 +1,164 @@
+"""Program handling as OPC UA methods: Start, Suspend, Resume, Halt, Reset (Part 10's
+ProgramStateMachineType) and Download, sent to the scan process as the HTTP API sends them.
+
+Owns: the method table (Part 10 name -> softplc Command), input/output arguments, checking
+Download's arguments, sending the command over the channel off the event loop, and mapping a
+refusal onto an OPC UA status code with its reason (Bad status + the reason as output).
+Does not know: sessions and who may call (server.py guards that), the address space layout.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import itertools
+import re
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Final, Protocol
+
+from asyncua import ua
+
+from softplc.core.lifecycle import Command
+from softplc.core.snapshot import CommandReply, CommandRequest, HmiWrite
+from softplc.runtime.channel import ChannelFull
+
+COMMAND_TIMEOUT_S: Final = 8.0  # as the HTTP API: below a client's usual 10 s
+DOWNLOAD_TIMEOUT_S: Final = 60.0  # a download compiles off the scan; a big net takes seconds
+MAX_PROGRAM_BYTES: Final = 1 << 20  # as the API's body limit
+_REFUSED_PROGRAM: Final = "download refused"
+_NAME: Final = re.compile(r"[A-Za-z0-9._-]{1,128}")
+# OPC UA method name -> softplc command (Part 10: Suspend = stop, Halt = kill).
+COMMANDS: Final = {"Start": Command.START, "Suspend": Command.STOP, "Resume": Command.RESUME,
+                   "Halt": Command.KILL, "Reset": Command.RESET, "Download": Command.DOWNLOAD}
+_FIRST_ID: Final = 1_000_000  # the API counts from 1; these ids show OPC UA in the trace
+
+
+class CommandChannel(Protocol):
+    """What the server needs of softplc.runtime.channel.Channel (client side)."""
+
+    def send_command(self, request: CommandRequest, timeout_s: float = ...) -> CommandReply: ...
+
+    def send_hmi_write(self, write: HmiWrite) -> None: ...
+
+
+@dataclass(frozen=True, slots=True)
+class Outcome:
+    """What one method call came to: `status` Good or the refusal's code."""
+
+    status: ua.StatusCodes | int
+    message: str
+    state: str = ""
+    problems: tuple[str, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        return self.status == ua.StatusCodes.Good
+
+    def result(self) -> ua.CallMethodResult:
+        """Output arguments (Message, State[, Problems]) go with a Bad status too: a Bad
+        method result alone carries no text, and clients that read the raw result get it."""
+        outputs = [ua.Variant(self.message, ua.VariantType.String),
+                   ua.Variant(self.state, ua.VariantType.String)]
+        return ua.CallMethodResult(StatusCode=ua.StatusCode(self.status),
+                                   OutputArguments=outputs)
+
+
+def arguments(method: str) -> tuple[list[ua.Argument], list[ua.Argument]]:
+    """Input and output arguments of one method, as Part 3 Argument structures."""
+    outputs = [_arg("Message", ua.VariantType.String, "what the PLC did or why it refused"),
+               _arg("State", ua.VariantType.String, "PLC state after the command")]
+    if method != "Download":
+        return [], outputs
+    return [_arg("ProgramText", ua.VariantType.String, "the program, YAML text"),
+            _arg("Online", ua.VariantType.Boolean, "swap while RUNNING (online change)"),
+            _arg("Name", ua.VariantType.String, "file name for messages ('' = downloaded.yaml)"),
+            ], outputs
+
+
+def _arg(name: str, vtype: ua.VariantType, text: str) -> ua.Argument:
+    return ua.Argument(Name=name, DataType=ua.NodeId(vtype.value, 0), ValueRank=-1,
+                       Description=ua.LocalizedText(text))
+
+
+class ProgramHandling:
+    """Sends program commands for the server; `on_outcome` hears every outcome."""
+
+    def __init__(self, channel: CommandChannel,
+                 on_outcome: Callable[[str, Outcome], Awaitable[None]]) -> None:
+        self._channel = channel
+        self._on_outcome = on_outcome
+        self._ids = itertools.count(_FIRST_ID)
+
+    async def call(self, method: str, args: list[ua.Variant]) -> ua.CallMethodResult:
+        outcome = await self._outcome(method, [a.Value for a in args])
+        await self._on_outcome(method, outcome)
+        return outcome.result()
+
+    async def _outcome(self, method: str, values: list[object]) -> Outcome:
+        command = COMMANDS[method]
+        if command is not Command.DOWNLOAD:
+            if values:
+                return Outcome(ua.StatusCodes.BadTooManyArguments,
+                               f"{method} takes no arguments, got {len(values)}")
+            return await self._send(CommandRequest(next(self._ids), command))
+        checked = _download_args(values)
+        if isinstance(checked, Outcome):
+            return checked
+        text, online, name = checked
+        return await self._send(CommandRequest(next(self._ids), command, program_text=text,
+                                               program_path=name, online=online))
+
+    async def _send(self, request: CommandRequest) -> Outcome:
+        timeout_s = DOWNLOAD_TIMEOUT_S if request.command is Command.DOWNLOAD else \
+            COMMAND_TIMEOUT_S
+        # Past its deadline the scan refuses the command: a caller that gave up never sees
+        # it happen later (CommandRequest.deadline_ns, CLOCK_MONOTONIC).
+        request = dataclasses.replace(request, deadline_ns=time.clock_gettime_ns(
+            time.CLOCK_MONOTONIC) + int(timeout_s * 1e9))
+        try:
+            reply = await asyncio.to_thread(self._channel.send_command, request, timeout_s)
+        except TimeoutError as exc:
+            return Outcome(ua.StatusCodes.BadTimeout, str(exc))
+        except ChannelFull as exc:  # the scan process is not draining its commands
+            return Outcome(ua.StatusCodes.BadResourceUnavailable, str(exc))
+        return _reply_outcome(reply)
+
+
+def _download_args(values: list[object]) -> tuple[str, bool, str | None] | Outcome:
+    if len(values) < 2:
+        return Outcome(ua.StatusCodes.BadArgumentsMissing,
+                       "Download needs ProgramText (String) and Online (Boolean)")
+    if len(values) > 3:
+        return Outcome(ua.StatusCodes.BadTooManyArguments,
+                       "Download takes ProgramText, Online and an optional Name")
+    text, online = values[0], values[1]
+    name = values[2] if len(values) == 3 else ""
+    if not isinstance(text, str) or not isinstance(online, bool) or not isinstance(name, str):
+        return Outcome(ua.StatusCodes.BadTypeMismatch,
+                       "Download arguments: ProgramText String, Online Boolean, Name String")
+    if len(text.encode()) > MAX_PROGRAM_BYTES:
+        return Outcome(ua.StatusCodes.BadEncodingLimitsExceeded,
+                       f"the program is larger than {MAX_PROGRAM_BYTES} bytes")
+    if name and not _NAME.fullmatch(name):
+        return Outcome(ua.StatusCodes.BadInvalidArgument,
+                       "Name must be a plain file name (letters, digits, . _ -)")
+    if not text.strip():
+        return Outcome(ua.StatusCodes.BadInvalidArgument, "download refused: empty program",
+                       problems=(f"{name or 'program'}:1: the request holds no program",))
+    return text, online, name or None
+
+
+def _reply_outcome(reply: CommandReply) -> Outcome:
+    state = reply.state.name
+    if reply.ok:
+        return Outcome(ua.StatusCodes.Good, reply.message, state)
+    if reply.message.startswith(_REFUSED_PROGRAM):
+        head, _, rest = reply.message.partition("\n")
+        problems = tuple(line.strip() for line in rest.splitlines() if line.strip())
+        return Outcome(ua.StatusCodes.BadInvalidArgument, head.rstrip(":"), state,
+                       problems or (head,))
+    # The lifecycle table refused the command in this state (or the scan did, e.g. an
+    # online change it cannot make): the program is in the wrong state for it.
+    return Outcome(ua.StatusCodes.BadInvalidState, reply.message, state)

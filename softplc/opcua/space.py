@@ -1,0 +1,207 @@
+"""The address space of one loaded program: which nodes exist and what they are called.
+
+Owns: node ids (stable strings, so a client or another softplc can name them without
+browsing), the symbols folder built from the board's symbol table (Boolean/UInt16, description,
+access level), the status variables, the marking folder, the Program object (an instance of
+OPC UA Part 10's ProgramStateMachineType) and the mapping of PLC states onto its states.
+Does not know: sockets, sessions, the channel, when values change (server.py does).
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Final
+
+from asyncua import Node, Server, ua
+
+from softplc.core.image import Address, AddressError, parse_address
+from softplc.core.lifecycle import PlcState
+
+NAMESPACE_URI: Final = "urn:softplc"
+PLC: Final = "PLC"
+SYMBOLS: Final = "PLC.Symbols"
+STATUS: Final = "PLC.Status"
+MARKING: Final = "PLC.Marking"
+PROGRAM: Final = "PLC.Program"
+METHODS: Final = ("Start", "Suspend", "Resume", "Halt", "Reset", "Download")
+
+
+def symbol_id(name: str) -> str:
+    return f"{SYMBOLS}.{name}"
+
+
+def place_id(name: str) -> str:
+    return f"{MARKING}.{name}"
+
+
+class PartState(enum.Enum):
+    """The states of ProgramStateMachineType (Part 10), with their StateNumber and node."""
+
+    HALTED = ("Halted", 11, ua.ObjectIds.ProgramStateMachineType_Halted)
+    READY = ("Ready", 12, ua.ObjectIds.ProgramStateMachineType_Ready)
+    RUNNING = ("Running", 13, ua.ObjectIds.ProgramStateMachineType_Running)
+    SUSPENDED = ("Suspended", 14, ua.ObjectIds.ProgramStateMachineType_Suspended)
+
+    @property
+    def text(self) -> str:
+        return str(self.value[0])
+
+    @property
+    def node(self) -> ua.NodeId:
+        return ua.NodeId(self.value[2], 0)
+
+
+def part10_state(state: PlcState, previous: PartState | None) -> PartState:
+    """RUNNING is Running; STOPPED is Suspended when it came from Running (a `stop`, marking
+    kept) and Ready otherwise (download, reset: initial marking); EMPTY/KILLED/FAULTED are
+    Halted (Part 10's idle state: cannot run, or ended)."""
+    if state is PlcState.RUNNING:
+        return PartState.RUNNING
+    if state is PlcState.STOPPED:
+        if previous in (PartState.RUNNING, PartState.SUSPENDED):
+            return PartState.SUSPENDED
+        return PartState.READY
+    return PartState.HALTED
+
+
+@dataclass(frozen=True, slots=True)
+class SymbolNode:
+    name: str
+    address: str
+    is_bool: bool
+    writable: bool
+    node: Node
+    location: Address | None  # None: the board's address does not parse (never written)
+
+    def variant(self, value: int) -> ua.Variant:
+        if self.is_bool:
+            return ua.Variant(bool(value), ua.VariantType.Boolean)
+        return ua.Variant(int(value) & 0xFFFF, ua.VariantType.UInt16)
+
+
+# name -> (OPC UA type, initial value); fed from the snapshot's Status and the board.
+STATUS_VARIABLES: Final[Mapping[str, tuple[ua.VariantType, Any]]] = {
+    "State": (ua.VariantType.String, "EMPTY"),
+    "Program": (ua.VariantType.String, ""),
+    "ProgramHash": (ua.VariantType.String, ""),
+    "ScanCount": (ua.VariantType.UInt64, 0),
+    "PeriodUs": (ua.VariantType.UInt32, 0),
+    "LastExecUs": (ua.VariantType.UInt32, 0),
+    "MaxExecUs": (ua.VariantType.UInt32, 0),
+    "P99LatenessUs": (ua.VariantType.UInt32, 0),
+    "Overruns": (ua.VariantType.UInt32, 0),
+    "FaultCode": (ua.VariantType.UInt16, 0),
+    "FaultReason": (ua.VariantType.String, ""),
+    "Restarts": (ua.VariantType.UInt32, 0),
+    "LastEventSeq": (ua.VariantType.UInt32, 0),
+}
+
+
+def writable_symbol(entry: Mapping[str, Any], policy: str) -> bool:
+    """The Modbus write policy (comm.ModbusWrites) applied to one symbol of the board."""
+    if entry.get("direction") == "in" or policy == "none":
+        return False
+    return policy == "open" or entry.get("hmi_writable", True) is True
+
+
+class Space:
+    """The nodes of the server, built once (status, Program) and per program (symbols,
+    marking). `build_program` replaces the per-program folders."""
+
+    def __init__(self, server: Server, ns: int) -> None:
+        self.server = server
+        self.ns = ns
+        self.plc: Node | None = None
+        self.program: Node | None = None
+        self.status: dict[str, Node] = {}
+        self.symbols: dict[str, SymbolNode] = {}
+        self.places: dict[str, Node] = {}
+        self._folders: list[Node] = []
+        self._marking: Node | None = None
+
+    def nid(self, text: str) -> ua.NodeId:
+        return ua.NodeId(text, self.ns)
+
+    async def build_static(self) -> None:
+        objects = self.server.nodes.objects
+        self.plc = await objects.add_object(self.nid(PLC), f"{self.ns}:{PLC}")
+        status = await self.plc.add_folder(self.nid(STATUS), f"{self.ns}:Status")
+        for name, (vtype, initial) in STATUS_VARIABLES.items():
+            self.status[name] = await status.add_variable(
+                self.nid(f"{STATUS}.{name}"), f"{self.ns}:{name}", ua.Variant(initial, vtype))
+        self.program = await self.plc.add_object(
+            self.nid(PROGRAM), f"{self.ns}:Program",
+            objecttype=ua.NodeId(ua.ObjectIds.ProgramStateMachineType, 0))
+        for name, (vtype, initial) in {"LastResult": (ua.VariantType.String, ""),
+                                       "LastProblems": (ua.VariantType.String, [])}.items():
+            self.status[name] = await self.program.add_variable(
+                self.nid(f"{PROGRAM}.{name}"), f"{self.ns}:{name}", ua.Variant(initial, vtype))
+
+    async def set_part10_state(self, state: PartState) -> None:
+        assert self.program is not None
+        current = await self.program.get_child("0:CurrentState")
+        await current.write_value(ua.LocalizedText(state.text))
+        state_id = await current.get_child("0:Id")
+        await state_id.write_value(ua.Variant(state.node, ua.VariantType.NodeId))
+        number = await _optional_child(current, "0:Number")
+        if number is not None:
+            await number.write_value(ua.Variant(state.value[1], ua.VariantType.UInt32))
+
+    async def build_program(self, document: Mapping[str, Any], policy: str) -> None:
+        """Symbols and marking of the board's program; the previous ones are deleted."""
+        assert self.plc is not None
+        if self._folders:
+            await self.server.delete_nodes(self._folders, recursive=True)
+        self.symbols, self.places = {}, {}
+        symbols = await self.plc.add_folder(self.nid(SYMBOLS), f"{self.ns}:Symbols")
+        marking = await self.plc.add_folder(self.nid(MARKING), f"{self.ns}:Marking")
+        self._folders = [symbols, marking]
+        self._marking = marking
+        table = document.get("symbols") or {}
+        for name, entry in table.items():
+            if isinstance(entry, dict):
+                self.symbols[name] = await self._symbol(symbols, str(name), entry, policy)
+        for place in document.get("places") or document.get("marking") or {}:
+            await self.place(str(place))
+
+    async def place(self, name: str) -> Node:
+        """The marking variable of `name`, added when first seen: the board lists marked
+        places only (and every place when it has a "places" key)."""
+        node = self.places.get(name)
+        if node is None:
+            assert self._marking is not None
+            node = await self._marking.add_variable(
+                self.nid(place_id(name)), f"{self.ns}:{name}", ua.Variant(0, ua.VariantType.UInt32))
+            self.places[name] = node
+        return node
+
+    async def _symbol(self, folder: Node, name: str, entry: Mapping[str, Any],
+                      policy: str) -> SymbolNode:
+        is_bool = entry.get("type") == "bool"
+        writable = writable_symbol(entry, policy)
+        value = entry.get("value", 0)
+        vtype = ua.VariantType.Boolean if is_bool else ua.VariantType.UInt16
+        node = await folder.add_variable(
+            self.nid(symbol_id(name)), f"{self.ns}:{name}",
+            ua.Variant(bool(value) if is_bool else int(value) & 0xFFFF, vtype))
+        text = f"{entry.get('address')} ({entry.get('direction')})"
+        description = str(entry.get("description") or "")
+        await node.write_attribute(ua.AttributeIds.Description, ua.DataValue(
+            ua.Variant(ua.LocalizedText(f"{description} [{text}]".strip()),
+                       ua.VariantType.LocalizedText)))
+        if writable:
+            await node.set_writable(True)
+        try:
+            location: Address | None = parse_address(str(entry.get("address")))
+        except AddressError:
+            location = None
+        return SymbolNode(name, str(entry.get("address")), is_bool, writable, node, location)
+
+
+async def _optional_child(node: Node, path: str) -> Node | None:
+    try:
+        return await node.get_child(path)
+    except ua.UaStatusCodeError:
+        return None

@@ -1,0 +1,226 @@
+"""The operator's page in a real headless Chromium (Debian's chromium + chromium-driver,
+driven by selenium) against a real `softplc run` on the simulated plant, loopback only:
+no console error, each case study's net drawn with its places and transitions, tokens move,
+stop/start show, forcing an input changes what the program does and shows as forced, a
+download with a syntax error shows its line. Screenshots go to a tmp dir (test artefacts);
+SOFTPLC_WEB_SHOTS=DIR copies them there (docs/web-transport.png comes from that).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, TypeVar
+
+import pytest
+
+from softplc.api.client import ApiClient
+
+ROOT = Path(__file__).resolve().parents[2]
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+DRIVER = shutil.which("chromedriver")
+pytestmark = pytest.mark.skipif(
+    CHROMIUM is None or DRIVER is None,
+    reason="needs Debian's chromium and chromium-driver (.ci/run installs them)")
+webdriver = pytest.importorskip("selenium.webdriver", reason="needs selenium (dev extra)")
+T = TypeVar("T")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def until(probe: Callable[[], T], timeout_s: float = 10.0, what: str = "condition") -> T:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            result = probe()
+        except Exception:
+            result = None  # type: ignore[assignment]
+        if result:
+            return result
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what}: not within {timeout_s} s")
+        time.sleep(0.1)
+
+
+class Softplc:
+    """`softplc run PROGRAM --start` with its API on a free loopback port."""
+
+    def __init__(self, program: str, state: Path) -> None:
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "softplc.cli", "run", program, "--start", "--modbus", "off",
+             "--api", f"127.0.0.1:{self.port}", "--state-dir", str(state), "--quiet",
+             "--period", "10ms"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            text=True)
+        self.client = ApiClient(self.url, timeout_s=5)
+        until(lambda: self.client.status()["state"] == "RUNNING", 20, "softplc run is RUNNING")
+
+    def close(self) -> None:
+        self.proc.send_signal(signal.SIGINT)
+        try:
+            self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(5)
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                "--window-size=1500,1100", "--no-first-run", "--disable-extensions"):
+        options.add_argument(arg)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    service = webdriver.ChromeService(executable_path=DRIVER)
+    driver = webdriver.Chrome(options=options, service=service)
+    driver.set_page_load_timeout(20)
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+@pytest.fixture(scope="module")
+def shots(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("screenshots")
+
+
+def errors(driver: Any, expected: tuple[str, ...] = ()) -> list[dict[str, Any]]:
+    """SEVERE console entries, less the HTTP refusals the test provoked on purpose (Chromium
+    logs every 4xx answer as a network error)."""
+    return [e for e in driver.get_log("browser") if e.get("level") == "SEVERE"
+            and not (e.get("source") == "network" and any(x in e["message"] for x in expected))]
+
+
+def js(driver: Any, script: str) -> Any:
+    return driver.execute_script(script)
+
+
+def open_page(driver: Any, plc: Softplc) -> None:
+    driver.get_log("browser")  # what an earlier page logged is not this page's
+    driver.get(plc.url + "/")
+    until(lambda: js(driver, "return window.softplc && window.softplc.cy !== null "
+                             "&& window.softplc.frames > 2"), 15, "the page draws the net")
+
+
+def counts(driver: Any) -> dict[str, int]:
+    result: dict[str, int] = js(driver, "return {places: softplc.cy.nodes('.place').length, "
+                                        "transitions: softplc.cy.nodes('.trans').length, "
+                                        "instances: softplc.cy.nodes('.instance').length}")
+    return result
+
+
+def marking(driver: Any) -> dict[str, int]:
+    result: dict[str, int] = js(driver, "return softplc.lastFrame.marking")
+    return result
+
+
+def save(driver: Any, shots: Path, name: str) -> Path:
+    path = shots / name
+    driver.save_screenshot(str(path))
+    copy_to = os.environ.get("SOFTPLC_WEB_SHOTS")
+    if copy_to:
+        shutil.copy(path, Path(copy_to) / name)
+    return path
+
+
+def fired(driver: Any, name: str) -> int:
+    return int(js(driver, f"return softplc.lastFrame.net_live.fired_counts[{name!r}] || 0"))
+
+
+def test_transport_page_live_forcing_and_program_handling(
+        browser: Any, shots: Path, tmp_path: Path) -> None:
+    plc = Softplc("programs/transport.yaml", tmp_path / "state")
+    try:
+        open_page(browser, plc)
+        assert counts(browser) == {"places": 8, "transitions": 7, "instances": 2}
+        assert browser.find_element("id", "program").text == "transport"
+        assert browser.find_element("id", "state").text == "RUNNING"
+        rows = browser.find_elements("css selector", "#image tbody tr")
+        assert len(rows) == len(plc.client.symbols())
+        # Forcing an input from the page. The plant puts the first part on conveyor 1 at
+        # 1 s (scan 100); it needs 4.55 s to reach s1_o, so c1.arrive cannot fire by itself
+        # before scan ~555. Forced s1_o = 1 makes it fire at once.
+        row = browser.find_element("css selector", '#image tr[data-symbol="s1_o"]')
+        if fired(browser, "c1.arrive") or not marking(browser).get("c1.moving"):
+            pytest.fail("the page opened too late (the first part already reached s1_o)")
+        row.find_element("css selector", "input.force").send_keys("1")
+        row.find_element("css selector", "button.force").click()
+        until(lambda: "forced" in row.get_attribute("class"), 5, "the row is marked forced")
+        assert row.find_element("css selector", "td.value").text.startswith("1")
+        until(lambda: browser.find_element("id", "forced-count").text == "1 forced", 5)
+        at = until(lambda: fired(browser, "c1.arrive") and js(
+            browser, "return softplc.lastFrame.scan_count"), 5, "c1.arrive fires on the force")
+        assert at < 545, f"c1.arrive shown at scan {at}: not clearly caused by the force"
+        until(lambda: marking(browser).get("c1.full") or marking(browser).get("handing_over"),
+              5, "the part is taken as arrived")
+        # Tokens move while the PLC scans and the page draws the marking it receives.
+        first = marking(browser)
+        until(lambda: marking(browser) != first, 20, "the marking shown changes")
+        drawn = js(browser, "return softplc.cy.nodes('.place.marked').map(n => n.data('name'))")
+        shown = marking(browser)
+        marked = sorted(p for p, n in shown.items() if n)
+        assert sorted(drawn) == marked or marking(browser) != shown
+        assert plc.client.status()["forced"] == {"s1_o": 1}
+        save(browser, shots, "web-transport.png")
+        browser.find_element("id", "release-all").click()
+        until(lambda: "forced" not in row.get_attribute("class"), 5, "released")
+        assert plc.client.forces() == {}
+
+        # Stop and start change the state shown; a refused command shows its reason.
+        browser.find_element("css selector", 'button[data-command="stop"]').click()
+        until(lambda: browser.find_element("id", "state").text == "STOPPED", 5)
+        browser.find_element("css selector", 'button[data-command="stop"]').click()
+        until(lambda: "stop refused: stop is not accepted in state STOPPED"
+              in browser.find_element("id", "message").text, 5, "the refusal is shown")
+        browser.find_element("css selector", 'button[data-command="start"]').click()
+        until(lambda: browser.find_element("id", "state").text == "RUNNING", 5)
+
+        # A download with a syntax error shows every problem at its file:line.
+        bad = tmp_path / "broken.yaml"
+        bad.write_text("program: broken\nio_image: ../io_images/transport.yaml\n"
+                       "places:\n  p: {tokens: 1\n", encoding="utf-8")
+        browser.find_element("id", "program-file").send_keys(str(bad))
+        browser.find_element("id", "download").click()
+        problems = until(lambda: browser.find_elements("css selector", "#problems li"), 10,
+                         "the download's problems are listed")
+        texts = [p.text for p in problems]
+        assert any("broken.yaml:5: YAML syntax error" in t for t in texts), texts
+        assert browser.find_element("id", "state").text == "RUNNING"  # nothing changed
+        assert errors(browser, ("/api/v1/stop - Failed to load resource: the server responded "
+                                "with a status of 409", "/api/v1/program?name=broken.yaml - "
+                                "Failed to load resource: the server responded with a status "
+                                "of 422")) == []
+    finally:
+        browser.get("about:blank")  # no page left reconnecting to a stopped softplc
+        plc.close()
+
+
+def test_drilling_page_draws_its_net(browser: Any, shots: Path, tmp_path: Path) -> None:
+    plc = Softplc("programs/drilling.yaml", tmp_path / "state")
+    try:
+        open_page(browser, plc)
+        assert counts(browser) == {"places": 8, "transitions": 7, "instances": 0}
+        assert browser.find_element("id", "program").text == "drilling"
+        # Coloured token data on hover comes from the frames: the counter place's record.
+        assert js(browser, "return softplc.lastFrame.net_live.tokens.counter.length") == 1
+        until(lambda: js(browser, "return softplc.series[0].length") > 3, 5, "the plot fills")
+        save(browser, shots, "web-drilling.png")
+        assert errors(browser) == []
+    finally:
+        browser.get("about:blank")  # no page left reconnecting to a stopped softplc
+        plc.close()
