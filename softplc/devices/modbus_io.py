@@ -162,13 +162,18 @@ class ModbusIoDriver:
 
     def close(self) -> None:
         """Stop the I/O thread, after it wrote the latest outputs if the device had not yet
-        acknowledged them; if it cannot within CLOSE_JOIN_S, write them directly."""
+        acknowledged them; if it cannot within CLOSE_JOIN_S, write them directly. With nothing
+        to write, the thread is stopped at once (a close never waits for a connect)."""
         thread, loop = self._thread, self._loop
         if thread is None or loop is None:
             return
         with self._lock:
             self._closing = True
-        self._trigger(urgent=True)
+        if self._pending() is None:  # nothing to flush: do not wait for a connect under way
+            with contextlib.suppress(RuntimeError):  # the loop has already ended
+                loop.call_soon_threadsafe(loop.stop)
+        else:
+            self._trigger(urgent=True)
         thread.join(timeout=CLOSE_JOIN_S)
         if thread.is_alive():
             with contextlib.suppress(RuntimeError):  # the loop has already ended
