@@ -1,13 +1,19 @@
 """The small protocol every I/O driver implements, and the errors drivers raise.
 
-Owns: Driver (open, close, read inputs into the image, write outputs from the image, health),
-Diagnosed (a driver that can say why it is not OK), Health, DeviceError and its subclasses.
+Owns: Driver (open, close, read inputs into the image, write outputs from the image, go safe
+and wait for the device's acknowledgement, health), Diagnosed (a driver that can say why it is
+not OK), Health, DeviceError and its subclasses, and go_safe_all (every driver at once, within
+one bound: what each stop path calls).
 Does not know: the scan, the Petri net, Modbus slaves for HMIs.
 """
 
 from __future__ import annotations
 
 import enum
+import logging
+import threading
+import time
+from collections.abc import Sequence
 from typing import Protocol, runtime_checkable
 
 from softplc.core.image import ProcessImage
@@ -29,6 +35,10 @@ class WrongType(DeviceError):
     """A bool where a word is expected, or the other way round, or a value out of range."""
 
 
+class DriverConfigError(DeviceError, ValueError):
+    """Bad driver params in the io image (also a ValueError, as params errors always were)."""
+
+
 class DeviceUnavailable(DeviceError):
     """A driver cannot reach its device (timeout, connection refused, closed)."""
 
@@ -48,6 +58,12 @@ class Driver(Protocol):
 
     Neither call may block for longer than a scan budget or raise for a device that is
     unreachable: report it through health() and keep the last good values instead.
+
+    go_safe is the one call that blocks, at most timeout_s: every stop path (stop, kill, fault,
+    shutdown) calls it with the safe values already in `image`. It writes the outputs of
+    `image` to the device and waits for the device's acknowledgement: True when confirmed,
+    False (problem() says why) when not within the bound. It never raises for a device that
+    does not answer.
     """
 
     name: str
@@ -60,6 +76,8 @@ class Driver(Protocol):
 
     def write_outputs(self, image: ProcessImage, now_ns: int) -> None: ...
 
+    def go_safe(self, image: ProcessImage, timeout_s: float) -> bool: ...
+
     def health(self) -> Health: ...
 
 
@@ -70,3 +88,55 @@ class Diagnosed(Protocol):
     def problem(self) -> str:
         """The latest failure in a few words ("cannot connect to host:502"); "" when none."""
         ...
+
+
+log = logging.getLogger(__name__)
+
+SAFE_TIMEOUT_S = 0.5  # how long a stop waits for the devices to confirm their safe outputs
+_JOIN_SLACK_S = 0.2  # a driver that overruns its own bound is reported, not waited for
+
+
+def go_safe_all(drivers: Sequence[Driver], image: ProcessImage,
+                timeout_s: float = SAFE_TIMEOUT_S) -> dict[str, bool]:
+    """Every driver's go_safe at once (one thread each when there are several), so the whole
+    stop takes one bound, not one per device. Returns driver name -> confirmed; logs each
+    driver that did not confirm, with its problem().
+
+    A driver without go_safe (one written before it existed) gets write_outputs: queued, not
+    confirmed, so it counts as False."""
+    results: dict[str, bool] = {}
+
+    def one(driver: Driver) -> None:
+        results[_name(driver)] = _go_safe(driver, image, timeout_s)
+
+    if len(drivers) == 1:
+        one(drivers[0])
+    else:
+        threads = [threading.Thread(target=one, args=(d,), name=f"go-safe-{_name(d)}",
+                                    daemon=True) for d in drivers]
+        for thread in threads:
+            thread.start()
+        deadline = time.monotonic() + timeout_s + _JOIN_SLACK_S
+        for thread in threads:
+            thread.join(max(0.0, deadline - time.monotonic()))
+    for driver in drivers:
+        if not results.setdefault(_name(driver), False):
+            why = driver.problem() if isinstance(driver, Diagnosed) else ""
+            log.warning("driver %s: safe outputs not confirmed within %gs%s", _name(driver),
+                        timeout_s, f": {why}" if why else "")
+    return results
+
+
+def _go_safe(driver: Driver, image: ProcessImage, timeout_s: float) -> bool:
+    go_safe = getattr(driver, "go_safe", None)
+    try:
+        if go_safe is not None:
+            return bool(go_safe(image, timeout_s))
+        driver.write_outputs(image, time.monotonic_ns())
+    except Exception:  # a driver bug must not stop the other drivers going safe
+        log.exception("driver %s: go_safe failed", _name(driver))
+    return False
+
+
+def _name(driver: object) -> str:
+    return str(getattr(driver, "name", type(driver).__name__))

@@ -1,14 +1,24 @@
 """Modbus TCP remote I/O: the PLC is the client, a remote I/O module is the server.
 
-Owns: channel parsing and range planning (pure), the I/O thread with its own asyncio loop and
-pymodbus client, the last good inputs, the latest outputs, health and stats.
-Does not know: the scan, the Petri net, the HMI slave.
+Owns: the I/O thread with its own asyncio loop and pymodbus client, the last good inputs, the
+latest outputs, their acknowledgement, go_safe (a confirmed write within a bound), the
+heartbeat that keeps the device's own watchdog alive, health and stats. Channel planning is
+modbus_plan.py, params modbus_params.py, the requests themselves modbus_requests.py.
+Does not know: the scan, the Petri net, the HMI.
 
 Threading: read_inputs/write_outputs never touch the network; they swap values with the I/O
-thread under a lock. write_outputs wakes it for one cycle: every write range, then every read
-range, one request each. read_inputs wakes it only if no outputs came since the last read
-(first scan, read-only callers). Wake-ups during a cycle coalesce into one more cycle with the
-latest outputs. Scan k sees the inputs of the last cycle completed before its read_inputs.
+thread under a lock. write_outputs wakes it for one cycle: every write range, the heartbeat
+when due, then every read range, one request each. read_inputs wakes it only if no outputs
+came since the last read (first scan, read-only callers). Wake-ups during a cycle coalesce
+into one more cycle with the latest outputs. Scan k sees the inputs of the last cycle
+completed before its read_inputs. Each output image handed over has a sequence number; the
+I/O thread acknowledges the number once the device has answered every write of it.
+
+go_safe hands over the safe image, cuts short any reconnect backoff and waits for its
+acknowledgement; if the I/O thread has not confirmed within half the bound (wedged, dead,
+closed), it writes on a fresh connection of its own within the rest. close() lets the I/O
+thread flush the latest unacknowledged outputs before it ends, and writes them directly if
+the thread cannot: a stop never drops the safe write.
 
 Health: OK when connected and the last cycle succeeded; DEGRADED when connected but the last
 cycle failed or none has completed on this connection yet; DOWN when not connected (never,
@@ -19,221 +29,54 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import enum
 import logging
 import threading
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, fields
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 from pymodbus.client import AsyncModbusTcpClient
-from pymodbus.exceptions import ModbusException
-from pymodbus.pdu import ModbusPDU
 
-from softplc.core.image import Area, BoolArray, ProcessImage, WordArray
+from softplc.core.image import BoolArray, ProcessImage, WordArray
 from softplc.core.symbols import DriverSpec, Symbol
-from softplc.devices.driver import DeviceError, Health
+from softplc.devices.driver import Health
+from softplc.devices.modbus_params import Heartbeat, ModbusParams
+from softplc.devices.modbus_plan import (
+    MAX_OFFSET,
+    Block,
+    Channel,
+    IoPlan,
+    Table,
+    channel_problems,
+    parse_channel,
+    plan_channels,
+)
+from softplc.devices.modbus_requests import (
+    ERRORS,
+    RemoteError,
+    quiet_pymodbus,
+    read_block,
+    write_block,
+    write_direct,
+    write_word,
+)
+
+__all__ = [
+    "MAX_OFFSET", "Block", "Channel", "Heartbeat", "IoPlan", "IoStats", "ModbusIoDriver",
+    "ModbusParams", "RemoteError", "Table", "channel_problems", "parse_channel", "plan_channels",
+]
 
 log = logging.getLogger(__name__)
 
 DROP_AFTER = 3  # failed cycles in a row on one connection before it is dropped
-CLOSE_JOIN_S = 1.0
+CLOSE_JOIN_S = 1.0  # the I/O thread's time to flush and end on close()
+CLOSE_DIRECT_S = 0.5  # then, if it could not, a direct write of the pending outputs
+THREAD_SHARE = 0.5  # of go_safe's bound, for the I/O thread before the direct write
 _CANCEL_ROUNDS = 50
-MAX_OFFSET = 0xFFFF
 
-
-class Table(enum.Enum):
-    COIL = "coil"
-    DI = "di"
-    HR = "hr"
-    IR = "ir"
-
-    @property
-    def is_bit(self) -> bool:
-        return self in (Table.COIL, Table.DI)
-
-
-# Per-request quantity limits of the Modbus application protocol (FC 1/2, 3/4, 15, 16).
-_READ_LIMIT = {Table.COIL: 2000, Table.DI: 2000, Table.HR: 125, Table.IR: 125}
-_WRITE_LIMIT = {Table.COIL: 1968, Table.HR: 123}
-# Where an image location may come from (inputs) or go to (outputs), keyed (area, is_bit).
-_ALLOWED = {
-    (Area.INPUT, True): (Table.DI, Table.COIL),
-    (Area.INPUT, False): (Table.IR, Table.HR),
-    (Area.OUTPUT, True): (Table.COIL,),
-    (Area.OUTPUT, False): (Table.HR,),
-}
-
-
-@dataclass(frozen=True, slots=True)
-class Channel:
-    table: Table
-    offset: int
-
-
-def parse_channel(text: str) -> Channel:
-    """`di:3` -> Channel(DI, 3). Offsets are 0-based PDU addresses."""
-    table_text, sep, offset_text = text.strip().partition(":")
-    if not sep:
-        raise ValueError(f"channel {text!r}: expected TABLE:OFFSET, e.g. di:0")
-    try:
-        table = Table(table_text.strip().lower())
-    except ValueError:
-        raise ValueError(
-            f"channel {text!r}: table {table_text!r} is not coil, di, hr or ir"
-        ) from None
-    try:
-        offset = int(offset_text.strip())
-    except ValueError:
-        raise ValueError(f"channel {text!r}: offset {offset_text!r} is not an integer") from None
-    if not 0 <= offset <= MAX_OFFSET:
-        raise ValueError(f"channel {text!r}: offset {offset} is not in 0..{MAX_OFFSET}")
-    return Channel(table, offset)
-
-
-@dataclass(frozen=True, slots=True)
-class Block:
-    """One request per cycle: remote addresses start.. start+count-1, where remote address
-    start+i maps to image index image_index[i] (of %IX/%IW for reads, %QX/%QW for writes)."""
-
-    table: Table
-    start: int
-    image_index: tuple[int, ...]
-
-    @property
-    def count(self) -> int:
-        return len(self.image_index)
-
-    def __str__(self) -> str:
-        return f"{self.table.value}:{self.start}+{self.count}"
-
-
-@dataclass(frozen=True, slots=True)
-class IoPlan:
-    reads: tuple[Block, ...]
-    writes: tuple[Block, ...]
-
-
-def plan_channels(symbols: Iterable[Symbol]) -> IoPlan:
-    """Validate every symbol's channel and group them into contiguous ranges per table.
-
-    Raises one ValueError listing every problem, each naming the symbol and what was expected.
-    """
-    used: dict[tuple[Area, Table, int], Symbol] = {}
-    issues = [f"symbol {sym.name!r} (line {sym.line}): {issue}"
-              for sym, issue in channel_problems(symbols, used)]
-    if issues:
-        raise ValueError("modbus channels:\n  " + "\n  ".join(issues))
-    groups: dict[tuple[Area, Table], list[tuple[int, int]]] = {}
-    for (area, table, offset), sym in used.items():
-        groups.setdefault((area, table), []).append((offset, sym.address.index))
-    return IoPlan(
-        _blocks(groups, Area.INPUT, _READ_LIMIT), _blocks(groups, Area.OUTPUT, _WRITE_LIMIT)
-    )
-
-
-def channel_problems(symbols: Iterable[Symbol],
-                     used: dict[tuple[Area, Table, int], Symbol] | None = None
-                     ) -> list[tuple[Symbol, str]]:
-    """Every symbol whose channel this driver would refuse, with why (`softplc check` reports
-    them without opening anything). `used` collects the valid channels, for planning."""
-    used = {} if used is None else used
-    found = ((sym, _check_symbol(sym, used)) for sym in symbols)
-    return [(sym, issue) for sym, issue in found if issue]
-
-
-def _check_symbol(sym: Symbol, used: dict[tuple[Area, Table, int], Symbol]) -> str | None:
-    if sym.channel is None:
-        return "no channel: expected TABLE:OFFSET with TABLE coil, di, hr or ir"
-    try:
-        ch = parse_channel(sym.channel)
-    except ValueError as exc:
-        return str(exc)
-    area, is_bit = sym.address.area, sym.address.is_bit
-    allowed = _ALLOWED.get((area, is_bit))
-    if allowed is None:
-        return f"{sym.address} is memory, not I/O: expected an %IX/%IW input or %QX/%QW output"
-    if ch.table not in allowed:
-        role = "input" if area is Area.INPUT else "output"
-        kind = "bit" if is_bit else "word"
-        names = " or ".join(t.value for t in allowed)
-        return f"channel {sym.channel!r}: a {kind} {role} ({sym.address}) expects {names}"
-    key = (area, ch.table, ch.offset)
-    if key in used:
-        return f"channel {sym.channel!r} is already used by symbol {used[key].name!r}"
-    used[key] = sym
-    return None
-
-
-def _blocks(
-    groups: Mapping[tuple[Area, Table], list[tuple[int, int]]],
-    area: Area,
-    limits: Mapping[Table, int],
-) -> tuple[Block, ...]:
-    out: list[Block] = []
-    for (group_area, table), pairs in sorted(groups.items(), key=lambda kv: kv[0][1].value):
-        if group_area is not area:
-            continue
-        run: list[tuple[int, int]] = []
-        for offset, index in sorted(pairs):
-            if run and (offset != run[-1][0] + 1 or len(run) == limits[table]):
-                out.append(Block(table, run[0][0], tuple(i for _, i in run)))
-                run = []
-            run.append((offset, index))
-        out.append(Block(table, run[0][0], tuple(i for _, i in run)))
-    return tuple(out)
-
-
-@dataclass(frozen=True, slots=True)
-class ModbusParams:
-    host: str
-    port: int
-    unit: int = 1
-    timeout_s: float = 0.2
-    reconnect_min_s: float = 0.1
-    reconnect_max_s: float = 5.0
-    poll: str = "scan"
-
-    @classmethod
-    def from_spec(cls, spec: DriverSpec) -> ModbusParams:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(spec.params) - known)
-        if unknown:
-            raise ValueError(
-                f"driver {spec.name!r}: unknown params {unknown}, expected {sorted(known)}"
-            )
-        if "host" not in spec.params or "port" not in spec.params:
-            raise ValueError(f"driver {spec.name!r}: params host and port are required")
-        params = cls(**dict(spec.params))
-        problem = params._problem()
-        if problem:
-            raise ValueError(f"driver {spec.name!r}: {problem}")
-        return params
-
-    def _problem(self) -> str | None:
-        checks = (
-            (isinstance(self.host, str) and bool(self.host), "host must be a non-empty string"),
-            (_is_int(self.port) and 1 <= self.port <= 65535, "port must be an integer in 1..65535"),
-            (_is_int(self.unit) and 0 <= self.unit <= 255, "unit must be an integer in 0..255"),
-            (_positive(self.timeout_s), "timeout_s must be a positive number"),
-            (_positive(self.reconnect_min_s), "reconnect_min_s must be a positive number"),
-            (
-                _positive(self.reconnect_max_s) and self.reconnect_max_s >= self.reconnect_min_s,
-                "reconnect_max_s must be a number >= reconnect_min_s",
-            ),
-            (self.poll == "scan", f"poll {self.poll!r}: only 'scan' (one cycle per scan) exists"),
-        )
-        return next((msg for ok, msg in checks if not ok), None)
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _positive(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and value > 0
+Outputs = tuple[list[Any], ...]
 
 
 @dataclass(frozen=True, slots=True)
@@ -249,10 +92,7 @@ class IoStats:
     cycles_ok: int
     cycles_failed: int
     last_error: str
-
-
-class RemoteError(DeviceError):
-    """The remote device answered a request with a Modbus exception or a short reply."""
+    heartbeats: int = 0  # heartbeat writes the device acknowledged
 
 
 _HEALTH = {(True, True): Health.OK, (True, False): Health.DEGRADED}
@@ -268,11 +108,12 @@ class ModbusIoDriver:
         if foreign:
             raise ValueError(f"driver {spec.name!r}: symbols {foreign} belong to another driver")
         self.name = spec.name
-        self.params = ModbusParams.from_spec(spec)
         self.plan = plan_channels(symbols)
+        self.params = ModbusParams.from_spec(spec, self.plan)
         self._read_index = [np.array(b.image_index, dtype=np.intp) for b in self.plan.reads]
         self._write_index = [np.array(b.image_index, dtype=np.intp) for b in self.plan.writes]
         self._lock = threading.Lock()
+        self._acked = threading.Condition(self._lock)
         # Written by the I/O thread, read by the scan thread; under _lock.
         self._inputs: tuple[BoolArray | WordArray, ...] | None = None
         self._ok_seq = 0
@@ -281,8 +122,15 @@ class ModbusIoDriver:
         self._connected = False
         self._last_cycle_ok = False
         self._last_error = ""
-        # Written by the scan thread; _outputs also read by the I/O thread under _lock.
-        self._outputs: tuple[list[Any], ...] | None = None
+        self._heartbeats = 0
+        self._ack_seq = 0  # the newest output image the device acknowledged
+        # Written by the scan thread, read by the I/O thread; under _lock.
+        self._outputs: Outputs | None = None
+        self._out_seq = 0  # the newest output image handed over
+        self._safe_seq = 0  # the newest one go_safe handed over
+        self._safe_error = ""  # why the latest go_safe was not confirmed
+        self._closing = False
+        # Scan thread only.
         self._seen_seq = 0
         self._last_ok_ns: int | None = None
         self._stale_scans = 0
@@ -291,33 +139,52 @@ class ModbusIoDriver:
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._wake = asyncio.Event()
-        self._fails_on_link = 0  # I/O thread only
+        self._urgent = asyncio.Event()  # cuts a reconnect pause short (go_safe, close)
+        # I/O thread only.
+        self._fails_on_link = 0
+        self._fresh_link = False  # the device's watchdog register is written first
+        self._beat = 0
+        self._beat_due = 0.0
 
     # ----- scan side -----
 
     def open(self) -> None:
         if self._thread is not None:
             return
-        _quiet_pymodbus()
+        quiet_pymodbus()
+        self._closing = False
         self._loop = asyncio.new_event_loop()
-        self._wake = asyncio.Event()
+        self._wake, self._urgent = asyncio.Event(), asyncio.Event()
         self._thread = threading.Thread(
             target=self._thread_main, args=(self._loop,), name=f"modbus-io-{self.name}", daemon=True
         )
         self._thread.start()
 
     def close(self) -> None:
+        """Stop the I/O thread, after it wrote the latest outputs if the device had not yet
+        acknowledged them; if it cannot within CLOSE_JOIN_S, write them directly. With nothing
+        to write, the thread is stopped at once (a close never waits for a connect)."""
         thread, loop = self._thread, self._loop
         if thread is None or loop is None:
             return
-        self._thread = self._loop = None
-        with contextlib.suppress(RuntimeError):  # the loop has already ended
-            loop.call_soon_threadsafe(loop.stop)
+        with self._lock:
+            self._closing = True
+        if self._pending() is None:  # nothing to flush: do not wait for a connect under way
+            with contextlib.suppress(RuntimeError):  # the loop has already ended
+                loop.call_soon_threadsafe(loop.stop)
+        else:
+            self._trigger(urgent=True)
         thread.join(timeout=CLOSE_JOIN_S)
         if thread.is_alive():
+            with contextlib.suppress(RuntimeError):  # the loop has already ended
+                loop.call_soon_threadsafe(loop.stop)
             log.warning(
                 "modbus driver %s: I/O thread did not stop within %ss", self.name, CLOSE_JOIN_S
             )
+        self._thread = self._loop = None
+        pending = self._pending()
+        if pending is not None:
+            self._direct(*pending, time.monotonic() + CLOSE_DIRECT_S)
         with self._lock:
             self._connected = self._last_cycle_ok = False
 
@@ -338,14 +205,25 @@ class ModbusIoDriver:
             (image.ix if block.table.is_bit else image.iw)[index] = values
 
     def write_outputs(self, image: ProcessImage, now_ns: int) -> None:
-        outputs = tuple(
-            (image.qx if block.table.is_bit else image.qw)[index].tolist()
-            for block, index in zip(self.plan.writes, self._write_index, strict=True)
-        )
-        with self._lock:
-            self._outputs = outputs
+        self._hand_over(image, safe=False)
         self._wrote_since_read = True
         self._trigger()
+
+    def go_safe(self, image: ProcessImage, timeout_s: float) -> bool:
+        """Write the outputs of `image` and wait for the device's acknowledgement, at most
+        timeout_s. Replaces any queued outputs; see the module docstring for the fallback."""
+        deadline = time.monotonic() + timeout_s
+        outputs, seq = self._hand_over(image, safe=True)
+        if not self.plan.writes:
+            return self._safe_result(True, "")
+        thread = self._thread
+        if thread is not None and thread.is_alive():
+            self._trigger(urgent=True)
+            if self._wait_ack(seq, time.monotonic() + timeout_s * THREAD_SHARE):
+                return self._safe_result(True, "")
+        why = self._direct(outputs, seq, deadline)
+        confirmed = self._wait_ack(seq, time.monotonic())  # the thread may have made it
+        return self._safe_result(confirmed, "" if confirmed else why)
 
     def health(self) -> Health:
         if self._thread is None:
@@ -354,6 +232,9 @@ class ModbusIoDriver:
             return _HEALTH.get((self._connected, self._last_cycle_ok), Health.DOWN)
 
     def problem(self) -> str:
+        with self._lock:
+            if self._safe_error:
+                return self._safe_error
         if self._thread is None:
             return "closed"
         with self._lock:
@@ -374,14 +255,61 @@ class ModbusIoDriver:
                 cycles_ok=self._ok_seq,
                 cycles_failed=self._cycles_failed,
                 last_error=self._last_error,
+                heartbeats=self._heartbeats,
             )
 
-    def _trigger(self) -> None:
+    def _hand_over(self, image: ProcessImage, *, safe: bool) -> tuple[Outputs, int]:
+        outputs = tuple(
+            (image.qx if block.table.is_bit else image.qw)[index].tolist()
+            for block, index in zip(self.plan.writes, self._write_index, strict=True)
+        )
+        with self._lock:
+            self._out_seq += 1
+            self._outputs = outputs
+            if safe:
+                self._safe_seq = self._out_seq
+            return outputs, self._out_seq
+
+    def _pending(self) -> tuple[Outputs, int] | None:
+        """The latest outputs if the device has not acknowledged them."""
+        with self._lock:
+            if not self.plan.writes or self._outputs is None or self._ack_seq >= self._out_seq:
+                return None
+            return self._outputs, self._out_seq
+
+    def _wait_ack(self, seq: int, until: float) -> bool:
+        with self._acked:
+            return self._acked.wait_for(
+                lambda: self._ack_seq >= seq, timeout=max(0.0, until - time.monotonic())
+            )
+
+    def _ack(self, seq: int) -> None:
+        with self._acked:
+            if seq > self._ack_seq:
+                self._ack_seq = seq
+                self._acked.notify_all()
+
+    def _safe_result(self, confirmed: bool, why: str) -> bool:
+        with self._lock:
+            self._safe_error = "" if confirmed else f"safe outputs not confirmed: {why}"
+        return confirmed
+
+    def _trigger(self, *, urgent: bool = False) -> None:
         loop = self._loop
         if loop is None:
             return
         with contextlib.suppress(RuntimeError):  # closed by close() in another thread
             loop.call_soon_threadsafe(self._wake.set)
+            if urgent:
+                loop.call_soon_threadsafe(self._urgent.set)
+
+    def _direct(self, outputs: Outputs, seq: int, deadline: float) -> str:
+        """Write `outputs` on a fresh connection of our own (the I/O thread's may be wedged)
+        within `deadline`; acknowledge `seq` when the device answered. "" or why not."""
+        why = write_direct(self.params, self.plan.writes, outputs, deadline)
+        if not why:
+            self._ack(seq)
+        return why
 
     # ----- I/O thread -----
 
@@ -390,7 +318,8 @@ class ModbusIoDriver:
         task = loop.create_task(self._run())
         task.add_done_callback(self._on_run_done)
         try:
-            loop.run_forever()
+            with contextlib.suppress(RuntimeError):  # loop.stop() by close(): thread wedged
+                loop.run_until_complete(asyncio.wait([task]))
         finally:
             # asyncio.wait_for (3.11) swallows a cancel that coincides with the completion of
             # what it waits for (here: a refused connect), so one cancel is not enough.
@@ -421,37 +350,65 @@ class ModbusIoDriver:
             reconnect_delay=0,  # reconnection and its backoff are ours, below
             trace_connect=self._on_link,
         )
-        backoff = p.reconnect_min_s
         try:
-            while True:
-                if not client.connected:
-                    if not await client.connect():
-                        self._note_failure(f"cannot connect to {p.host}:{p.port}", cycle=False)
-                        await asyncio.sleep(backoff)
-                        backoff = min(2 * backoff, p.reconnect_max_s)
-                    continue
-                await self._wake.wait()
-                self._wake.clear()
-                if not client.connected:
-                    continue
-                if await self._cycle(client):
-                    backoff = p.reconnect_min_s
-                elif self._fails_on_link >= DROP_AFTER:
-                    log.warning("modbus driver %s: dropping the connection", self.name)
-                    client.close()  # a closing client reports no disconnect: do it here
-                    self._on_link(False)
-                    await asyncio.sleep(backoff)
-                    backoff = min(2 * backoff, p.reconnect_max_s)
+            await self._serve(client)
+            await self._flush(client)
         finally:
             client.close()
             self._on_link(False)
             await asyncio.sleep(0)  # let the transport's close callback release the socket
+
+    async def _serve(self, client: AsyncModbusTcpClient) -> None:
+        p = self.params
+        backoff = p.reconnect_min_s
+        while not self._closing:
+            if not client.connected:
+                if not await client.connect():
+                    self._note_failure(f"cannot connect to {p.host}:{p.port}", cycle=False)
+                    await self._pause(backoff)
+                    backoff = min(2 * backoff, p.reconnect_max_s)
+                continue
+            await self._wake.wait()
+            self._wake.clear()
+            if self._closing or not client.connected:
+                continue
+            if await self._cycle(client):
+                backoff = p.reconnect_min_s
+            elif self._fails_on_link >= DROP_AFTER:
+                log.warning("modbus driver %s: dropping the connection", self.name)
+                client.close()  # a closing client reports no disconnect: do it here
+                self._on_link(False)
+                await self._pause(backoff)
+                backoff = min(2 * backoff, p.reconnect_max_s)
+
+    async def _pause(self, seconds: float) -> None:
+        """A reconnect backoff that a safe write or close cuts short; while a safe write waits
+        for its acknowledgement, never longer than reconnect_min_s."""
+        with self._lock:
+            if self._safe_seq > self._ack_seq:
+                seconds = min(seconds, self.params.reconnect_min_s)
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._urgent.wait(), seconds)
+        self._urgent.clear()
+
+    async def _flush(self, client: AsyncModbusTcpClient) -> None:
+        """On close: the latest outputs, if the device has not acknowledged them."""
+        pending = self._pending()
+        if pending is None:
+            return
+        try:
+            if not client.connected and not await client.connect():
+                return
+            await self._write_outputs(client, *pending)
+        except ERRORS as exc:
+            log.warning("modbus driver %s: final write failed: %s", self.name, exc)
 
     def _on_link(self, connected: bool) -> None:
         with self._lock:
             changed = connected != self._connected
             self._connected, self._last_cycle_ok = connected, False
         self._fails_on_link = 0
+        self._fresh_link = connected
         if not connected:
             self._wake.set()  # so that _run notices and reconnects
         if changed:
@@ -461,13 +418,14 @@ class ModbusIoDriver:
 
     async def _cycle(self, client: AsyncModbusTcpClient) -> bool:
         with self._lock:
-            outputs = self._outputs
+            outputs, seq = self._outputs, self._out_seq
         try:
+            await self._arm_watchdog(client)
             if outputs is not None:
-                for block, values in zip(self.plan.writes, outputs, strict=True):
-                    await self._write(client, block, values)
-            inputs = tuple([await self._read(client, block) for block in self.plan.reads])
-        except (TimeoutError, ModbusException, DeviceError, OSError) as exc:
+                await self._write_outputs(client, outputs, seq)
+            await self._heartbeat(client)
+            inputs = tuple([await read_block(client, b, self.params.unit) for b in self.plan.reads])
+        except ERRORS as exc:
             self._fails_on_link += 1
             self._note_failure(str(exc) or type(exc).__name__, cycle=True)
             return False
@@ -479,6 +437,39 @@ class ModbusIoDriver:
             self._last_cycle_ok = True
         return True
 
+    async def _write_outputs(self, client: AsyncModbusTcpClient, outputs: Outputs,
+                             seq: int) -> None:
+        """Every write range of `outputs`, then acknowledge `seq`. A safe image handed over
+        meanwhile replaces a stale one before its next request goes out."""
+        blocks = self.plan.writes
+        i = 0
+        while i < len(blocks):
+            with self._lock:
+                if self._safe_seq > seq:
+                    outputs, seq, i = self._outputs or outputs, self._out_seq, 0
+            await write_block(client, blocks[i], outputs[i], self.params.unit)
+            i += 1
+        self._ack(seq)
+
+    async def _arm_watchdog(self, client: AsyncModbusTcpClient) -> None:
+        beat = self.params.heartbeat
+        if not self._fresh_link or beat is None or beat.watchdog_register is None:
+            return
+        await write_word(client, beat.watchdog_register, beat.watchdog_value or 0,
+                         self.params.unit)
+        self._fresh_link = False
+
+    async def _heartbeat(self, client: AsyncModbusTcpClient) -> None:
+        beat = self.params.heartbeat
+        now = time.monotonic()
+        if beat is None or now < self._beat_due:
+            return
+        value = (self._beat + 1) & 0xFFFF
+        await write_word(client, beat.register, value, self.params.unit)
+        self._beat, self._beat_due = value, now + beat.period_ns / 1e9
+        with self._lock:
+            self._heartbeats += 1
+
     def _note_failure(self, error: str, *, cycle: bool) -> None:
         with self._lock:
             first = self._failures == 0
@@ -488,41 +479,3 @@ class ModbusIoDriver:
             self._last_error = error
         if first:
             log.warning("modbus driver %s: %s", self.name, error)
-
-    async def _read(self, client: AsyncModbusTcpClient, block: Block) -> BoolArray | WordArray:
-        request = {
-            Table.COIL: client.read_coils,
-            Table.DI: client.read_discrete_inputs,
-            Table.HR: client.read_holding_registers,
-            Table.IR: client.read_input_registers,
-        }[block.table]
-        reply = _checked(
-            await request(block.start, count=block.count, device_id=self.params.unit), block
-        )
-        values = reply.bits if block.table.is_bit else reply.registers
-        if len(values) < block.count:
-            raise RemoteError(f"{block}: short reply ({len(values)} values)")
-        dtype: npt.DTypeLike = np.bool_ if block.table.is_bit else np.uint16
-        return np.asarray(values[: block.count], dtype=dtype)
-
-    async def _write(self, client: AsyncModbusTcpClient, block: Block, values: list[Any]) -> None:
-        unit = self.params.unit
-        if block.table is Table.COIL:
-            reply = await client.write_coils(block.start, values, device_id=unit)
-        else:
-            reply = await client.write_registers(block.start, values, device_id=unit)
-        _checked(reply, block)
-
-
-def _checked(reply: ModbusPDU, block: Block) -> ModbusPDU:
-    if reply.isError():
-        raise RemoteError(f"{block}: Modbus exception code {reply.exception_code}")
-    return reply
-
-
-def _quiet_pymodbus() -> None:
-    """pymodbus logs warnings and errors with frame dumps on every failed (re)connect and
-    timeout; our own logger reports state changes once. An explicitly set level is kept."""
-    logger = logging.getLogger("pymodbus")
-    if logger.level == logging.NOTSET:
-        logger.setLevel(logging.CRITICAL)

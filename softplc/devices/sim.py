@@ -63,6 +63,13 @@ class SimDriver:
             return
         self.plant.set_actuators({str(s.channel): image.get(s.address) for s in self.outputs})
 
+    def go_safe(self, image: ProcessImage, timeout_s: float) -> bool:
+        """In memory, so immediate: confirmed unless the device is closed or offline."""
+        if not self._open or self.offline:
+            return False
+        self.write_outputs(image, 0)
+        return True
+
     def health(self) -> Health:
         return Health.OK if self._open and not self.offline else Health.DOWN
 

@@ -20,7 +20,7 @@ import tempfile
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -711,6 +711,20 @@ def _describe(error: BaseException) -> str:
     return f"internal compiler error ({type(error).__name__}: {error})"
 
 
+def _once(action: Callable[[], object]) -> Callable[[int, object], None]:
+    """A SIGTERM handler that acts on the first signal only. A dying supervisor can deliver
+    SIGTERM more than once (PR_SET_PDEATHSIG fires as each of its threads exits), and one
+    arriving inside stop.set() re-entered it and deadlocked on its lock, outputs still on."""
+    done: dict[str, bool] = {}
+
+    def handler(signum: int, frame: object) -> None:
+        if not done:
+            done["yes"] = True  # no call before this store: no other handler can run first
+            action()
+
+    return handler
+
+
 def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: Event, stop: Event) -> None:
     """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`.
@@ -718,7 +732,7 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
     from softplc.runtime.procs import die_with_parent
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, _once(stop.set))
     die_with_parent()
     parent = os.getppid()
 

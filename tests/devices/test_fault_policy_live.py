@@ -112,7 +112,9 @@ def test_hold_then_fault_and_reset_after_the_device_returns(remote_io: SimServer
         assert rig.seen[-1] == (S.FAULTED, "fault")
         assert (rig.plc.fault_code, rig.status_block()) == (FAULT_DEVICE, (int(S.FAULTED), 2))
         assert rig.plc.fault_reason.startswith("device rio not answering for 4 scans: ")
-        assert rig.events()[-3:] == ["device_down:rio", "device_fault:rio", "plc_fault:device"]
+        # The device is gone: the faulting scan's go_safe cannot be confirmed, and says so.
+        assert rig.events()[-4:] == ["device_down:rio", "safe_unconfirmed:rio",
+                                     "device_fault:rio", "plc_fault:device"]
         assert bool(rig.plc.image.qx[0]) is False
 
         server.start()  # same port, fresh data; the operator switches the coil on by hand
