@@ -16,7 +16,6 @@ import numpy as np
 
 from softplc.core import events as event_conditions
 from softplc.core import online
-from softplc.core.online import CarryPlan
 from softplc.core.expr import Value
 from softplc.core.faults import DeviceMonitor
 from softplc.core.firing import Engine
@@ -24,6 +23,7 @@ from softplc.core.forcing import Force, ForceRefused, Forces
 from softplc.core.image import AREAS, OUTPUT_AREAS, Area, ProcessImage
 from softplc.core.lifecycle import Command, CommandRejected, PlcState, accepting, next_state
 from softplc.core.net import Busy, CompiledNet, NetState
+from softplc.core.online import CarryPlan
 from softplc.core.problems import FaultCode, PlcFault
 from softplc.core.snapshot import CommandReply, HmiWrite
 from softplc.core.symbols import Direction, FaultPolicy

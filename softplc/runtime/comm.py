@@ -24,8 +24,8 @@ from softplc.core.snapshot import HmiWrite, SnapshotSource
 from softplc.hmi.admission import Limits
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
-from softplc.runtime.procs import Flag as Event
 from softplc.runtime.fresh import FreshSource
+from softplc.runtime.procs import Flag as Event
 from softplc.runtime.shm import SnapshotReader
 
 if TYPE_CHECKING:
@@ -189,9 +189,9 @@ async def _start_opcua(config: CommConfig, channel: Channel, reader: SnapshotSou
 
 def comm_process_main(config: CommConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: Event, stop: Event) -> None:
-    from softplc.runtime.procs import die_with_parent
+    from softplc.runtime.procs import die_with_parent, once
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, once(stop.set))  # re-entering set() deadlocks (procs.once)
     die_with_parent()
     asyncio.run(_serve(config, channel, shm_name, board_name, ready, stop))

@@ -20,7 +20,7 @@ import tempfile
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,21 +31,18 @@ from softplc.core.firing import Engine
 from softplc.core.image import ImageSizes
 from softplc.core.lifecycle import Command, CommandRejected, PlcState, next_state
 from softplc.core.net import CompiledNet, NetState
-from softplc.core.problems import ProgramError
-from softplc.core.problems import FaultCode
+from softplc.core.problems import FaultCode, Problem, ProgramError
 from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
 from softplc.devices.driver import Driver
-from softplc.core.problems import Problem
 from softplc.program import bundle as bundles
 from softplc.program.compiler import compile_file, compile_text
-from softplc.runtime import netview
-from softplc.runtime import boot
+from softplc.runtime import boot, netview
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
-from softplc.runtime.procs import Flag as Event
 from softplc.runtime.clock import Clock, MonotonicClock, Schedule
 from softplc.runtime.downloads import DownloadQueue
+from softplc.runtime.procs import Flag as Event
 from softplc.runtime.realtime import NORMAL, Realtime, apply
 from softplc.runtime.retain import (
     ContinuedClock,
@@ -527,8 +524,9 @@ class ScanLoop:
                 self._event(f"diagnostic:{message}", now_ns)
             self._diag_seen = engine.diagnostic_count
 
-    def _confirm_safe(self, now_ns: int) -> None:
-        timeout_s = min(0.5, max(0.05, 5 * self.config.period_ns / 1e9))
+    def _confirm_safe(self, now_ns: int, timeout_s: float = 0.2) -> None:
+        """Safe outputs confirmed by the devices before the state is reported (stop, kill, a
+        fault): a bounded wait in this one scan (exempt from the watchdog)."""
         if failed := self.runner.go_safe(now_ns, timeout_s):
             self._event("safe_unconfirmed:" + ",".join(failed), now_ns)
 
@@ -670,7 +668,7 @@ class ScanLoop:
         # Captured before the outputs go safe: a warm restart resumes what the program drove.
         final = capture(plc, now_ns, self._sim_plants()) if self.retain is not None else None
         plc.drive_safe()
-        self._confirm_safe(now_ns)
+        self._confirm_safe(now_ns, timeout_s=0.5)
         if self.writer is not None:
             self.writer.publish(plc.image, self.status())
         self.runner.close()
@@ -711,28 +709,14 @@ def _describe(error: BaseException) -> str:
     return f"internal compiler error ({type(error).__name__}: {error})"
 
 
-def _once(action: Callable[[], object]) -> Callable[[int, object], None]:
-    """A SIGTERM handler that acts on the first signal only. A dying supervisor can deliver
-    SIGTERM more than once (PR_SET_PDEATHSIG fires as each of its threads exits), and one
-    arriving inside stop.set() re-entered it and deadlocked on its lock, outputs still on."""
-    done: dict[str, bool] = {}
-
-    def handler(signum: int, frame: object) -> None:
-        if not done:
-            done["yes"] = True  # no call before this store: no other handler can run first
-            action()
-
-    return handler
-
-
 def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: Event, stop: Event) -> None:
     """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`.
     Exit codes: 0 stopped, 3 state directory busy, 4 cannot start (program, devices)."""
-    from softplc.runtime.procs import die_with_parent
+    from softplc.runtime.procs import die_with_parent, once
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, _once(stop.set))
+    signal.signal(signal.SIGTERM, once(stop.set))
     die_with_parent()
     parent = os.getppid()
 

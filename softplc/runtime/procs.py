@@ -11,6 +11,7 @@ import contextlib
 import os
 import signal
 import threading
+from collections.abc import Callable
 from multiprocessing.context import BaseContext
 from typing import Protocol
 
@@ -94,3 +95,17 @@ class ReadySignal:
             return bool(self._reader.poll(timeout))
         except (OSError, EOFError):
             return False
+
+
+def once(action: Callable[[], object]) -> Callable[[int, object], None]:
+    """A SIGTERM handler that acts on the first signal only. A dying supervisor can deliver
+    SIGTERM more than once (PR_SET_PDEATHSIG fires as each of its threads exits), and one
+    arriving inside stop.set() re-entered it and deadlocked on its lock, outputs still on."""
+    done: dict[str, bool] = {}
+
+    def handler(signum: int, frame: object) -> None:
+        if not done:
+            done["yes"] = True  # no call before this store: no other handler can run first
+            action()
+
+    return handler

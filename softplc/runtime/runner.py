@@ -26,7 +26,7 @@ from softplc.core.scan import (
 )
 from softplc.core.snapshot import HmiWrite
 from softplc.core.symbols import IoImage
-from softplc.devices.driver import Diagnosed, Driver, Health
+from softplc.devices.driver import Diagnosed, Driver, Health, go_safe_all
 from softplc.runtime.trace import TraceWriter, image_digest, input_changes
 
 
@@ -173,18 +173,11 @@ class ScanRunner:
 
     def go_safe(self, now_ns: int, timeout_s: float = 0.5) -> list[str]:
         """The PLC's output image (safe values, unless RUNNING) to every device now, confirmed
-        where the driver can confirm it; returns the devices that did not confirm."""
-        failed = []
-        for driver in self.drivers:
-            try:
-                confirm = getattr(driver, "go_safe", None)
-                if confirm is None:
-                    driver.write_outputs(self.plc.image, now_ns)
-                elif not confirm(self.plc.image, timeout_s):
-                    failed.append(driver.name)
-            except Exception:
-                failed.append(driver.name)
-        return failed
+        by the devices within one shared bound; returns the devices that did not confirm."""
+        if not self.drivers:
+            return []
+        confirmed = go_safe_all(self.drivers, self.plc.image, timeout_s)
+        return sorted(name for name, ok in confirmed.items() if not ok)
 
     def _observe(self, observed: Observed) -> Observed:
         # Health after read_inputs: the inputs this scan uses are the ones it judges.
