@@ -20,7 +20,7 @@ from softplc.core.expr import Value
 from softplc.core.faults import DeviceMonitor
 from softplc.core.firing import Engine
 from softplc.core.forcing import Force, ForceRefused, Forces
-from softplc.core.image import AREAS, OUTPUT_AREAS, Area, ProcessImage
+from softplc.core.image import AREAS, Area, ProcessImage
 from softplc.core.lifecycle import Command, CommandRejected, PlcState, next_state
 from softplc.core.net import Busy, CompiledNet, NetState
 from softplc.core.problems import FaultCode, PlcFault
@@ -329,6 +329,10 @@ class Plc:
 
     def _changed(self) -> set[str]:
         changed: set[str] = set()
+        image, prev = self.image, self.prev
+        if (image.buf is not None and prev.buf is not None
+                and image.buf.tobytes() == prev.buf.tobytes()):
+            return changed  # the common scan: one comparison of the whole image
         for area in AREAS:
             now, before = getattr(self.image, area), getattr(self.prev, area)
             if now.tobytes() == before.tobytes():
@@ -357,7 +361,8 @@ def scan(plc: Plc, inputs: ProcessImage, now_ns: int,
     returns as a scan of a FAULTED PLC would: faults, not deaths."""
     judged = judge(plc, observed, now_ns)
     replies = _apply_commands(plc, commands, now_ns)
-    killed = any(c.command is Command.KILL and r.ok for c, r in zip(commands, replies, strict=True))
+    killed = bool(commands) and any(c.command is Command.KILL and r.ok
+                                    for c, r in zip(commands, replies, strict=True))
     try:
         result = _scan_body(plc, inputs, now_ns, commands, hmi, replies, killed)
     except PlcFault as exc:
@@ -379,7 +384,7 @@ def judge(plc: Plc, observed: Observed, now_ns: int) -> list[str]:
     once; the trace then carries the observation with the next scan."""
     events: list[str] = []
     for code, reason in ((FaultCode.WATCHDOG, observed.overrun),
-                         (FaultCode.STALL, observed.stall)):
+                         (FaultCode.STALL, observed.stall)) if observed.overrun or observed.stall else ():
         if reason and plc.state is PlcState.RUNNING:
             plc.fault(code, None, reason)
             events.append(f"plc_fault:{code.name.lower()}")
@@ -443,27 +448,39 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
         occurred = event_conditions.evaluate(plc.net.io.events.values(), plc.net.io.symbols,
                                              plc.image, plc.events)
     if plc.state is PlcState.RUNNING and plc.engine is not None and plc.net is not None:
-        now_events = frozenset(occurred) | plc.last_events
+        # The steady scan allocates no sets: empty ones are shared (issue 15.5).
+        now_events = (frozenset(occurred) | plc.last_events if occurred or plc.last_events
+                      else _NO_EVENTS)
         plc.forces.unapply_outputs(plc.image)  # forcing: the program sees its own values
         ctx = _Context(plc.image, plc.prev, plc.locations, now_events)
         # Symbols the program wrote last scan count as changed too: the end-of-scan image
         # already holds them, so the image difference alone would miss them.
-        changed = plc._changed() | set(now_events) | set(plc.true_last) | plc.written_last
+        changed = plc._changed()
+        for more in (now_events, plc.true_last, plc.written_last):
+            if more:
+                changed |= more
         before = plc.engine.state.marking.copy()
         step = plc.engine.fire_round(ctx, now_ns, changed)
-        plc._write(step.writes)
+        if step.writes:
+            plc._write(step.writes)
+            plc.written_last = {symbol for symbol, _ in step.writes}
+        elif plc.written_last:
+            plc.written_last = set()
         plc.forces.apply_outputs(plc.image)  # forcing: after Moore/Mealy, before the drivers
-        plc.written_last = {symbol for symbol, _ in step.writes}
         names = plc.net.transitions
-        fired = tuple(names[t].name for t in step.fired)
-        completed = tuple(names[t].name for t in step.completed)
-        after = plc.engine.state.marking
-        changes = {plc.net.place_names[p]: int(after[p]) for p in sorted(step.changed_places)
-                   if after[p] != before[p]}
+        if step.fired:
+            fired = tuple(names[t].name for t in step.fired)
+        if step.completed:
+            completed = tuple(names[t].name for t in step.completed)
+        if step.changed_places:
+            after = plc.engine.state.marking
+            changes = {plc.net.place_names[p]: int(after[p])
+                       for p in sorted(step.changed_places) if after[p] != before[p]}
         emitted = step.emitted
-        plc.last_events = frozenset(emitted)
+        plc.last_events = frozenset(emitted) if emitted else _NO_EVENTS
         plc.true_last = now_events
-        occurred = occurred + emitted
+        if emitted:
+            occurred = occurred + emitted
     else:
         plc.last_events = plc.true_last = frozenset()
         plc.drive_safe()
@@ -476,4 +493,7 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
 
 
 def _same_outputs(a: ProcessImage, b: ProcessImage) -> bool:
-    return all(getattr(a, n).tobytes() == getattr(b, n).tobytes() for n in OUTPUT_AREAS)
+    return a.outputs_bytes() == b.outputs_bytes()
+
+
+_NO_EVENTS: frozenset[str] = frozenset()
