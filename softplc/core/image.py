@@ -170,6 +170,21 @@ class ProcessImage:
         for name in AREAS:
             np.copyto(getattr(other, name), getattr(self, name))
 
+    def latch_inputs(self, source: ProcessImage) -> None:
+        """Copy the input areas (%IX, %IW) of `source` (same sizes) into this image."""
+        if self.buf is not None and source.buf is not None:
+            n = _inputs_bytes(self.sizes)
+            np.copyto(self.buf[:n], source.buf[:n])
+            return
+        np.copyto(self.ix, source.ix)
+        np.copyto(self.iw, source.iw)
+
+    def inputs_bytes(self) -> bytes:
+        """The input areas (%IX, %IW) as bytes, for comparing."""
+        if self.buf is not None:
+            return self.buf[:_inputs_bytes(self.sizes)].tobytes()
+        return self.ix.tobytes() + self.iw.tobytes()
+
     def outputs_bytes(self) -> bytes:
         """The output and memory areas (OUTPUT_AREAS) as bytes, for comparing and digests."""
         if self.buf is not None:

@@ -433,12 +433,11 @@ def _faulted(plc: Plc, inputs: ProcessImage, now_ns: int, replies: list[CommandR
 def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
                commands: Sequence[ProgramCommand], hmi: Sequence[HmiWrite],
                replies: list[CommandReply], killed: bool) -> ScanResult:
-    if not killed:
+    if hmi and not killed:
         plc.apply_hmi(hmi)
         if plc.engine is not None and any(w.address.area is not Area.INPUT for w in hmi):
             plc.engine.refresh_outputs()  # a program-driven output stays the program's
-    np.copyto(plc.image.ix, inputs.ix)
-    np.copyto(plc.image.iw, inputs.iw)
+    plc.image.latch_inputs(inputs)
     plc.forces.apply_inputs(plc.image)  # forcing: a forced input replaces the driver's value
     occurred: tuple[str, ...] = ()
     fired: tuple[str, ...] = ()
