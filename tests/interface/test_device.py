@@ -15,7 +15,7 @@ from softplc.core.image import ProcessImage, parse_address
 from softplc.core.lifecycle import PlcState
 from softplc.core.problems import ProgramError
 from softplc.core.symbols import DIRECTION_OF_AREA, EventKind, EventSpec, Symbol, SymType
-from softplc.devices import (
+from softplc.interface import (
     DeviceError,
     DeviceInterface,
     DeviceUnavailable,
