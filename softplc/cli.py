@@ -117,6 +117,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if script is not None:
         print(f"script: {script.file}, {len(script.steps)} step(s)")
     print(f"fired: {report['fired']}")
+    diagnostics = report["diagnostics"]
+    if report["diagnostic_count"]:  # run-time errors of guards and actions: never silent
+        print(f"diagnostics: {report['diagnostic_count']} (the first {min(5, len(diagnostics))}"
+              " shown; all in --json)")
+        for diagnostic in diagnostics[:5]:
+            print(f"  {diagnostic}")
     for line in format_timeline(report["timeline"]) if args.timeline else []:
         print(line)
     print(f"trace sha256: {report['trace_sha256']}")
@@ -129,7 +135,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
     net = _compile_or_report(args.program)
     if net is None:
         return 1
-    result = replay(args.trace, net)
+    try:
+        result = replay(args.trace, net)
+    except OSError as exc:  # one line, never a traceback
+        print(f"softplc replay: cannot read trace {args.trace}: {exc.strerror}", file=sys.stderr)
+        return 1
+    except (ValueError, KeyError, TypeError) as exc:
+        print(f"softplc replay: {args.trace}: not a usable trace ({exc})", file=sys.stderr)
+        return 1
     if result.ok:
         print(f"replay: {result.scans} scans reproduced bit for bit")
         return 0
@@ -231,6 +244,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="run the scan process with this SCHED_FIFO priority (needs root or "
                      "CAP_SYS_NICE; refused: normal scheduling, said in status)")
     run.add_argument("--scan-cpu", type=int, metavar="N", help="pin the scan process to CPU N")
+    run.add_argument("--programs-dir", metavar="DIR", default=None,
+                     help="where a program downloaded as plain YAML text (not a bundle) finds "
+                     "its io image and subnets (default: programs/ beside the program's "
+                     "folder, else under the current directory)")
     run.add_argument("--trace", help="record every scan to this JSON Lines file")
     run.add_argument("--seed", type=int, default=0, help="plant seed (0)")
     run.add_argument("--watchdog", type=float, default=10.0,
@@ -240,8 +257,12 @@ def build_parser() -> argparse.ArgumentParser:
                      "an unbounded place, a deadlock, a dead transition or an output conflict; "
                      "warn (accept, findings in the reply and status); off (warn)")
     run.add_argument("--on-stall", choices=("fault", "continue"), default="fault",
-                     help="a scan cycle that starts period x watchdog late (process paused or "
-                     "starved): fault with safe outputs, or count it and go on (fault)")
+                     help="a scan cycle that starts period x watchdog late is a stall (counted, "
+                     "an event); one that is also --stall-fault-after late (process paused, VM "
+                     "pause): fault with safe outputs, or go on (fault)")
+    run.add_argument("--stall-fault-after", type=_duration, default=500_000_000,
+                     help="how late a cycle must start for --on-stall fault to fault "
+                     "(500ms; at least period x watchdog)")
     run.add_argument("--duration", type=_duration, help="stop after this long (default: Ctrl-C)")
     run.add_argument("--quiet", action="store_true", help="no live status line")
     run.set_defaults(func=cmd_run)
@@ -249,9 +270,12 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser("simulate", help="run a program on a simulated plant in virtual time")
     sim.add_argument("program")
     sim.add_argument("--plant", help="plant model (default: the one the io image declares)")
-    sim.add_argument("--duration", type=_duration, default=600_000_000_000)
-    sim.add_argument("--period", type=_duration, default=10_000_000)
-    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--duration", type=_duration, default=600_000_000_000,
+                     help="virtual time to simulate, e.g. 90s, 10min (default: 10min)")
+    sim.add_argument("--period", type=_duration, default=10_000_000,
+                     help="scan period in virtual time (default: 10ms)")
+    sim.add_argument("--seed", type=int, default=0,
+                     help="seed of the plant's random arrivals (default: 0)")
     sim.add_argument("--json", action="store_true", help="print one JSON object")
     sim.add_argument("--trace", help="record every scan to this JSON Lines file")
     sim.add_argument("--script", help="YAML of timed HMI writes and input overrides "

@@ -22,7 +22,7 @@ ALLOWED: dict[str, frozenset[str]] = {
     "analysis": frozenset({"core", "program"}),
     "devices": frozenset({"core", "program"}),
     "hmi": frozenset({"core"}),
-    "api": frozenset({"core", "runtime"}),  # runtime: exceptions and FreshSource (cycle, below)
+    "api": frozenset({"core", "program", "runtime"}),  # runtime: exceptions and FreshSource (cycle, below)
     "opcua": frozenset({"api", "core", "devices", "runtime"}),  # runtime: as api
     "runtime": frozenset({"analysis", "api", "core", "devices", "hmi", "opcua", "program"}),
     "interface": frozenset({"api", "core", "devices", "program", "runtime"}),

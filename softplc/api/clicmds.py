@@ -17,6 +17,7 @@ from typing import Any, Final
 from softplc.api.auth import TOKEN_ENV
 from softplc.api.client import DEFAULT_URL, ApiClient, ApiError, ApiUnreachable
 from softplc.api.openapi import LIFECYCLE_COMMANDS
+from softplc.program import bundle as bundles
 
 EXIT_OK: Final = 0
 EXIT_REFUSED: Final = 1
@@ -33,8 +34,11 @@ _HELP: Final = {
 
 def add_client_commands(subparsers: Any) -> None:
     """Add the client commands to `subparsers` (from ArgumentParser.add_subparsers())."""
-    download = subparsers.add_parser("download", help="download a program to a running softplc")
-    download.add_argument("program", help="program file (YAML)")
+    download = subparsers.add_parser(
+        "download", help="download a program to a running softplc: the program, its io image "
+        "and subnets in one bundle (docs/programs.md, program bundles)")
+    download.add_argument("program", help="program file (YAML); the files it references go "
+                          "along")
     download.add_argument("--online", action="store_true",
                           help="online change while RUNNING: keep the marking by place name; "
                           "new places start with their declared tokens; refused when tokens "
@@ -42,8 +46,19 @@ def add_client_commands(subparsers: Any) -> None:
     download.add_argument("--replace", action="store_true",
                           help="with --online: a program with another name on the same devices "
                           "replaces the running one from its initial marking (refused without)")
+    download.add_argument("--dry-run", action="store_true",
+                          help="show what the download would do against the running state "
+                          "(kept, new and dropped places with tokens, outputs changing hands, "
+                          "accepted or not) and apply nothing (default: off)")
     _connection_options(download)
     download.set_defaults(func=cmd_download)
+    upload = subparsers.add_parser(
+        "upload", help="get the running program back as files, byte for byte as downloaded")
+    upload.add_argument("-o", "--output", metavar="DIR", default=".",
+                        help="write the files under DIR at their bundle paths, overwriting "
+                        "(default: the current directory)")
+    _connection_options(upload)
+    upload.set_defaults(func=cmd_upload)
     for command in LIFECYCLE_COMMANDS:
         parser = subparsers.add_parser(command, help=_HELP[command])
         _connection_options(parser)
@@ -98,18 +113,81 @@ def _call(args: argparse.Namespace, what: str,
 
 def cmd_download(args: argparse.Namespace) -> int:
     try:
-        with open(args.program, encoding="utf-8") as handle:
-            text = handle.read()
-    except (OSError, UnicodeDecodeError) as exc:
+        text = Path(args.program).read_text(encoding="utf-8")
+        absent = bundles.missing(args.program)
+        blob = bundles.pack(bundles.from_files(args.program))
+    except (OSError, UnicodeDecodeError, bundles.BundleError) as exc:
         print(f"softplc download: cannot read {args.program}: {exc}", file=sys.stderr)
         return EXIT_REFUSED
-    name = Path(args.program).name
-    code, reply = _call(args, "download",
-                        lambda client: client.download_text(text, args.online, name,
-                                                            args.replace))
-    if code == EXIT_OK:
-        print(f"{reply.get('message', 'downloaded')} (state {reply.get('state')})")
+    if absent:  # compatibility: the server resolves them against its programs directory
+        print(f"softplc download: not found here: {', '.join(map(str, absent))}; sending the "
+              "program as plain text (the server looks for them in its programs directory)",
+              file=sys.stderr)
+        name = Path(args.program).name
+        code, reply = _call(args, "download", lambda client: client.download_text(
+            text, args.online, name, args.replace, args.dry_run))
+    else:
+        code, reply = _call(args, "download", lambda client: client.download_bundle(
+            blob, args.online, args.replace, args.dry_run))
+    if code != EXIT_OK:
+        return code
+    if "plan" in reply:
+        print(format_plan(reply["plan"]))
+        return EXIT_OK if reply["plan"].get("accepted") else EXIT_REFUSED
+    print(f"{reply.get('message', 'downloaded')} (state {reply.get('state')})")
     return code
+
+
+def format_plan(plan: dict[str, Any]) -> str:
+    """A dry run's plan as a person reads it."""
+    records = plan.get("records") or {}
+    lines = [f"dry run: {plan.get('from') or '(nothing running)'} -> {plan.get('to')} "
+             f"(state {plan.get('state')}); nothing applied"]
+    for title, key in (("kept places (tokens carried over)", "kept"),
+                       ("new places (start with their declared tokens)", "new"),
+                       ("dropped places (must be empty)", "dropped")):
+        places = plan.get(key) or {}
+        lines.append(f"{title}:" + ("" if places else " none"))
+        for place, tokens in sorted(places.items()):
+            shown = f"  {place:<24} {tokens}"
+            if records.get(place):
+                shown += "  " + ", ".join(json.dumps(r, sort_keys=True) for r in records[place])
+            lines.append(shown)
+    outputs = plan.get("outputs") or {}
+    lines.append("outputs no longer driven: " + (", ".join(outputs.get("released") or [])
+                                                 or "none"))
+    lines.append("outputs newly driven:     " + (", ".join(outputs.get("taken") or []) or "none"))
+    lines.append(("would be ACCEPTED: " if plan.get("accepted") else "would be REFUSED: ")
+                 + str(plan.get("verdict")))
+    return "\n".join(lines)
+
+
+def cmd_upload(args: argparse.Namespace) -> int:
+    code, blob = _call_bytes(args, "upload", lambda client: client.upload())
+    if code != EXIT_OK:
+        return code
+    try:
+        bundle = bundles.unpack(blob, "the uploaded bundle")
+        written = bundles.write_out(bundle, args.output)
+    except (bundles.BundleError, OSError) as exc:
+        print(f"softplc upload: {exc}", file=sys.stderr)
+        return EXIT_REFUSED
+    for path in written:
+        print(path)
+    print(f"program {Path(args.output) / bundle.program} ({len(written)} file(s))")
+    return EXIT_OK
+
+
+def _call_bytes(args: argparse.Namespace, what: str,
+                action: Callable[[ApiClient], bytes]) -> tuple[int, bytes]:
+    got: list[bytes] = []
+
+    def run(client: ApiClient) -> dict[str, Any]:
+        got.append(action(client))
+        return {}
+
+    code, _ = _call(args, what, run)
+    return code, got[0] if got else b""
 
 
 def cmd_lifecycle(args: argparse.Namespace) -> int:
@@ -181,10 +259,16 @@ def format_status(status: dict[str, Any]) -> str:
     marking = status.get("marking") or {}
     marked = {place: tokens for place, tokens in marking.items() if tokens}
     lines.append("marking" + ("" if marked else "     (no tokens)"))
-    lines += [f"  {place:<24} {tokens}" for place, tokens in sorted(marked.items())]
+    records = status.get("tokens") or {}
+    lines += [f"  {place:<24} {tokens}" + ("  " + ", ".join(
+        json.dumps(r, sort_keys=True) for r in records[place]) if records.get(place) else "")
+        for place, tokens in sorted(marked.items())]
     forced = status.get("forced") or {}
     lines.append("forced" + ("      (nothing)" if not forced else ""))
     lines += [f"  {name:<24} {value}  FORCED" for name, value in sorted(forced.items())]
+    if status.get("diagnostic_count"):
+        lines.append(f"diagnostics {status['diagnostic_count']} run-time error(s) of guards "
+                     "and actions (the last shown)")
     lines += [f"diagnostic  {d}" for d in status.get("diagnostics") or []]
     return "\n".join(lines)
 

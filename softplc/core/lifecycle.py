@@ -38,7 +38,8 @@ class CommandRejected(Exception):
     def __init__(self, state: PlcState, command: Command, reason: str = "") -> None:
         self.state = state
         self.command = command
-        self.reason = reason or f"{command.value} is not accepted in state {state.name}"
+        self.reason = reason or (f"{command.value} is not accepted in state {state.name} "
+                                 f"(accepted in {accepting(command)})")
         super().__init__(self.reason)
 
 
@@ -69,3 +70,11 @@ def next_state(state: PlcState, command: Command) -> PlcState:
         return TRANSITIONS[(state, command)]
     except KeyError:
         raise CommandRejected(state, command) from None
+
+
+def accepting(command: Command) -> str:
+    """The states that accept `command`, for a refusal's message."""
+    states = sorted({s.name for (s, c) in TRANSITIONS if c is command})
+    if command is Command.DOWNLOAD and "RUNNING" not in states:
+        states.append("RUNNING (online change)")
+    return ", ".join(states) or "no state"

@@ -459,6 +459,7 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
             if more:
                 changed |= more
         before = plc.engine.state.marking.copy()
+        plc.engine.scan = plc.scan_count  # diagnostics name the scan
         step = plc.engine.fire_round(ctx, now_ns, changed)
         if step.writes:
             plc._write(step.writes)

@@ -67,6 +67,8 @@ class CommandRequest:
     value: int = 0  # FORCE
     deadline_ns: int = 0
     replace: bool = False  # a download of another program while RUNNING may replace it
+    bundle: bytes | None = None  # a download as a bundle (softplc/program/bundle.py zip)
+    dry_run: bool = False  # a download answered with its plan, never applied
 
 
 @dataclass(frozen=True, slots=True)
@@ -79,6 +81,7 @@ class CommandReply:
     message: str
     state: PlcState
     expired: bool = False
+    detail: dict[str, object] | None = None  # a dry run's plan (core/online.py describe)
 
 
 class SnapshotSource(Protocol):
