@@ -3,8 +3,9 @@
 
 A room is a top-level package of softplc (core, program, devices, ...) or a top-level module
 (cli). ALLOWED lists, per room, the rooms it may import; a new upward import fails here. The
-room graph must have no cycle; the cycles (strongly connected groups) that remain today are listed in KNOWN_CYCLES, which
-must match exactly (a new cycle fails, and so does a removed one until it is struck off).
+room graph must have no cycle; the cycles (strongly connected groups) that remain today are
+listed in KNOWN_CYCLES, which must match exactly (a new cycle fails, and so does a removed
+one until it is struck off).
 """
 
 from __future__ import annotations
@@ -22,7 +23,8 @@ ALLOWED: dict[str, frozenset[str]] = {
     "analysis": frozenset({"core", "program"}),
     "devices": frozenset({"core", "program"}),
     "hmi": frozenset({"core"}),
-    "api": frozenset({"core", "program", "runtime"}),  # runtime: exceptions and FreshSource (cycle, below)
+    # runtime: exceptions and FreshSource (the cycle below)
+    "api": frozenset({"core", "program", "runtime"}),
     "opcua": frozenset({"api", "core", "devices", "runtime"}),  # runtime: as api
     "runtime": frozenset({"analysis", "api", "core", "devices", "hmi", "opcua", "program"}),
     "interface": frozenset({"api", "core", "devices", "program", "runtime"}),

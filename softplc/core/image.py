@@ -104,6 +104,12 @@ class ProcessImage:
     move whole ranges with numpy; single locations go through get/set, which check bounds."""
 
     __slots__ = ("buf", "iw", "ix", "mw", "mx", "qw", "qx", "sizes")
+    ix: BoolArray
+    qx: BoolArray
+    mx: BoolArray
+    iw: WordArray
+    qw: WordArray
+    mw: WordArray
 
     def __init__(self, sizes: ImageSizes | None = None) -> None:
         self.sizes = sizes or ImageSizes()

@@ -383,8 +383,9 @@ def judge(plc: Plc, observed: Observed, now_ns: int) -> list[str]:
     runtime also calls it between scans for a watchdog overrun, so safe outputs go out at
     once; the trace then carries the observation with the next scan."""
     events: list[str] = []
-    for code, reason in ((FaultCode.WATCHDOG, observed.overrun),
-                         (FaultCode.STALL, observed.stall)) if observed.overrun or observed.stall else ():
+    measured = (((FaultCode.WATCHDOG, observed.overrun), (FaultCode.STALL, observed.stall))
+                if observed.overrun or observed.stall else ())
+    for code, reason in measured:
         if reason and plc.state is PlcState.RUNNING:
             plc.fault(code, None, reason)
             events.append(f"plc_fault:{code.name.lower()}")
