@@ -24,7 +24,8 @@ from typing import Any
 
 from softplc.bench.measure import Progress
 
-SECTIONS = ("engine", "scan", "modbus", "online_change", "restart", "memory", "web", "analysis")
+SECTIONS = ("engine", "scan", "simulate", "modbus", "online_change", "restart", "memory",
+            "web", "analysis")
 
 
 @dataclass(frozen=True, slots=True)
@@ -61,6 +62,12 @@ TARGETS = (
         "p99 lateness at 1 ms, loaded (4 Modbus clients + HTTP poll) / empty-loop floor",
         period="1 ms",
     ),
+    Target("scan.exec_over_round", "<=", 2,
+           "median scan execution of transport in the live loop / median firing round of the "
+           "same net, same run", period="1 ms"),
+    Target("simulate.realtime_factor", ">=", 1000,
+           "simulated time / wall time of softplc simulate, both case studies (the slower)",
+           period="10 ms"),
     Target("scan.overruns_loaded_1ms", "==", 0, "overruns at 1 ms, loaded", "scans", "1 ms"),
     Target(
         "modbus.throughput_ratio_vs_pymodbus_4c",
@@ -105,6 +112,10 @@ def _section_runner(name: str) -> Callable[[bool, Progress], dict[str, Any]]:
         from softplc.bench import scanbench
 
         return lambda quick, progress: scanbench.run(quick, progress)
+    if name == "simulate":
+        from softplc.bench import simbench
+
+        return lambda quick, progress: simbench.run(quick, progress)
     if name == "modbus":
         from softplc.bench import modbusbench
 

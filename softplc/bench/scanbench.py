@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from softplc.bench import simbench
 from softplc.bench.live import LiveRuntime, ScanRecord, run_floor
 from softplc.bench.load import LoadJob, LoadWorker
 from softplc.bench.measure import Progress, figures, ratio
@@ -105,6 +106,15 @@ def run(quick: bool, progress: Progress, *, duration_s: float | None = None,
         "configs": configs, "histograms": hists,
         "realtime": f"priority {realtime.priority}, cpu {realtime.cpu}",
     }
+    # The scan's execution in the live loop over the firing round of the same net, measured
+    # in this run (issue 15.5): what the shell around the round costs.
+    progress("scan: firing-round baseline (transport, in process)")
+    round_us = simbench.round_median_us(2_000 if quick else 20_000)
+    first = min(periods_ms)
+    exec_us = configs[f"idle_{first}ms"]["exec_us"]["median"]
+    result["round_median_us"] = round_us
+    result["exec_median_us"] = exec_us
+    result["exec_over_round"] = ratio(exec_us, round_us)
     for period_ms in periods_ms:
         floor_p99 = configs[f"floor_{period_ms}ms"]["lateness_us"]["p99"]
         for kind in ("idle", "loaded"):

@@ -20,7 +20,7 @@ from softplc.core.expr import Value
 from softplc.core.faults import DeviceMonitor
 from softplc.core.firing import Engine
 from softplc.core.forcing import Force, ForceRefused, Forces
-from softplc.core.image import AREAS, OUTPUT_AREAS, Area, ProcessImage
+from softplc.core.image import AREAS, Area, ProcessImage
 from softplc.core.lifecycle import Command, CommandRejected, PlcState, accepting, next_state
 from softplc.core.net import Busy, CompiledNet, NetState
 from softplc.core.online import CarryPlan
@@ -334,6 +334,10 @@ class Plc:
 
     def _changed(self) -> set[str]:
         changed: set[str] = set()
+        image, prev = self.image, self.prev
+        if (image.buf is not None and prev.buf is not None
+                and image.buf.tobytes() == prev.buf.tobytes()):
+            return changed  # the common scan: one comparison of the whole image
         for area in AREAS:
             now, before = getattr(self.image, area), getattr(self.prev, area)
             if now.tobytes() == before.tobytes():
@@ -362,7 +366,8 @@ def scan(plc: Plc, inputs: ProcessImage, now_ns: int,
     returns as a scan of a FAULTED PLC would: faults, not deaths."""
     judged = judge(plc, observed, now_ns)
     replies = _apply_commands(plc, commands, now_ns)
-    killed = any(c.command is Command.KILL and r.ok for c, r in zip(commands, replies, strict=True))
+    killed = bool(commands) and any(c.command is Command.KILL and r.ok
+                                    for c, r in zip(commands, replies, strict=True))
     try:
         result = _scan_body(plc, inputs, now_ns, commands, hmi, replies, killed)
     except PlcFault as exc:
@@ -383,8 +388,9 @@ def judge(plc: Plc, observed: Observed, now_ns: int) -> list[str]:
     runtime also calls it between scans for a watchdog overrun, so safe outputs go out at
     once; the trace then carries the observation with the next scan."""
     events: list[str] = []
-    for code, reason in ((FaultCode.WATCHDOG, observed.overrun),
-                         (FaultCode.STALL, observed.stall)):
+    measured = (((FaultCode.WATCHDOG, observed.overrun), (FaultCode.STALL, observed.stall))
+                if observed.overrun or observed.stall else ())
+    for code, reason in measured:
         if reason and plc.state is PlcState.RUNNING:
             plc.fault(code, None, reason)
             events.append(f"plc_fault:{code.name.lower()}")
@@ -433,12 +439,11 @@ def _faulted(plc: Plc, inputs: ProcessImage, now_ns: int, replies: list[CommandR
 def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
                commands: Sequence[ProgramCommand], hmi: Sequence[HmiWrite],
                replies: list[CommandReply], killed: bool) -> ScanResult:
-    if not killed:
+    if hmi and not killed:
         plc.apply_hmi(hmi)
         if plc.engine is not None and any(w.address.area is not Area.INPUT for w in hmi):
             plc.engine.refresh_outputs()  # a program-driven output stays the program's
-    np.copyto(plc.image.ix, inputs.ix)
-    np.copyto(plc.image.iw, inputs.iw)
+    plc.image.latch_inputs(inputs)
     plc.forces.apply_inputs(plc.image)  # forcing: a forced input replaces the driver's value
     occurred: tuple[str, ...] = ()
     fired: tuple[str, ...] = ()
@@ -448,28 +453,40 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
         occurred = event_conditions.evaluate(plc.net.io.events.values(), plc.net.io.symbols,
                                              plc.image, plc.events)
     if plc.state is PlcState.RUNNING and plc.engine is not None and plc.net is not None:
-        now_events = frozenset(occurred) | plc.last_events
+        # The steady scan allocates no sets: empty ones are shared (issue 15.5).
+        now_events = (frozenset(occurred) | plc.last_events if occurred or plc.last_events
+                      else _NO_EVENTS)
         plc.forces.unapply_outputs(plc.image)  # forcing: the program sees its own values
         ctx = _Context(plc.image, plc.prev, plc.locations, now_events)
         # Symbols the program wrote last scan count as changed too: the end-of-scan image
         # already holds them, so the image difference alone would miss them.
-        changed = plc._changed() | set(now_events) | set(plc.true_last) | plc.written_last
+        changed = plc._changed()
+        for more in (now_events, plc.true_last, plc.written_last):
+            if more:
+                changed |= more
         before = plc.engine.state.marking.copy()
         plc.engine.scan = plc.scan_count  # diagnostics name the scan
         step = plc.engine.fire_round(ctx, now_ns, changed)
-        plc._write(step.writes)
+        if step.writes:
+            plc._write(step.writes)
+            plc.written_last = {symbol for symbol, _ in step.writes}
+        elif plc.written_last:
+            plc.written_last = set()
         plc.forces.apply_outputs(plc.image)  # forcing: after Moore/Mealy, before the drivers
-        plc.written_last = {symbol for symbol, _ in step.writes}
         names = plc.net.transitions
-        fired = tuple(names[t].name for t in step.fired)
-        completed = tuple(names[t].name for t in step.completed)
-        after = plc.engine.state.marking
-        changes = {plc.net.place_names[p]: int(after[p]) for p in sorted(step.changed_places)
-                   if after[p] != before[p]}
+        if step.fired:
+            fired = tuple(names[t].name for t in step.fired)
+        if step.completed:
+            completed = tuple(names[t].name for t in step.completed)
+        if step.changed_places:
+            after = plc.engine.state.marking
+            changes = {plc.net.place_names[p]: int(after[p])
+                       for p in sorted(step.changed_places) if after[p] != before[p]}
         emitted = step.emitted
-        plc.last_events = frozenset(emitted)
+        plc.last_events = frozenset(emitted) if emitted else _NO_EVENTS
         plc.true_last = now_events
-        occurred = occurred + emitted
+        if emitted:
+            occurred = occurred + emitted
     else:
         plc.last_events = plc.true_last = frozenset()
         plc.drive_safe()
@@ -482,4 +499,7 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
 
 
 def _same_outputs(a: ProcessImage, b: ProcessImage) -> bool:
-    return all(getattr(a, n).tobytes() == getattr(b, n).tobytes() for n in OUTPUT_AREAS)
+    return a.outputs_bytes() == b.outputs_bytes()
+
+
+_NO_EVENTS: frozenset[str] = frozenset()

@@ -1,12 +1,10 @@
-"""The device interface (seed paper, section 3.2) and its drivers.
+"""Drivers (sim, Modbus) and simulated plants: the field side of the PLC.
 
-open_device, DeviceInterface and Notification load lazily: the runtime imports
-softplc.devices.driver, and softplc.devices.interface imports the runtime.
+The device interface of the seed paper (a PLC seen as a device) is a room above the runtime:
+softplc.interface. The device exceptions live in softplc.devices.driver.
 """
 
 from __future__ import annotations
-
-from typing import TYPE_CHECKING, Any
 
 from softplc.devices.driver import (
     DeviceError,
@@ -17,28 +15,11 @@ from softplc.devices.driver import (
     WrongType,
 )
 
-if TYPE_CHECKING:
-    from softplc.devices.interface import DeviceInterface, Notification, UnknownEvent, open_device
-
-_LAZY = frozenset({"DeviceInterface", "Notification", "UnknownEvent", "open_device"})
-
 __all__ = [
     "DeviceError",
-    "DeviceInterface",
     "DeviceUnavailable",
-    "Notification",
     "ProgramHandlingError",
     "UnknownAddress",
-    "UnknownEvent",
     "WrongDirection",
     "WrongType",
-    "open_device",
 ]
-
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        from softplc.devices import interface
-
-        return getattr(interface, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,7 +1,6 @@
 """The `sim` driver: an in-memory device whose inputs come from a plant model in virtual time.
 
-Owns: the mapping between symbols (by channel) and a plant's sensors and actuators, the
-program commands the device received (so tests can check what a controller asked of it), and
+Owns: the mapping between symbols (by channel) and a plant's sensors and actuators, and
 an `offline` switch that makes the device stop answering (fault injection).
 Does not know: the Petri net, clocks (time arrives as now_ns), Modbus.
 """
@@ -9,8 +8,9 @@ Does not know: the Petri net, clocks (time arrives as now_ns), Modbus.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
-from softplc.core.image import ProcessImage
+from softplc.core.image import WORD_MAX, ProcessImage
 from softplc.core.symbols import Direction, DriverSpec, Symbol
 from softplc.devices.driver import DeviceError, Health
 from softplc.devices.plants.base import Plant
@@ -28,7 +28,7 @@ class SimDriver:
             if not isinstance(plant_name, str):
                 raise DeviceError(f"driver {spec.name}: sim needs `plant: NAME`")
             plant = make_plant(plant_name, seed)
-        self.plant = plant
+        self.plant = plant  # also clears the actuator values sent (the property below)
         mine = [s for s in symbols if s.driver == spec.name]
         self.inputs = [s for s in mine if s.direction is Direction.IN]
         self.outputs = [s for s in mine if s.direction is Direction.OUT]
@@ -38,11 +38,23 @@ class SimDriver:
                      for s in self.outputs if s.channel not in plant.actuators]
         if problems:
             raise DeviceError(f"driver {spec.name}: " + "; ".join(problems))
-        self.commands: list[tuple[str, str]] = []  # (command, program) received
         # Fault injection: while set, the device does not answer. The plant's physics go on,
         # but the image keeps its last inputs and the actuators their last commands.
         self.offline = False
         self._open = False
+        self._image: ProcessImage | None = None  # the image _in_slots points into
+        self._in_slots: list[tuple[Any, int, bool, str]] = []
+        self._out_channels = tuple(str(s.channel) for s in self.outputs)
+
+    @property
+    def plant(self) -> Plant:
+        return self._plant
+
+    @plant.setter
+    def plant(self, plant: Plant) -> None:
+        """Another plant (a warm restart keeps the field side): it has no actuators sent yet."""
+        self._plant = plant
+        self._sent: tuple[int, ...] | None = None
 
     def open(self) -> None:
         self._open = True
@@ -55,13 +67,28 @@ class SimDriver:
         if self.offline:
             return
         sensors = self.plant.read_sensors()
-        for sym in self.inputs:
-            image.set(sym.address, sensors[str(sym.channel)])
+        if image is not self._image:
+            self._bind(image)
+        for arr, index, bit, channel in self._in_slots:
+            value = sensors[channel]
+            arr[index] = bool(value) if bit else int(value) & WORD_MAX
 
     def write_outputs(self, image: ProcessImage, now_ns: int) -> None:
         if self.offline:
             return
-        self.plant.set_actuators({str(s.channel): image.get(s.address) for s in self.outputs})
+        values = tuple(image.get(s.address) for s in self.outputs)
+        if values == self._sent:
+            return  # the plant has these already: no bookkeeping on a steady scan
+        self.plant.set_actuators(dict(zip(self._out_channels, values, strict=True)))
+        self._sent = values
+
+    def _bind(self, image: ProcessImage) -> None:
+        """Where each input lands in `image`, checked once per image, not per scan."""
+        for sym in self.inputs:
+            image.check(sym.address)
+        self._in_slots = [(getattr(image, s.address.attr), s.address.index, s.address.is_bit,
+                           str(s.channel)) for s in self.inputs]
+        self._image = image
 
     def go_safe(self, image: ProcessImage, timeout_s: float) -> bool:
         """In memory, so immediate: confirmed unless the device is closed or offline."""

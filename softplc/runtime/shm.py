@@ -341,7 +341,7 @@ class SnapshotReader:
         # Built like ProcessImage.copy(): the areas are views into this call's private copy
         # of the payload, which nothing else refers to (no zero-filled arrays to overwrite).
         image = ProcessImage.__new__(ProcessImage)
-        image.sizes = self.sizes
+        image.sizes, image.buf = self.sizes, None
         for name, start, stop, dtype in self._layout:
             setattr(image, name, payload[start:stop].view(dtype))
         return Snapshot(seq=seq, image=image, status=_unpack_status(payload))

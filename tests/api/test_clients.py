@@ -21,7 +21,7 @@ from softplc.api.clicmds import (
 from softplc.api.client import ApiClient, ApiError, ApiUnreachable
 from softplc.core.lifecycle import PlcState
 from softplc.devices.driver import DeviceUnavailable, ProgramHandlingError
-from softplc.devices.remote import RemoteProgramRefused, RemoteSoftplc
+from softplc.interface.remote import RemoteProgramRefused, RemoteSoftplc
 from tests.api.conftest import Plc, ScanThread, ServerThread, eventually, make_server
 from tests.api.helpers import BAD_PROGRAM, TRANSPORT
 

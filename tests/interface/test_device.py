@@ -15,7 +15,9 @@ from softplc.core.image import ProcessImage, parse_address
 from softplc.core.lifecycle import PlcState
 from softplc.core.problems import ProgramError
 from softplc.core.symbols import DIRECTION_OF_AREA, EventKind, EventSpec, Symbol, SymType
-from softplc.devices import (
+from softplc.devices.driver import Health
+from softplc.devices.sim import SimDriver
+from softplc.interface import (
     DeviceError,
     DeviceInterface,
     DeviceUnavailable,
@@ -27,8 +29,6 @@ from softplc.devices import (
     WrongType,
     open_device,
 )
-from softplc.devices.driver import Health
-from softplc.devices.sim import SimDriver
 from softplc.program.io_image import load_io_image
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -41,7 +41,7 @@ from softplc.devices.driver import (
     WrongDirection,
     WrongType,
 )
-from softplc.devices.facade import PaperProgramHandling
+from softplc.interface.facade import PaperProgramHandling
 from softplc.program.compiler import Summary, compile_file, summarize
 from softplc.program.io_image import load_io_image
 from softplc.runtime.runner import ScanRunner, open_drivers

@@ -15,7 +15,7 @@ from typing import Any
 from softplc.api.client import DEFAULT_URL, ApiClient, ApiError, ApiUnreachable
 from softplc.core.lifecycle import Command, PlcState
 from softplc.devices.driver import DeviceUnavailable, ProgramHandlingError
-from softplc.devices.facade import PaperProgramHandling
+from softplc.interface.facade import PaperProgramHandling
 
 _UNAVAILABLE = frozenset({401, 503})  # not the program's fault: no usable device behind
 

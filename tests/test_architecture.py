@@ -1,0 +1,122 @@
+"""The rooms of softplc and who may import whom (issue 15.1), read from the AST of every module
+(imports inside functions count too: a lazy import is still a dependency).
+
+A room is a top-level package of softplc (core, program, devices, ...) or a top-level module
+(cli). ALLOWED lists, per room, the rooms it may import; a new upward import fails here. The
+room graph must have no cycle; the cycles (strongly connected groups) that remain today are
+listed in KNOWN_CYCLES, which must match exactly (a new cycle fails, and so does a removed
+one until it is struck off).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import softplc
+
+ROOT = Path(softplc.__file__).parent
+
+ALLOWED: dict[str, frozenset[str]] = {
+    "core": frozenset(),
+    "program": frozenset({"core"}),
+    "analysis": frozenset({"core", "program"}),
+    "devices": frozenset({"core", "program"}),
+    "hmi": frozenset({"core"}),
+    # runtime: exceptions and FreshSource (the cycle below)
+    "api": frozenset({"core", "program", "runtime"}),
+    "opcua": frozenset({"api", "core", "devices", "runtime"}),  # runtime: as api
+    "runtime": frozenset({"analysis", "api", "core", "devices", "hmi", "opcua", "program"}),
+    "interface": frozenset({"api", "core", "devices", "program", "runtime"}),
+    "bench": frozenset({"analysis", "api", "core", "program", "runtime"}),
+    "cli": frozenset({"analysis", "api", "bench", "core", "devices", "interface", "program",
+                      "runtime"}),
+}
+# Left to untangle (issue 15.1): the exceptions and helpers the API and OPC UA servers take
+# from the runtime belong where both sides may import them.
+KNOWN_CYCLES = {frozenset({"api", "opcua", "runtime"})}  # api<->runtime, opcua<->runtime
+
+
+def room_of(path: Path) -> str:
+    rel = path.relative_to(ROOT)
+    return rel.parts[0] if len(rel.parts) > 1 else rel.stem
+
+
+def imports() -> dict[str, dict[str, set[str]]]:
+    """room -> imported room -> the modules (relative paths) that import it."""
+    graph: dict[str, dict[str, set[str]]] = {}
+    for path in sorted(ROOT.rglob("*.py")):
+        room = room_of(path)
+        graph.setdefault(room, {})
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            else:
+                continue
+            for name in names:
+                parts = name.split(".")
+                if parts[0] == "softplc" and len(parts) > 1 and parts[1] != room:
+                    rel = str(path.relative_to(ROOT))
+                    graph[room].setdefault(parts[1], set()).add(rel)
+    return graph
+
+
+def cycles(graph: dict[str, dict[str, set[str]]]) -> set[frozenset[str]]:
+    """The strongly connected groups of more than one room (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: set[frozenset[str]] = set()
+
+    def visit(room: str) -> None:
+        index[room] = low[room] = len(index)
+        stack.append(room)
+        for other in graph.get(room, {}):
+            if other not in index:
+                visit(other)
+                low[room] = min(low[room], low[other])
+            elif other in stack:
+                low[room] = min(low[room], index[other])
+        if low[room] == index[room]:
+            group = set()
+            while True:
+                member = stack.pop()
+                group.add(member)
+                if member == room:
+                    break
+            if len(group) > 1:
+                found.add(frozenset(group))
+
+    for room in sorted(graph):
+        if room not in index:
+            visit(room)
+    return found
+
+
+def test_every_room_is_known() -> None:
+    unknown = sorted(set(imports()) - set(ALLOWED) - {"__init__", "__main__"})
+    assert not unknown, f"rooms without an import allowlist in this test: {unknown}"
+
+
+def test_rooms_import_only_what_their_allowlist_names() -> None:
+    wrong = [f"{room} imports {other} ({', '.join(sorted(where))})"
+             for room, deps in sorted(imports().items())
+             for other, where in sorted(deps.items())
+             if other not in ALLOWED.get(room, frozenset())]
+    assert not wrong, "imports outside the allowlist:\n" + "\n".join(wrong)
+
+
+def test_the_core_imports_no_other_room() -> None:
+    assert not imports()["core"]
+
+
+def test_no_cycles_between_rooms_but_the_known_ones() -> None:
+    assert cycles(imports()) == KNOWN_CYCLES
+
+
+def test_the_cycle_finder_finds_a_cycle() -> None:
+    graph = {"a": {"b": {"a.py"}}, "b": {"c": {"b.py"}}, "c": {"a": {"c.py"}}, "d": {}}
+    assert cycles(graph) == {frozenset({"a", "b", "c"})}
+    assert cycles({"a": {"b": {"a.py"}}, "b": {}}) == set()
