@@ -294,9 +294,10 @@ def test_3000_slow_connections_keep_memory_bounded_and_are_closed() -> None:
         socks = flood(port, stack)
         during_kib, fds = rss_kib(pid), open_fds(pid)
         assert get(port) == (200, b"ok")  # at the first try, during the flood
-        # The cap, plus one accept burst (asyncio accepts up to the backlog, 128, per loop
-        # turn; the evicted close on the next turn), plus the process's own files.
-        assert fds <= cap + 128 + 30
+        # The cap, plus accept bursts (asyncio accepts up to the backlog, 128, per loop turn;
+        # the evicted close on a later turn: 291-313 fds measured on a quiet 2-core machine,
+        # where the client floods faster), plus the process's own files: bounded, not 3,000.
+        assert fds <= cap + 2 * 128 + 30
         assert wait_until(lambda: open_fds(pid) <= cap + 30, timeout_s=1.0)
         assert during_kib - before_kib < 32 * 1024, (before_kib, during_kib)
         assert all_closed_by_peer(socks, timeout_s=10.0) == FLOOD

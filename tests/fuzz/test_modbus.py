@@ -147,9 +147,11 @@ def test_a_connection_flood_is_held_to_the_limit(source: ImageSource) -> None:
                         outcome.append(request(sock, VALID_READ, tid=i)[0] == 4)
                     except (ConnectionError, TimeoutError):
                         outcome.append(False)
+                # Held to the limit; idle connections make room for newer ones (the slave
+                # evicts the one idle longest, docs/modbus.md): the newest `limit` are served.
                 assert handle.slave.connection_count <= limit
-                assert outcome[:limit] == [True] * limit
-                assert not any(outcome[limit:])
+                assert outcome[-limit:] == [True] * limit
+                assert sum(outcome) == limit
                 served += sum(outcome)
                 refused += len(outcome) - sum(outcome)
             finally:
