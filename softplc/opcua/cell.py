@@ -29,6 +29,7 @@ from typing import Final
 from asyncua import Client, ua
 
 from softplc.api.auth import load_or_create_token
+from softplc.opcua.ids import string_id
 
 ROOT: Final = Path(__file__).resolve().parents[2]
 PROGRAMS: Final = {"transport": "programs/transport.yaml", "drilling": "programs/drilling.yaml"}
@@ -204,15 +205,13 @@ class Watcher:
             await client.connect()
         ns = {name: await c.get_namespace_index("urn:softplc") for name, c in self.clients.items()}
         self._values = [(key, self.clients[key[0]].get_node(
-            ua.NodeId(f"PLC.Symbols.{key[1]}", ns[key[0]]))) for key in WATCHED]
-        self._states = [(name, [self.clients[name].get_node(ua.NodeId(f"PLC.Status.{what}",
-                                                                      ns[name]))
+            string_id(f"PLC.Symbols.{key[1]}", ns[key[0]]))) for key in WATCHED]
+        self._states = [(name, [self.clients[name].get_node(string_id(f"PLC.Status.{what}", ns[name]))
                                 for what in ("State", "FaultReason")])
                         for name in STATES]
         self._belts = [self.clients["transport"].get_node(
-            ua.NodeId(f"PLC.Symbols.{sym}", ns["transport"])) for sym in BELTS]
-        self._end_feed = self.clients["cell"].get_node(ua.NodeId("PLC.Symbols.end_feed",
-                                                                 ns["cell"]))
+            string_id(f"PLC.Symbols.{sym}", ns["transport"])) for sym in BELTS]
+        self._end_feed = self.clients["cell"].get_node(string_id("PLC.Symbols.end_feed", ns["cell"]))
         return self
 
     async def end_feed(self) -> None:
