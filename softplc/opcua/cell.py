@@ -26,7 +26,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Final
 
-from asyncua import Client, ua
+from asyncua import Client, Node, ua
 
 from softplc.api.auth import load_or_create_token
 from softplc.opcua.ids import string_id
@@ -204,14 +204,15 @@ class Watcher:
         for client in self.clients.values():
             await client.connect()
         ns = {name: await c.get_namespace_index("urn:softplc") for name, c in self.clients.items()}
-        self._values = [(key, self.clients[key[0]].get_node(
-            string_id(f"PLC.Symbols.{key[1]}", ns[key[0]]))) for key in WATCHED]
-        self._states = [(name, [self.clients[name].get_node(string_id(f"PLC.Status.{what}", ns[name]))
-                                for what in ("State", "FaultReason")])
-                        for name in STATES]
-        self._belts = [self.clients["transport"].get_node(
-            string_id(f"PLC.Symbols.{sym}", ns["transport"])) for sym in BELTS]
-        self._end_feed = self.clients["cell"].get_node(string_id("PLC.Symbols.end_feed", ns["cell"]))
+
+        def node(plc: str, path: str) -> Node:
+            return self.clients[plc].get_node(string_id(path, ns[plc]))
+
+        self._values = [(key, node(key[0], f"PLC.Symbols.{key[1]}")) for key in WATCHED]
+        self._states = [(name, [node(name, f"PLC.Status.{what}")
+                                for what in ("State", "FaultReason")]) for name in STATES]
+        self._belts = [node("transport", f"PLC.Symbols.{sym}") for sym in BELTS]
+        self._end_feed = node("cell", "PLC.Symbols.end_feed")
         return self
 
     async def end_feed(self) -> None:

@@ -27,8 +27,12 @@ from pathlib import Path
 from typing import Any, Final, Protocol
 
 from asyncua import Server, ua
-from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
-from asyncua.crypto.permission_rules import SimpleRoleRuleset
+from asyncua.crypto.permission_rules import (
+    USER_TYPES,
+    SimpleRoleRuleset,
+    User,
+    UserRole,
+)
 from asyncua.server.internal_session import InternalSession
 from asyncua.server.user_managers import UserManager
 
