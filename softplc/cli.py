@@ -271,7 +271,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--plots", help="write PNG plots into this directory")
     bench.add_argument("--markdown", help="write the report (e.g. BENCHMARKS.md)")
     bench.add_argument("--only", help="comma-separated sections: engine, scan, modbus, "
-                       "online_change, memory, web, analysis")
+                       "online_change, memory, web, analysis, opcua")
     bench.add_argument("--quiet", action="store_true", help="no progress display")
     bench.set_defaults(func=cmd_bench)
 
