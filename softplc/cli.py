@@ -117,6 +117,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if script is not None:
         print(f"script: {script.file}, {len(script.steps)} step(s)")
     print(f"fired: {report['fired']}")
+    diagnostics = report["diagnostics"]
+    if report["diagnostic_count"]:  # run-time errors of guards and actions: never silent
+        print(f"diagnostics: {report['diagnostic_count']} (the first {min(5, len(diagnostics))}"
+              " shown; all in --json)")
+        for diagnostic in diagnostics[:5]:
+            print(f"  {diagnostic}")
     for line in format_timeline(report["timeline"]) if args.timeline else []:
         print(line)
     print(f"trace sha256: {report['trace_sha256']}")
@@ -129,7 +135,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
     net = _compile_or_report(args.program)
     if net is None:
         return 1
-    result = replay(args.trace, net)
+    try:
+        result = replay(args.trace, net)
+    except OSError as exc:  # one line, never a traceback
+        print(f"softplc replay: cannot read trace {args.trace}: {exc.strerror}", file=sys.stderr)
+        return 1
+    except (ValueError, KeyError, TypeError) as exc:
+        print(f"softplc replay: {args.trace}: not a usable trace ({exc})", file=sys.stderr)
+        return 1
     if result.ok:
         print(f"replay: {result.scans} scans reproduced bit for bit")
         return 0
@@ -189,90 +202,118 @@ def build_parser() -> argparse.ArgumentParser:
                            "file), its drivers' plants and channels; opens nothing")
     check.add_argument("program", help="a program, or a symbols file (io_images/*.yaml)")
     check.add_argument("--plant", help="plant model for sim drivers that name none "
-                       "(as run and simulate take it)")
+                       "(as run and simulate take it; default: the io image's)")
     check.set_defaults(func=cmd_check)
 
     run = sub.add_parser("run", help="run a soft PLC (scan process + Modbus/HTTP process)")
     run.add_argument("program", nargs="?",
                      help="program to run; without it, the boot program of --state-dir (the "
                      "last program the PLC accepted), if any")
-    run.add_argument("--period", type=_duration, default=10_000_000, help="scan period (10ms)")
+    run.add_argument("--period", type=_duration, default=10_000_000,
+                     help="scan period, e.g. 10ms, 1ms (default: 10ms)")
     run.add_argument("--modbus", type=_endpoint, default=("127.0.0.1", 5020),
-                     help="Modbus TCP slave HOST:PORT, or off (127.0.0.1:5020)")
+                     help="Modbus TCP slave HOST:PORT, or off (default: 127.0.0.1:5020)")
     run.add_argument("--api", type=_endpoint, default=("127.0.0.1", 8080),
-                     help="HTTP API HOST:PORT, or off (127.0.0.1:8080)")
+                     help="HTTP API HOST:PORT, or off (default: 127.0.0.1:8080)")
     run.add_argument("--opcua", type=_endpoint, default=("127.0.0.1", 4840),
-                     help="OPC UA server HOST:PORT, or off (127.0.0.1:4840; docs/opcua.md)")
+                     help="OPC UA server HOST:PORT, or off (default: 127.0.0.1:4840; "
+                     "docs/opcua.md)")
     run.add_argument("--plant", help="plant model for sim drivers whose io image names none "
                      "(transport, drilling); an io image that names its plant keeps it, and a "
-                     "contradicting --plant is refused")
+                     "contradicting --plant is refused (default: the io image's)")
     run.add_argument("--start", action="store_true",
                      help="start the program at once: warm from a valid snapshot of the same "
-                     "program in --state-dir, else cold from the initial marking")
+                     "program in --state-dir, else cold from the initial marking (default: off, "
+                     "the PLC waits STOPPED for `softplc start`)")
     run.add_argument("--state-dir", default="state",
-                     help="retain snapshots, their lock and the API token (./state)")
+                     help="retain snapshots, their lock, the kept bundle and the API token "
+                     "(default: %(default)s)")
     run.add_argument("--retain-interval", type=_duration, default=1_000_000_000,
-                     help="write a retain snapshot this often; 0: only on stop (1s)")
+                     help="write a retain snapshot this often; 0: only on stop (default: 1s)")
     run.add_argument("--warm-start", choices=("run", "stop"), default="run",
                      help="warm restart of a program that was RUNNING: resume it (run) or "
-                     "restore it and wait STOPPED for `softplc resume` (stop) (run)")
+                     "restore it and wait STOPPED for `softplc resume` (stop) "
+                     "(default: %(default)s)")
     run.add_argument("--modbus-writes", choices=("open", "symbols", "none"), default="open",
                      help="Modbus writes allowed: open (outputs and memory, as OpenPLC), "
                      "symbols (only the running program's output and memory symbols not declared "
-                     "hmi_writable: false), none (open)")
+                     "hmi_writable: false), none (default: %(default)s)")
     run.add_argument("--modbus-max-connections", type=_count, default=16, metavar="N",
                      help="Modbus connection slots; when full, the connection idle longest is "
-                     "closed for a new one (16)")
+                     "closed for a new one (default: %(default)s)")
     run.add_argument("--modbus-max-per-peer", type=_count, default=8, metavar="N",
-                     help="Modbus connection slots one IP address may hold (8)")
+                     help="Modbus connection slots one IP address may hold (default: %(default)s)")
     run.add_argument("--modbus-idle-timeout", type=_timeout, default=60_000_000_000,
-                     help="close a Modbus connection without a request for this long (60s)")
+                     help="close a Modbus connection without a request for this long "
+                     "(default: 60s)")
     run.add_argument("--rt-priority", type=int, metavar="1..99",
                      help="run the scan process with this SCHED_FIFO priority (needs root or "
-                     "CAP_SYS_NICE; refused: normal scheduling, said in status)")
-    run.add_argument("--scan-cpu", type=int, metavar="N", help="pin the scan process to CPU N")
-    run.add_argument("--trace", help="record every scan to this JSON Lines file")
-    run.add_argument("--seed", type=int, default=0, help="plant seed (0)")
+                     "CAP_SYS_NICE; refused: normal scheduling, said in status; default: normal "
+                     "scheduling)")
+    run.add_argument("--scan-cpu", type=int, metavar="N",
+                     help="pin the scan process to CPU N (default: not pinned)")
+    run.add_argument("--programs-dir", metavar="DIR", default=None,
+                     help="where a program downloaded as plain YAML text (not a bundle) finds "
+                     "its io image and subnets (default: programs/ beside the program's "
+                     "folder, else under the current directory)")
+    run.add_argument("--trace", metavar="FILE",
+                     help="record every scan to this JSON Lines file (default: no trace)")
+    run.add_argument("--seed", type=int, default=0,
+                     help="seed of the plant's random arrivals (default: %(default)s)")
     run.add_argument("--watchdog", type=float, default=10.0,
-                     help="fault when a scan runs longer than period x this (10)")
+                     help="fault when a scan runs longer than period x this (default: %(default)s)")
     run.add_argument("--verify", choices=("refuse", "warn", "off"), default="warn",
                      help="analysis gate on every download (docs/analysis.md): refuse nets with "
                      "an unbounded place, a deadlock, a dead transition or an output conflict; "
-                     "warn (accept, findings in the reply and status); off (warn)")
+                     "warn (accept, findings in the reply and status); off (default: %(default)s)")
     run.add_argument("--on-stall", choices=("fault", "continue"), default="fault",
-                     help="a scan cycle that starts period x watchdog late (process paused or "
-                     "starved): fault with safe outputs, or count it and go on (fault)")
+                     help="a scan cycle that starts period x watchdog late is a stall (counted, "
+                     "an event); one that is also --stall-fault-after late (process paused, VM "
+                     "pause): fault with safe outputs, or go on (default: %(default)s)")
+    run.add_argument("--stall-fault-after", type=_duration, default=500_000_000,
+                     help="how late a cycle must start for --on-stall fault to fault "
+                     "(default: 500ms; at least period x watchdog)")
     run.add_argument("--duration", type=_duration, help="stop after this long (default: Ctrl-C)")
-    run.add_argument("--quiet", action="store_true", help="no live status line")
+    run.add_argument("--quiet", action="store_true", help="no live status line (default: off)")
     run.set_defaults(func=cmd_run)
 
     sim = sub.add_parser("simulate", help="run a program on a simulated plant in virtual time")
-    sim.add_argument("program")
+    sim.add_argument("program", help="program file (YAML) whose io image names sim drivers")
     sim.add_argument("--plant", help="plant model (default: the one the io image declares)")
-    sim.add_argument("--duration", type=_duration, default=600_000_000_000)
-    sim.add_argument("--period", type=_duration, default=10_000_000)
-    sim.add_argument("--seed", type=int, default=0)
-    sim.add_argument("--json", action="store_true", help="print one JSON object")
-    sim.add_argument("--trace", help="record every scan to this JSON Lines file")
+    sim.add_argument("--duration", type=_duration, default=600_000_000_000,
+                     help="virtual time to simulate, e.g. 90s, 10min (default: 10min)")
+    sim.add_argument("--period", type=_duration, default=10_000_000,
+                     help="scan period in virtual time (default: 10ms)")
+    sim.add_argument("--seed", type=int, default=0,
+                     help="seed of the plant's random arrivals (default: 0)")
+    sim.add_argument("--json", action="store_true",
+                     help="print one JSON object instead of the summary (default: off)")
+    sim.add_argument("--trace", metavar="FILE",
+                     help="record every scan to this JSON Lines file (default: no trace)")
     sim.add_argument("--script", help="YAML of timed HMI writes and input overrides "
-                     "(- at: 5s / write: {hold: true}; docs/simulate.md)")
+                     "(- at: 5s / write: {hold: true}; docs/simulate.md; default: none)")
     sim.add_argument("--timeline", action="store_true",
-                     help="list the scans where outputs, memory, marking or events changed")
+                     help="list the scans where outputs, memory, marking or events changed "
+                     "(default: off)")
     sim.set_defaults(func=cmd_simulate)
 
     rep = sub.add_parser("replay", help="re-run a trace's inputs and compare outputs bit for bit")
-    rep.add_argument("trace")
-    rep.add_argument("program")
+    rep.add_argument("trace", help="a JSON Lines trace written by run or simulate --trace")
+    rep.add_argument("program", help="the program the trace was recorded with")
     rep.set_defaults(func=cmd_replay)
 
     bench = sub.add_parser("bench", help="benchmarks of the engine, scan timing and Modbus")
-    bench.add_argument("--quick", action="store_true", help="small sizes, short runs (< 2 min)")
-    bench.add_argument("--json", dest="json_file", help="write every figure to this JSON file")
-    bench.add_argument("--plots", help="write PNG plots into this directory")
-    bench.add_argument("--markdown", help="write the report (e.g. BENCHMARKS.md)")
+    bench.add_argument("--quick", action="store_true",
+                       help="small sizes, short runs (< 2 min) (default: off, full sizes)")
+    bench.add_argument("--json", dest="json_file", metavar="FILE",
+                       help="write every figure to this JSON file (default: none)")
+    bench.add_argument("--plots", metavar="DIR",
+                       help="write PNG plots into this directory (default: no plots)")
+    bench.add_argument("--markdown", metavar="FILE",
+                       help="write the report, e.g. BENCHMARKS.md (default: no report)")
     bench.add_argument("--only", help="comma-separated sections: engine, scan, modbus, "
-                       "online_change, memory, web, analysis, opcua")
-    bench.add_argument("--quiet", action="store_true", help="no progress display")
+                       "online_change, memory, web, analysis, opcua (default: all)")
+    bench.add_argument("--quiet", action="store_true", help="no progress display (default: off)")
     bench.set_defaults(func=cmd_bench)
 
     from softplc.analysis.cli import add_commands as add_analysis_commands

@@ -36,7 +36,7 @@ def add_commands(sub: Any) -> None:
                     "P/T reachability graph: default for bare PNML nets)")
     an.set_defaults(func=cmd_analyze)
     ex = sub.add_parser("export", help="write a program as PNML (ISO/IEC 15909-2)")
-    ex.add_argument("program")
+    ex.add_argument("program", help="program file (YAML) to export")
     ex.add_argument("-o", "--output", required=True, help="the .pnml file to write")
     ex.set_defaults(func=cmd_export)
 

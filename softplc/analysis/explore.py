@@ -7,7 +7,7 @@ covering is proven to repeat forever, gets omega in the places that grew (so an 
 place is found by a covering argument and the exploration stays finite). Does not know:
 files, the CLI, numpy vectorisation (fast.py does that for bounded P/T nets).
 
-Scan semantics (DESIGN.md section 11): in each scan every guard variable may take any value;
+Scan semantics (docs/design.md section 9): in each scan every guard variable may take any value;
 an enabling delay may or may not have elapsed; a running three-phase firing may or may not
 end. The step is the engine's: candidates in priority order, each taken if it fits the
 residual marking (test and inhibitor arcs read the round-start marking).

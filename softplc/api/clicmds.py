@@ -17,6 +17,8 @@ from typing import Any, Final
 from softplc.api.auth import TOKEN_ENV
 from softplc.api.client import DEFAULT_URL, ApiClient, ApiError, ApiUnreachable
 from softplc.api.openapi import LIFECYCLE_COMMANDS
+from softplc.core.lifecycle import Command, accepting
+from softplc.program import bundle as bundles
 
 EXIT_OK: Final = 0
 EXIT_REFUSED: Final = 1
@@ -33,32 +35,50 @@ _HELP: Final = {
 
 def add_client_commands(subparsers: Any) -> None:
     """Add the client commands to `subparsers` (from ArgumentParser.add_subparsers())."""
-    download = subparsers.add_parser("download", help="download a program to a running softplc")
-    download.add_argument("program", help="program file (YAML)")
+    download = subparsers.add_parser(
+        "download", help="download a program to a running softplc: the program, its io image "
+        "and subnets in one bundle (docs/programs.md, program bundles)")
+    download.add_argument("program", help="program file (YAML); the files it references go "
+                          "along")
     download.add_argument("--online", action="store_true",
                           help="online change while RUNNING: keep the marking by place name; "
                           "new places start with their declared tokens; refused when tokens "
-                          "would be lost or a timed firing is in progress")
+                          "would be lost or a timed firing is in progress (default: off)")
     download.add_argument("--replace", action="store_true",
                           help="with --online: a program with another name on the same devices "
-                          "replaces the running one from its initial marking (refused without)")
+                          "replaces the running one from its initial marking (refused without; "
+                          "default: off)")
+    download.add_argument("--dry-run", action="store_true",
+                          help="show what the download would do against the running state "
+                          "(kept, new and dropped places with tokens, outputs changing hands, "
+                          "accepted or not) and apply nothing (default: off)")
     _connection_options(download)
     download.set_defaults(func=cmd_download)
+    upload = subparsers.add_parser(
+        "upload", help="get the running program back as files, byte for byte as downloaded")
+    upload.add_argument("-o", "--output", metavar="DIR", default=".",
+                        help="write the files under DIR at their bundle paths, overwriting "
+                        "(default: the current directory)")
+    _connection_options(upload)
+    upload.set_defaults(func=cmd_upload)
     for command in LIFECYCLE_COMMANDS:
-        parser = subparsers.add_parser(command, help=_HELP[command])
+        parser = subparsers.add_parser(command, help=f"{_HELP[command]} (accepted in "
+                                       f"{accepting(Command(command))})")
         _connection_options(parser)
         parser.set_defaults(func=cmd_lifecycle, api_command=command)
     force = subparsers.add_parser("force", help="force a symbol (input or output) to a value")
-    force.add_argument("symbol")
+    force.add_argument("symbol", help="an input, output or memory symbol of the program")
     force.add_argument("value", help="0/1, true/false or a word 0..65535")
     _connection_options(force)
     force.set_defaults(func=cmd_force)
     unforce = subparsers.add_parser("unforce", help="release a forced symbol (all without one)")
-    unforce.add_argument("symbol", nargs="?", default=None)
+    unforce.add_argument("symbol", nargs="?", default=None,
+                         help="the forced symbol to release (default: every forced symbol)")
     _connection_options(unforce)
     unforce.set_defaults(func=cmd_unforce)
     status = subparsers.add_parser("status", help="state, program, scans, timing, marking")
-    status.add_argument("--json", action="store_true", help="print the status as JSON")
+    status.add_argument("--json", action="store_true",
+                        help="print the status as JSON (default: off, a summary)")
     _connection_options(status)
     status.set_defaults(func=cmd_status)
 
@@ -70,7 +90,8 @@ def _connection_options(parser: argparse.ArgumentParser) -> None:
                         help=f"bearer token (default: ${TOKEN_ENV}, else --state-dir's "
                         "api_token); needed when the API is bound off loopback")
     parser.add_argument("--state-dir", metavar="DIR", default=None,
-                        help="the server's state directory, to read DIR/api_token from")
+                        help="the server's state directory, to read DIR/api_token from "
+                        "(default: none)")
     parser.add_argument("--timeout", metavar="SECONDS", type=float, default=10.0,
                         help="how long to wait for an answer (default: %(default)s)")
 
@@ -82,7 +103,8 @@ def _call(args: argparse.Namespace, what: str,
         client = ApiClient(args.api, args.token, args.timeout, state_dir=args.state_dir)
         return EXIT_OK, action(client)
     except ApiError as exc:
-        print(f"softplc {what}: refused (HTTP {exc.status}): {exc.message}", file=sys.stderr)
+        message = exc.message.removeprefix(f"{what} refused: ")  # said once is enough
+        print(f"softplc {what}: refused (HTTP {exc.status}): {message}", file=sys.stderr)
         for problem in exc.problems:
             print(problem, file=sys.stderr)
         if exc.problems:
@@ -98,25 +120,101 @@ def _call(args: argparse.Namespace, what: str,
 
 def cmd_download(args: argparse.Namespace) -> int:
     try:
-        with open(args.program, encoding="utf-8") as handle:
-            text = handle.read()
-    except (OSError, UnicodeDecodeError) as exc:
+        text = Path(args.program).read_text(encoding="utf-8")
+        absent = bundles.missing(args.program)
+        blob = bundles.pack(bundles.from_files(args.program))
+    except (OSError, UnicodeDecodeError, bundles.BundleError) as exc:
         print(f"softplc download: cannot read {args.program}: {exc}", file=sys.stderr)
         return EXIT_REFUSED
-    name = Path(args.program).name
-    code, reply = _call(args, "download",
-                        lambda client: client.download_text(text, args.online, name,
-                                                            args.replace))
-    if code == EXIT_OK:
-        print(f"{reply.get('message', 'downloaded')} (state {reply.get('state')})")
+    if absent:  # compatibility: the server resolves them against its programs directory
+        print(f"softplc download: not found here: {', '.join(map(str, absent))}; sending the "
+              "program as plain text (the server looks for them in its programs directory)",
+              file=sys.stderr)
+        name = Path(args.program).name
+        code, reply = _call(args, "download", lambda client: client.download_text(
+            text, args.online, name, args.replace, args.dry_run))
+    else:
+        code, reply = _call(args, "download", lambda client: client.download_bundle(
+            blob, args.online, args.replace, args.dry_run))
+    if code != EXIT_OK:
+        return code
+    if "plan" in reply:
+        print(format_plan(reply["plan"]))
+        return EXIT_OK if reply["plan"].get("accepted") else EXIT_REFUSED
+    print(said("download", reply))
     return code
+
+
+def format_plan(plan: dict[str, Any]) -> str:
+    """A dry run's plan as a person reads it."""
+    records = plan.get("records") or {}
+    lines = [f"dry run: {plan.get('from') or '(nothing running)'} -> {plan.get('to')} "
+             f"(state {plan.get('state')}); nothing applied"]
+    for title, key in (("kept places (tokens carried over)", "kept"),
+                       ("new places (start with their declared tokens)", "new"),
+                       ("dropped places (must be empty)", "dropped")):
+        places = plan.get(key) or {}
+        lines.append(f"{title}:" + ("" if places else " none"))
+        for place, tokens in sorted(places.items()):
+            shown = f"  {place:<24} {tokens}"
+            if records.get(place):
+                shown += "  " + ", ".join(json.dumps(r, sort_keys=True) for r in records[place])
+            lines.append(shown)
+    outputs = plan.get("outputs") or {}
+    lines.append("outputs no longer driven: " + (", ".join(outputs.get("released") or [])
+                                                 or "none"))
+    lines.append("outputs newly driven:     " + (", ".join(outputs.get("taken") or []) or "none"))
+    lines.append(("would be ACCEPTED: " if plan.get("accepted") else "would be REFUSED: ")
+                 + str(plan.get("verdict")))
+    return "\n".join(lines)
+
+
+def cmd_upload(args: argparse.Namespace) -> int:
+    code, blob = _call_bytes(args, "upload", lambda client: client.upload())
+    if code != EXIT_OK:
+        return code
+    try:
+        bundle = bundles.unpack(blob, "the uploaded bundle")
+        written = bundles.write_out(bundle, args.output)
+    except (bundles.BundleError, OSError) as exc:
+        print(f"softplc upload: {exc}", file=sys.stderr)
+        return EXIT_REFUSED
+    for path in written:
+        print(path)
+    print(f"program {Path(args.output) / bundle.program} ({len(written)} file(s))")
+    return EXIT_OK
+
+
+def _call_bytes(args: argparse.Namespace, what: str,
+                action: Callable[[ApiClient], bytes]) -> tuple[int, bytes]:
+    got: list[bytes] = []
+
+    def run(client: ApiClient) -> dict[str, Any]:
+        got.append(action(client))
+        return {}
+
+    code, _ = _call(args, what, run)
+    return code, got[0] if got else b""
+
+
+def said(command: str, reply: dict[str, Any]) -> str:
+    """A command's reply as one line that names the command and the state once each: the
+    scan's messages already start with the command ("stop: now STOPPED") and may name the
+    state, so nothing is added that is already there."""
+    message = str(reply.get("message") or "done")
+    if not message.startswith(command):
+        message = f"{command}: {message}"
+    state = reply.get("state")
+    if state and str(state) not in message:
+        message += f" (state {state})"
+    return message
 
 
 def cmd_lifecycle(args: argparse.Namespace) -> int:
     command: str = args.api_command
     code, reply = _call(args, command, lambda client: client.command(command))
     if code == EXIT_OK:
-        print(f"{command}: {reply.get('message') or 'done'} (state {reply.get('state')})")
+        print(said(command, reply))
     return code
 
 
@@ -140,14 +238,14 @@ def cmd_force(args: argparse.Namespace) -> int:
         return EXIT_REFUSED
     code, reply = _call(args, "force", lambda client: client.force(args.symbol, value))
     if code == EXIT_OK:
-        print(f"{reply.get('message')} (state {reply.get('state')})")
+        print(said("force", reply))
     return code
 
 
 def cmd_unforce(args: argparse.Namespace) -> int:
     code, reply = _call(args, "unforce", lambda client: client.unforce(args.symbol))
     if code == EXIT_OK:
-        print(f"{reply.get('message')} (state {reply.get('state')})")
+        print(said("unforce", reply))
     return code
 
 
@@ -181,10 +279,16 @@ def format_status(status: dict[str, Any]) -> str:
     marking = status.get("marking") or {}
     marked = {place: tokens for place, tokens in marking.items() if tokens}
     lines.append("marking" + ("" if marked else "     (no tokens)"))
-    lines += [f"  {place:<24} {tokens}" for place, tokens in sorted(marked.items())]
+    records = status.get("tokens") or {}
+    lines += [f"  {place:<24} {tokens}" + ("  " + ", ".join(
+        json.dumps(r, sort_keys=True) for r in records[place]) if records.get(place) else "")
+        for place, tokens in sorted(marked.items())]
     forced = status.get("forced") or {}
     lines.append("forced" + ("      (nothing)" if not forced else ""))
     lines += [f"  {name:<24} {value}  FORCED" for name, value in sorted(forced.items())]
+    if status.get("diagnostic_count"):
+        lines.append(f"diagnostics {status['diagnostic_count']} run-time error(s) of guards "
+                     "and actions (the last shown)")
     lines += [f"diagnostic  {d}" for d in status.get("diagnostics") or []]
     return "\n".join(lines)
 

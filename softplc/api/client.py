@@ -77,14 +77,37 @@ class ApiClient:
                                   replace)
 
     def download_text(self, text: str, online: bool = False, name: str | None = None,
-                      replace: bool = False) -> dict[str, Any]:
+                      replace: bool = False, dry_run: bool = False) -> dict[str, Any]:
         query = {"online": "true" if online else "false"}
         if replace:
             query["replace"] = "true"
+        if dry_run:
+            query["dry_run"] = "true"
         if name:  # the server takes plain file names only
             query["name"] = re.sub(r"[^A-Za-z0-9._-]", "_", name)[:128]
         return self._json("POST", "/program", text.encode(), "application/yaml", query,
                           max(self.timeout_s, DOWNLOAD_TIMEOUT_S))
+
+    def download_bundle(self, blob: bytes, online: bool = False, replace: bool = False,
+                        dry_run: bool = False) -> dict[str, Any]:
+        """Download a bundle (softplc/program/bundle.py); with `dry_run` the answer's `plan`
+        says what it would do, and nothing is applied."""
+        query = {"online": "true" if online else "false"}
+        if replace:
+            query["replace"] = "true"
+        if dry_run:
+            query["dry_run"] = "true"
+        return self._json("POST", "/program", blob, "application/zip", query,
+                          max(self.timeout_s, DOWNLOAD_TIMEOUT_S))
+
+    def upload(self) -> bytes:
+        """The running program's bundle, byte for byte."""
+        with self._open("GET", "/program", None, None, None,
+                        headers={"Accept": "application/zip"}) as response:
+            try:
+                return bytes(response.read())
+            except OSError as exc:
+                raise ApiUnreachable(f"the answer from {self.url} broke off: {exc}") from None
 
     def command(self, command: str) -> dict[str, Any]:
         """start, stop, resume, reset or kill: {"ok", "message", "state"}."""

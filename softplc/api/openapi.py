@@ -71,8 +71,10 @@ _IDEMPOTENCY: Final = {
 _PROGRAM: Final[dict[str, Any]] = {
     "post": {
         "operationId": "download",
-        "summary": "Download a program (YAML text); validated completely before anything "
-        "changes. While RUNNING it needs online=true (online change).",
+        "summary": "Download a program: a bundle (application/zip: the program with its io "
+        "image and subnets, docs/programs.md) or plain YAML text (resolved against the "
+        "server's programs directory); validated completely before anything changes. While "
+        "RUNNING it needs online=true (online change).",
         "tags": ["program"],
         "parameters": [
             {"name": "online", "in": "query", "schema": {"type": "boolean"},
@@ -80,6 +82,10 @@ _PROGRAM: Final[dict[str, Any]] = {
             {"name": "replace", "in": "query", "schema": {"type": "boolean"},
              "description": "While RUNNING, a program with another name on the same devices "
              "replaces the running one from its initial marking (refused without it)."},
+            {"name": "dry_run", "in": "query", "schema": {"type": "boolean"},
+             "description": "Compile and answer the plan (`plan`: kept, new and dropped "
+             "places with tokens, outputs changing hands, verdict) against the running state; "
+             "nothing is applied."},
             {"name": "X-Softplc-Online", "in": "header", "schema": {"type": "boolean"},
              "description": "Same as the `online` query parameter."},
             {"name": "name", "in": "query",
@@ -92,14 +98,26 @@ _PROGRAM: Final[dict[str, Any]] = {
             "content": {
                 media: {"schema": {"type": "string"}}
                 for media in ("application/yaml", "text/yaml", "text/plain")
-            },
+            } | {"application/zip": {"schema": {"type": "string", "format": "binary"}}},
         },
         "responses": {
             "200": _json("CommandResult", "Downloaded (or changed online)."),
             "202": _json("CommandPending", "No reply yet: applied before its deadline or never."),
             **_errors(400, 401, 403, 409, 413, 422, 503),
         },
-    }
+    },
+    "get": {
+        "operationId": "upload",
+        "summary": "The running program's bundle (application/zip), byte for byte as "
+        "downloaded (`softplc upload`).",
+        "tags": ["program"],
+        "responses": {
+            "200": {"description": "The bundle.",
+                    "content": {"application/zip": {"schema": {"type": "string",
+                                                               "format": "binary"}}}},
+            **_errors(401, 404, 409),
+        },
+    },
 }
 
 _SYMBOL_NAME: Final = {"name": "name", "in": "path", "required": True, "schema": {"type": "string"}}
@@ -161,10 +179,22 @@ _SCHEMAS: Final[dict[str, Any]] = {
             "retain": {"type": ["object", "null"]},
             "diagnostics": {"type": "array", "items": {}},
             "last_event_seq": {"type": "integer"},
-            "stale": {"type": "boolean"},
+            "diagnostic_count": {"type": "integer",
+                                 "description": "run-time errors of guards and actions so far"},
+            "tokens": {"type": "object", "description": "coloured places' token records "
+                       "(the first 20 of each)",
+                       "additionalProperties": {"type": "array", "items": {"type": "object"}}},
+            "analysis": {"type": ["object", "null"],
+                         "description": "the verification gate's findings for the program"},
+            "stale": {"type": "boolean",
+                      "description": "the scan process has not published for too long"},
             "snapshot_age_ms": {"type": ["number", "null"]},
-            "restarts": {"type": "integer"},
+            "restarts": {"type": "integer",
+                         "description": "scan process restarts by the supervisor"},
             "restart_reason": {"type": "string"},
+            "scan_pid": {"type": "integer"},
+            "forced": {"type": "object", "description": "forced symbols and their values",
+                       "additionalProperties": {"type": "integer"}},
         },
     },
     "Symbol": {

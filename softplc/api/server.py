@@ -27,11 +27,6 @@ from aiohttp import web
 
 from softplc.api import auth
 from softplc.api import web as web_page
-from softplc.api.limits import HttpBounds, HttpLimits
-from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
-from softplc.core.image import AddressError, parse_address
-from softplc.core.lifecycle import Command
-from softplc.core.snapshot import CommandReply, CommandRequest, HmiWrite, SnapshotSource
 from softplc.api.commands import (
     DOWNLOAD_DEADLINE_S,
     KEEP,
@@ -40,6 +35,13 @@ from softplc.api.commands import (
     Outcome,
     Record,
 )
+from softplc.api.limits import HttpBounds, HttpLimits
+from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
+from softplc.core.image import AddressError, parse_address
+from softplc.core.lifecycle import Command
+from softplc.core.snapshot import CommandReply, CommandRequest, HmiWrite, SnapshotSource
+from softplc.program import bundle as bundles
+from softplc.runtime import boot
 from softplc.runtime.channel import ChannelFull, NotQueued
 from softplc.runtime.fresh import FreshSource
 from softplc.runtime.shm import SnapshotUnavailable
@@ -264,6 +266,7 @@ class ApiServer:
         app.router.add_get("/healthz", self._healthz)
         app.router.add_get(f"{p}/status", self._status)
         app.router.add_post(f"{p}/program", self._download)
+        app.router.add_get(f"{p}/program", self._upload)
         for command in LIFECYCLE_COMMANDS:
             app.router.add_post(f"{p}/{command}", self._lifecycle)
         app.router.add_get(f"{p}/commands/{{id}}", self._command_outcome)
@@ -328,7 +331,8 @@ class ApiServer:
     async def _command(self, command: Command, text: str | None = None,
                        name: str | None = None, online: bool = False,
                        key: str | None = None, symbol: str | None = None,
-                       value: int = 0, replace: bool = False) -> CommandReply | Record:
+                       value: int = 0, replace: bool = False, bundle: bytes | None = None,
+                       dry_run: bool = False) -> CommandReply | Record:
         """Send a command with an id and a deadline. Returns its reply, or its pending Record
         when no reply came in time (it is then applied before its deadline or never)."""
         if key is not None and (known := self._book.by_key(key)) is not None:
@@ -337,7 +341,8 @@ class ApiServer:
         deadline_s = DOWNLOAD_DEADLINE_S if command is Command.DOWNLOAD else self.command_timeout_s
         request = self._book.request(command, deadline_s, key, program_text=text,
                                      program_path=name, online=online, symbol=symbol,
-                                     value=value, replace=replace)
+                                     value=value, replace=replace, bundle=bundle,
+                                     dry_run=dry_run)
         try:
             reply = await asyncio.to_thread(self._channel.send_command, request,
                                             deadline_s + REPLY_GRACE_S, self._book.settle)
@@ -447,11 +452,22 @@ class ApiServer:
         online = _flag(request.query.get("online", request.headers.get("X-Softplc-Online")),
                        "online")
         replace = _flag(request.query.get("replace"), "replace")
+        dry_run = _flag(request.query.get("dry_run"), "dry_run")
         name = request.query.get("name")
         if name is not None and not _NAME.fullmatch(name):
             raise ApiProblem(400, "name must be a plain file name (letters, digits, . _ -)")
+        body = await request.read()
+        if request.content_type == bundles.CONTENT_TYPE or bundles.is_bundle(body):
+            try:  # checked here, so that a bad archive never reaches the scan process
+                bundle = await asyncio.to_thread(bundles.unpack, body)
+            except bundles.BundleError as exc:
+                raise ApiProblem(422, "download refused: unusable bundle", [str(exc)]) from None
+            reply = await self._command(Command.DOWNLOAD, None, bundle.program, online,
+                                        self._key(request), replace=replace, bundle=body,
+                                        dry_run=dry_run)
+            return self._download_answer(reply)
         try:
-            text = (await request.read()).decode("utf-8")
+            text = body.decode("utf-8")
         except UnicodeDecodeError as exc:
             raise ApiProblem(400, f"the program must be UTF-8 text ({exc.reason} at byte "
                                   f"{exc.start})") from None
@@ -461,13 +477,36 @@ class ApiServer:
         if problems := _unprintable(text, name or "program"):
             raise ApiProblem(422, "download refused: not YAML text", problems)
         reply = await self._command(Command.DOWNLOAD, text, name, online, self._key(request),
-                                    replace=replace)
+                                    replace=replace, dry_run=dry_run)
+        return self._download_answer(reply)
+
+    def _download_answer(self, reply: CommandReply | Record) -> web.Response:
         if isinstance(reply, CommandReply) and not reply.ok and reply.message.startswith(
                 _REFUSED_PROGRAM):
             raise ApiProblem(422, reply.message.partition("\n")[0].rstrip(":"),
                              _program_problems(reply.message), state=reply.state.name,
                              id=reply.id)
+        if isinstance(reply, CommandReply) and reply.ok and reply.detail is not None:
+            return web.json_response({"ok": True, "message": reply.message, "id": reply.id,
+                                      "state": reply.state.name, "plan": reply.detail})
         return self._answer(reply)
+
+    async def _upload(self, request: web.Request) -> web.Response:
+        """The running program's bundle, byte for byte as it was downloaded."""
+        try:
+            program = await asyncio.to_thread(boot.load, self.state_dir)
+        except boot.BootUnreadable as exc:
+            raise ApiProblem(409, f"no program to upload: {exc}") from None
+        running = (await self._board_document()).get("program_hash")
+        if program is None or program.bundle is None or not running:
+            raise ApiProblem(404, "no program to upload: the PLC runs none, or its program "
+                             f"came without a bundle (state directory {self.state_dir})")
+        if program.program_hash and program.program_hash != running:
+            raise ApiProblem(409, "the running program's bundle is not stored yet (the last "
+                             "accepted download is being written); try again", headers={
+                                 "Retry-After": "1"})
+        return web.Response(body=program.bundle, content_type=bundles.CONTENT_TYPE, headers={
+            "Content-Disposition": f'attachment; filename="{Path(program.filename).stem}.zip"'})
 
     async def _lifecycle(self, request: web.Request) -> web.Response:
         command = Command(request.path.rsplit("/", 1)[1])

@@ -16,7 +16,10 @@ from typing import Any
 from softplc.api.client import ApiClient, ApiError, ApiUnreachable
 from softplc.bench.live import ROOT, LiveRuntime, ScanRecord
 from softplc.bench.measure import Progress, figures
+from softplc.core import online
+from softplc.core.firing import Engine
 from softplc.core.image import ProcessImage
+from softplc.core.net import NetState
 from softplc.core.lifecycle import Command
 from softplc.core.scan import Plc, ProgramCommand, scan
 from softplc.core.snapshot import CommandRequest
@@ -88,9 +91,9 @@ def _evaluate(request: dict[str, Any], record: ScanRecord, period_ns: int) -> di
 
 
 def split_cost_ms(old_transitions: int, new_transitions: int) -> dict[str, float]:
-    """Where the swap scan's time goes, measured in this process: compiling the new net
-    (text to CompiledNet, what loop.py does at the scan boundary) and the swap alone (what
-    the scan would still do if it were handed a compiled net: core.scan's online change)."""
+    """Where an online change's time goes, measured in this process: compiling the new net
+    (text to CompiledNet, on the scan process's compile thread) and the swap scan alone (what
+    the scan does with the compiled net, its engine tables and carry plan prebuilt)."""
     filename = str(ROOT / "programs" / FILE_NAME)
     old = compile_text(ring_program(old_transitions, 0), filename, ROOT)
     began = time.perf_counter_ns()
@@ -99,8 +102,11 @@ def split_cost_ms(old_transitions: int, new_transitions: int) -> dict[str, float
     plc = Plc.empty(ProcessImage(old.io.sizes))
     inputs = ProcessImage(old.io.sizes)
     scan(plc, inputs, 0, [ProgramCommand(Command.DOWNLOAD, old), ProgramCommand(Command.START)])
+    # As runtime/loop.py hands it over: the engine's tables and the carry plan built first.
+    engine, carry_plan = Engine(new, NetState.initial(new)), online.plan(old, new)
     swap_began = time.perf_counter_ns()
-    scan(plc, inputs, 1_000_000, [ProgramCommand(Command.DOWNLOAD, new, online=True)])
+    scan(plc, inputs, 1_000_000, [ProgramCommand(Command.DOWNLOAD, new, online=True,
+                                                 engine=engine, plan=carry_plan)])
     swapped = time.perf_counter_ns()
     if plc.net is not new:
         raise RuntimeError("the online change was refused")

@@ -1,5 +1,5 @@
 """A plain-Python reference engine for generated nets: the firing round written as directly
-as DESIGN.md section 3 states it, with no caching, as an oracle and a baseline.
+as docs/design.md section 3 states it, with no caching, as an oracle and a baseline.
 
 Owns: one round over a GenNet marking (candidates on M_k, then the step walked by priority and
 declaration order on the residual marking, all consumptions, then all productions).

@@ -84,12 +84,17 @@ def _check_int(value: int, node: ast.AST) -> int:
 
 
 def _floordiv(a: int, b: int) -> int:
-    # Division by zero yields 0 rather than stopping the PLC; documented in docs/programs.md.
-    return 0 if b == 0 else a // b
+    # Division by zero is a run-time error of the guard or action (docs/programs.md): the
+    # engine makes it a located diagnostic (guard false, action skipped), never a crash.
+    if b == 0:
+        raise ZeroDivisionError("integer division by zero")
+    return a // b
 
 
 def _mod(a: int, b: int) -> int:
-    return 0 if b == 0 else a % b
+    if b == 0:
+        raise ZeroDivisionError("integer modulo by zero")
+    return a % b
 
 
 _BINOPS: dict[type[ast.operator], Callable[[int, int], int]] = {

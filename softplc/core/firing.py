@@ -1,4 +1,4 @@
-"""One firing round of a Petri net (DESIGN.md section 3).
+"""One firing round of a Petri net (docs/design.md section 3).
 
 Owns: candidate transitions, deterministic step selection on the residual marking, the marking
 update (all consumptions, then all productions, then actions in step order), enabling delays,
@@ -102,7 +102,9 @@ class Engine:
         self._recheck: set[int] = set()  # fired or completed: enabledness may hold again
         self._remoore: set[str] = set()  # place-driven outputs an action overwrote
         self._outputs_pending = True  # rewrite every place-driven output this round
-        self.diagnostics: list[str] = []
+        self.diagnostics: list[str] = []  # the first MAX_DIAGNOSTICS, located
+        self.diagnostic_count = 0  # every one, also past the list's cap
+        self.scan = 0  # the scan being run, for messages (the scan sets it)
         self._limits = net.limits
         self._work = 0  # binding tries in this round (limits.bindings_per_scan)
         self._high = True  # total above limits.place_tokens (any round may concentrate it),
@@ -187,13 +189,25 @@ class Engine:
             return True
         try:
             return bool(guard(ctx))
-        except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        except (KeyError, TypeError, ValueError, ArithmeticError) as exc:
             self._diagnose(f"{where}: guard {guard.text!r} failed ({exc}); taken as false")
             return False
 
     def _diagnose(self, message: str) -> None:
+        """A run-time error of a guard, an action or a token field: never silent, never a
+        crash. `message` starts with the transition's name; the file:line and the scan go
+        in front."""
+        self.diagnostic_count += 1
         if len(self.diagnostics) < MAX_DIAGNOSTICS:
-            self.diagnostics.append(message)
+            name = message.partition(":")[0]
+            where = ""
+            for t in self.net.transitions:
+                if t.name == name:
+                    file, line = (self.net.transition_where[t.index]
+                                  if t.index < len(self.net.transition_where) else ("", t.line))
+                    where = f"{file}:{line}: " if file else ""
+                    break
+            self.diagnostics.append(f"scan {self.scan}: {where}transition {message}")
 
     def _bind(
         self, t: Transition, ctx: EvalContext, taken: Mapping[int, set[int]]
@@ -530,7 +544,7 @@ class Engine:
         for name, expr in fields.items():
             try:
                 value = expr(ctx)
-            except (KeyError, TypeError, ValueError, OverflowError) as exc:
+            except (KeyError, TypeError, ValueError, ArithmeticError) as exc:
                 self._diagnose(f"{t.name}: token field {name} = {expr.text!r} failed ({exc})")
                 value = 0
             problem = value_problem(value)
@@ -594,7 +608,7 @@ class Engine:
                     if isinstance(value, str):  # int('12') would silently turn text into 12
                         raise TypeError("text cannot be written to a symbol")
                     writes.append((act.target, int(value)))
-                except (KeyError, TypeError, ValueError, OverflowError) as exc:
+                except (KeyError, TypeError, ValueError, ArithmeticError) as exc:
                     self._diagnose(f"{t.name}: {act.target} = {act.value.text!r} failed ({exc})")
             else:
                 writes.append((act.target, 0 if act.kind is ActionKind.RESET else 1))

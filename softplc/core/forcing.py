@@ -1,4 +1,4 @@
-"""Forcing: the operator's override of inputs and outputs (DESIGN.md section 10).
+"""Forcing: the operator's override of inputs and outputs (docs/design.md section 10).
 
 Owns: the set of forced symbols with their values, checking a force against the program's
 symbol table, and the two places a force acts in a scan: `apply_inputs` right after the

@@ -1,4 +1,4 @@
-"""Program lifecycle: PLC states x program commands, as a table (DESIGN.md section 4).
+"""Program lifecycle: PLC states x program commands, as a table (docs/design.md section 4).
 
 Owns: PlcState, Command, the transition table, CommandRejected.
 Does not know: what a program is, how a scan runs, where commands come from.
@@ -26,7 +26,7 @@ class Command(enum.Enum):
     RESUME = "resume"
     RESET = "reset"
     KILL = "kill"
-    # Forcing (DESIGN.md section 10): not in the table below, never changes the state. FORCE
+    # Forcing (docs/design.md section 10): not in the table below, never changes the state. FORCE
     # is accepted wherever a program is loaded, UNFORCE in every state (core/scan.py).
     FORCE = "force"
     UNFORCE = "unforce"
@@ -38,7 +38,8 @@ class CommandRejected(Exception):
     def __init__(self, state: PlcState, command: Command, reason: str = "") -> None:
         self.state = state
         self.command = command
-        self.reason = reason or f"{command.value} is not accepted in state {state.name}"
+        self.reason = reason or (f"{command.value} is not accepted in state {state.name} "
+                                 f"(accepted in {accepting(command)})")
         super().__init__(self.reason)
 
 
@@ -69,3 +70,16 @@ def next_state(state: PlcState, command: Command) -> PlcState:
         return TRANSITIONS[(state, command)]
     except KeyError:
         raise CommandRejected(state, command) from None
+
+
+def accepting(command: Command) -> str:
+    """The states that accept `command`, for a refusal's message."""
+    if command is Command.UNFORCE:
+        return "every state"
+    if command is Command.FORCE:  # wherever a program is loaded (core/scan.py)
+        return ", ".join(sorted(s.name for s in PlcState if s is not PlcState.EMPTY)) + \
+            " (any state with a program loaded)"
+    states = sorted({s.name for (s, c) in TRANSITIONS if c is command})
+    if command is Command.DOWNLOAD and "RUNNING" not in states:
+        states.append("RUNNING (online change)")
+    return ", ".join(states) or "no state"

@@ -82,11 +82,35 @@ def carry(carry_plan: CarryPlan, state: NetState) -> NetState | str:
     return new
 
 
+def driven(net: CompiledNet) -> frozenset[str]:
+    """The output symbols a net drives: Moore outputs of places, outputs held while a timed
+    firing runs, and the targets of set/reset/pulse/write actions."""
+    symbols = set(net.moore_drivers) | set(net.busy_drivers)
+    for t in net.transitions:
+        symbols.update(a.target for a in t.actions if a.kind.value != "emit")
+    return frozenset(symbols)
+
+
+def outputs_change_hands(old: CompiledNet, new: CompiledNet) -> dict[str, list[str]]:
+    """Symbols only the old program drives (they go to their safe value or stay as last
+    written by nobody) and symbols only the new one drives."""
+    before, after = driven(old), driven(new)
+    return {"released": sorted(before - after), "taken": sorted(after - before)}
+
+
+def _records(net: CompiledNet, tokens: dict[int, list[Any]] | Any, places: list[int]
+             ) -> dict[str, list[dict[str, Any]]]:
+    return {net.place_names[p]: [dict(t) for t in tokens.get(p, ())]
+            for p in places if net.coloured[p]}
+
+
 def describe(carry_plan: CarryPlan, state: NetState | None) -> dict[str, Any]:
-    """The plan as a person reads it (a dry run): places kept with their tokens, new places
-    with the tokens they start with, dropped places, and whether it would be accepted."""
+    """The plan as a person reads it (a dry run): places kept with their tokens (and records,
+    for coloured places), new places with the tokens they start with, dropped places, outputs
+    that change hands, and whether it would be accepted."""
     old, new = carry_plan.old, carry_plan.new
     marking = state.marking if state is not None else old.initial
+    old_tokens = state.tokens if state is not None else old.initial_tokens
     if carry_plan.replacement:
         verdict = "replacement: nothing carries over, the new program starts from its " \
                   "initial marking (needs replace)"
@@ -98,5 +122,8 @@ def describe(carry_plan: CarryPlan, state: NetState | None) -> dict[str, Any]:
         "kept": {old.place_names[p]: int(marking[p]) for p in carry_plan.old_idx.tolist()},
         "new": {new.place_names[q]: int(new.initial[q]) for q in carry_plan.fresh.tolist()},
         "dropped": {old.place_names[p]: int(marking[p]) for p in carry_plan.dropped.tolist()},
+        "records": {**_records(old, old_tokens, carry_plan.old_idx.tolist()),
+                    **_records(new, new.initial_tokens, carry_plan.fresh.tolist())},
+        "outputs": outputs_change_hands(old, new),
         "verdict": verdict,
     }

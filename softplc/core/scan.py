@@ -1,6 +1,6 @@
 """The PLC: one scan as a function of (state, input image, now_ns, commands).
 
-Owns: the order of a scan (DESIGN.md section 1): apply commands and HMI writes at the scan
+Owns: the order of a scan (docs/design.md section 1): apply commands and HMI writes at the scan
 boundary; latch inputs; evaluate event conditions; one firing round when RUNNING; write the
 output image (safe values unless RUNNING). Program handling per the lifecycle table, online
 change with the marking carried over by place name, frozen timers while stopped.
@@ -21,7 +21,7 @@ from softplc.core.faults import DeviceMonitor
 from softplc.core.firing import Engine
 from softplc.core.forcing import Force, ForceRefused, Forces
 from softplc.core.image import AREAS, OUTPUT_AREAS, Area, ProcessImage
-from softplc.core.lifecycle import Command, CommandRejected, PlcState, next_state
+from softplc.core.lifecycle import Command, CommandRejected, PlcState, accepting, next_state
 from softplc.core.net import Busy, CompiledNet, NetState
 from softplc.core.problems import FaultCode, PlcFault
 from softplc.core.snapshot import CommandReply, HmiWrite
@@ -122,7 +122,7 @@ class Plc:
     devices: DeviceMonitor = field(default_factory=DeviceMonitor)
     _policies_of: CompiledNet | None = None
     _policies: Mapping[str, FaultPolicy] = field(default_factory=dict)
-    forces: Forces = field(default_factory=Forces)  # DESIGN.md section 10
+    forces: Forces = field(default_factory=Forces)  # docs/design.md section 10
 
     @classmethod
     def empty(cls, image: ProcessImage | None = None) -> Plc:
@@ -158,7 +158,7 @@ class Plc:
         elif cmd.command is Command.START or cmd.command is Command.RESET:
             assert self.net is not None
             self._load(self.net, NetState.initial(self.net))
-            self.forces.release(None)  # a cold start drops every force (DESIGN.md section 10)
+            self.forces.release(None)  # a cold start drops every force (docs/design.md section 10)
         elif cmd.command is Command.RESUME:
             self._thaw(now_ns)
         if target is not PlcState.RUNNING and self.state is PlcState.RUNNING:
@@ -192,7 +192,7 @@ class Plc:
         self.events = event_conditions.EventMemory()
         self.forces.rebind(net.io.symbols)  # forces on symbols the program lacks are dropped
 
-    # -- forcing (DESIGN.md section 10) -----------------------------------------------------
+    # -- forcing (docs/design.md section 10) -----------------------------------------------------
 
     def _force(self, cmd: ProgramCommand) -> str:
         """FORCE/UNFORCE: the state stays. Forced outputs act only while RUNNING (stopped,
@@ -206,8 +206,11 @@ class Plc:
                     self.engine.refresh_outputs()  # place-driven outputs: the marking's again
                 names = ", ".join(e.symbol for e, _ in released)
                 return f"unforce: released {names or 'nothing (no symbol was forced)'}"
-            if self.net is None or cmd.symbol is None:
-                raise ForceRefused("force needs a loaded program and a symbol")
+            if self.net is None:
+                raise ForceRefused(f"no program is loaded (state {self.state.name}; force is "
+                                   f"accepted in {accepting(Command.FORCE)})")
+            if cmd.symbol is None:
+                raise ForceRefused("force needs a symbol")
             entry = self.forces.force(self.net.io.symbols, cmd.symbol, cmd.value, self.image)
         except ForceRefused as exc:
             raise CommandRejected(self.state, cmd.command, f"{cmd.command.value} refused: "
@@ -243,7 +246,8 @@ class Plc:
         if not cmd.online:
             raise CommandRejected(self.state, Command.DOWNLOAD,
                                   "download while RUNNING needs online change (--online), "
-                                  "or stop the program first")
+                                  "or stop the program first (a plain download is accepted in "
+                                  f"{accepting(Command.DOWNLOAD).replace(', RUNNING', '')})")
         if net.name != old.name:
             return self._replace(cmd)
         carry_plan = cmd.plan if cmd.plan is not None and cmd.plan.old is old \
@@ -351,7 +355,7 @@ def scan(plc: Plc, inputs: ProcessImage, now_ns: int,
     `inputs` is only read (its %I areas are latched).
 
     `observed` is what the runtime measured (device answers, an overrun, a stall): the scan
-    judges it before the program runs, per the fault policies (DESIGN.md section 9).
+    judges it before the program runs, per the fault policies (docs/design.md section 8).
     Nothing raised inside a scan escapes it: PlcFault (a limit, a program error) and any
     other exception (a bug) fault the PLC with safe outputs and the reason, and the scan
     returns as a scan of a FAULTED PLC would: faults, not deaths."""
@@ -450,6 +454,7 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
         # already holds them, so the image difference alone would miss them.
         changed = plc._changed() | set(now_events) | set(plc.true_last) | plc.written_last
         before = plc.engine.state.marking.copy()
+        plc.engine.scan = plc.scan_count  # diagnostics name the scan
         step = plc.engine.fire_round(ctx, now_ns, changed)
         plc._write(step.writes)
         plc.forces.apply_outputs(plc.image)  # forcing: after Moore/Mealy, before the drivers

@@ -24,7 +24,7 @@ class Status:
     program_hash: str = ""  # hex sha256 of the program text, "" when EMPTY
     fault_code: int = 0  # a FaultCode (core/problems.py)
     period_us: int = 0
-    forced: int = 0  # how many symbols are forced (DESIGN.md section 10)
+    forced: int = 0  # how many symbols are forced (docs/design.md section 10)
     # About the snapshot, not the PLC (so not part of equality): CLOCK_MONOTONIC when the scan
     # process published it (0: never), and a reader's verdict that it is older than the PLC's
     # cycle allows (the scan process is frozen or dead).
@@ -63,10 +63,12 @@ class CommandRequest:
     program_text: str | None = None
     program_path: str | None = None
     online: bool = False
-    symbol: str | None = None  # FORCE/UNFORCE (DESIGN.md section 10); UNFORCE None: all
+    symbol: str | None = None  # FORCE/UNFORCE (docs/design.md section 10); UNFORCE None: all
     value: int = 0  # FORCE
     deadline_ns: int = 0
     replace: bool = False  # a download of another program while RUNNING may replace it
+    bundle: bytes | None = None  # a download as a bundle (softplc/program/bundle.py zip)
+    dry_run: bool = False  # a download answered with its plan, never applied
 
 
 @dataclass(frozen=True, slots=True)
@@ -79,6 +81,7 @@ class CommandReply:
     message: str
     state: PlcState
     expired: bool = False
+    detail: dict[str, object] | None = None  # a dry run's plan (core/online.py describe)
 
 
 class SnapshotSource(Protocol):

@@ -1,6 +1,6 @@
 """The Modbus register map for HMIs: Modbus tables and 0-based addresses <-> IEC areas.
 
-Owns: the four tables and their segments (OpenPLC-compatible, DESIGN.md section 6), the
+Owns: the four tables and their segments (OpenPLC-compatible, docs/design.md section 6), the
 status block layout, read range checks, and turning an HMI write into journal entries.
 Does not know: sockets, frames, function codes, pymodbus, when writes are applied.
 """

@@ -31,6 +31,7 @@ from softplc.core.net import (
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.symbols import Direction, IoImage, SymType
 from softplc.core.values import MAX_FIELDS, field_name_problem
+from softplc.program import fields as token_fields
 from softplc.program.io_image import load_io_image
 from softplc.program.spec import ArcSpec, ProgramSpec, TransitionSpec, Where, parse_program, resolve
 from softplc.program.suggest import did_you_mean
@@ -243,6 +244,7 @@ def _build(spec: ProgramSpec, io: IoImage, c: _Compiler) -> CompiledNet:
             c.problem(p.where, f"initial tokens ({p.tokens}) exceed the capacity ({p.capacity})")
     _initial_limits(spec, c)
     transitions = tuple(c.transition(i, t, coloured) for i, t in enumerate(spec.transitions))
+    token_fields.check(spec, transitions, c.problem)  # `x.count` where tokens have `cnt`
     if c.problems:
         raise ProgramError(sorted(set(c.problems)))
     n_places = len(spec.places)

@@ -1,19 +1,24 @@
 """The boot program: the last program the PLC accepted, kept in the state directory.
 
-Owns: writing the accepted program's source (its text, the name it was downloaded under and
-the directory its relative `io_image:`/subnet paths resolve against) atomically beside the
-retain snapshots, and reading it back for `softplc run` without a program argument and for a
+Owns: writing the accepted program's source (its text, the name it was downloaded under, the
+directory its relative `io_image:`/subnet paths resolve against, and its bundle: the program
+with its io image and subnets as they were downloaded, for `softplc upload`) atomically
+beside the retain snapshots, and reading it back for `softplc run` without a program argument and for a
 scan process the supervisor restarts. Does not know: compiling, the scan, retain snapshots.
 """
 
 from __future__ import annotations
 
+import base64
+import binascii
 import json
 import os
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Final
+
+from softplc.program import bundle as bundles
 
 BOOT_FILE: Final = "boot_program.json"
 FORMAT: Final = 1
@@ -31,6 +36,8 @@ class BootProgram:
     filename: str
     text: str
     root: str | None
+    bundle: bytes | None = None  # the zip of softplc/program/bundle.py, byte for byte
+    program_hash: str = ""  # of the net compiled from it: is it the one running?
 
     def describe(self) -> str:
         return f"boot program {Path(self.filename).name} (last accepted)"
@@ -41,7 +48,9 @@ def save(state_dir: str | Path, program: BootProgram) -> None:
     directory = Path(state_dir)
     directory.mkdir(parents=True, exist_ok=True)
     blob = json.dumps({"format": FORMAT, "filename": program.filename, "root": program.root,
-                       "text": program.text}).encode()
+                       "text": program.text, "program_hash": program.program_hash,
+                       "bundle": None if program.bundle is None
+                       else base64.b64encode(program.bundle).decode()}).encode()
     fd, tmp = tempfile.mkstemp(prefix=".boot-", dir=directory)
     try:
         with os.fdopen(fd, "wb") as out:
@@ -68,15 +77,24 @@ def load(state_dir: str | Path) -> BootProgram | None:
         if data.get("format") != FORMAT:
             raise BootUnreadable(f"{path}: format {data.get('format')!r}, expected {FORMAT}")
         root = data["root"]
+        packed = data.get("bundle")  # absent in files written before bundles
         return BootProgram(str(data["filename"]), str(data["text"]),
-                           None if root is None else str(root))
-    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+                           None if root is None else str(root),
+                           None if packed is None else base64.b64decode(packed, validate=True),
+                           str(data.get("program_hash") or ""))
+    except (ValueError, KeyError, TypeError, AttributeError, binascii.Error) as exc:
         if isinstance(exc, BootUnreadable):
             raise
         raise BootUnreadable(f"{path}: not a boot program file ({exc})") from None
 
 
-def from_file(path: str | Path) -> BootProgram:
-    """The boot program for a program file given on the command line."""
+def from_file(path: str | Path, program_hash: str = "") -> BootProgram:
+    """The boot program for a program file given on the command line, with its bundle (so
+    that `softplc upload` works for it too; None when its files exceed a bundle's limits)."""
     resolved = Path(path).resolve()
-    return BootProgram(str(resolved), resolved.read_text(encoding="utf-8"), None)
+    try:
+        packed: bytes | None = bundles.pack(bundles.from_files(resolved))
+    except bundles.BundleError:
+        packed = None
+    return BootProgram(str(resolved), resolved.read_text(encoding="utf-8"), None, packed,
+                       program_hash)

@@ -1,4 +1,4 @@
-"""The real-time scan loop: the scan process of DESIGN.md section 7.
+"""The real-time scan loop: the scan process of docs/design.md section 7.
 
 Owns: absolute deadlines on the monotonic clock, skipped slots counted as overruns, the
 cycle supervision (a whole scan longer than period x watchdog, or a cycle that starts that
@@ -12,9 +12,11 @@ Does not know: Modbus, HTTP (the communication process), terminals (the CLI).
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import sys
+import tempfile
 import threading
 import time
 from collections import deque
@@ -27,13 +29,15 @@ from typing import Any
 from softplc.core import online
 from softplc.core.firing import Engine
 from softplc.core.image import ImageSizes
-from softplc.core.lifecycle import Command, PlcState
+from softplc.core.lifecycle import Command, CommandRejected, PlcState, next_state
 from softplc.core.net import CompiledNet, NetState
 from softplc.core.problems import ProgramError
 from softplc.core.problems import FaultCode
 from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
 from softplc.devices.driver import Driver
+from softplc.core.problems import Problem
+from softplc.program import bundle as bundles
 from softplc.program.compiler import compile_file, compile_text
 from softplc.runtime import netview
 from softplc.runtime import boot
@@ -71,13 +75,19 @@ class LoopConfig:
     trace: str | None = None
     watchdog: float = 10.0  # fault when one scan runs longer than period x this
     root: str | None = None  # downloads may only reference files under this directory
+    programs_dir: str | None = None  # a plain-text download's home (None: root/programs)
     sizes: ImageSizes = ImageSizes()
     max_scans: int | None = None  # stop after this many (tests, benchmarks)
     state_dir: str | None = None  # retain snapshots live here; None: no retain, always cold
     retain_interval_ns: int = 1_000_000_000  # 0: only on stop
     warm_start: str = "run"  # a warm restart of a RUNNING snapshot: "run" resumes, "stop" waits
     realtime: Realtime = NORMAL  # SCHED_FIFO priority and CPU of the scan process
-    on_stall: str = "fault"  # a cycle that starts period x watchdog late: "fault" or "continue"
+    on_stall: str = "fault"  # a stall long enough to fault (below): "fault" or "continue"
+    # A cycle that starts period x watchdog late is a stall: counted, an event. It faults (with
+    # on_stall "fault") once it is also this long: a general-purpose OS delays a sleeping
+    # process by tens of ms under load, which lateness and overruns already show; a pause of
+    # half a second or more (SIGSTOP, VM pause, swap storm) is no hiccup.
+    stall_fault_ns: int = 500_000_000
     restarts: int = 0  # how often the supervisor restarted the scan process before this one
     restart_reason: str = ""  # why it restarted it last
     boot: bool = True  # no program given: run the boot program of state_dir, if any
@@ -142,6 +152,9 @@ class ScanLoop:
         self.retain: RetainWriter | None = None
         self._retained_ns = 0
         self._prepared: dict[int, Prepared] = {}  # downloads handed to the scan, by request id
+        self._bundle_roots: set[str] = set()  # unpacked bundles, stripped from messages
+        self._diag_engine: Engine | None = None  # diagnostics put on the event stream
+        self._diag_seen = 0
         net, self._boot = self._program()
         # The program the PLC starts with is analysed too, never refused: the person at the
         # console chose it. Its findings are in status.
@@ -167,10 +180,11 @@ class ScanLoop:
             if config.plant and (why := plant_conflict(compile_file(config.program).io,
                                                        config.plant)):
                 raise ValueError(why)
-            program = boot.from_file(config.program)
+            net = compile_file(config.program)
+            program = boot.from_file(config.program, net.program_hash)
             if config.state_dir is not None:  # the program the PLC runs is its boot program
                 boot.save(config.state_dir, program)
-            return compile_file(config.program), program
+            return net, program
         if config.state_dir is None or not config.boot:
             return None, None
         try:
@@ -181,9 +195,12 @@ class ScanLoop:
         if program is None:
             return None, None
         try:
-            net = compile_text(program.text, program.filename,
-                               Path(program.root) if program.root else None)
-        except ProgramError as exc:
+            if program.bundle is not None:
+                net = self._compile_bundle(program.bundle)  # unpacked anew if removed
+            else:
+                net = compile_text(program.text, program.filename,
+                                   Path(program.root) if program.root else None)
+        except (ProgramError, bundles.BundleError, OSError) as exc:
             self.program_source = f"none ({program.describe()} no longer compiles: {exc})"
             return None, None
         self.program_source = program.describe()
@@ -272,6 +289,8 @@ class ScanLoop:
                 prepared.discard()
                 self._refuse(req, "download refused: the program's image sizes "
                              f"{prepared.net.io.sizes} differ from the runtime's")
+            elif prepared is not None and req.dry_run:
+                self._reply(self._dry_run(prepared))
             elif prepared is not None:
                 self._prepared[req.id] = prepared
                 commands.append(ProgramCommand(
@@ -279,25 +298,108 @@ class ScanLoop:
                     engine=prepared.engine, plan=prepared.plan))
         return commands
 
+    def _dry_run(self, prepared: Prepared) -> CommandReply:
+        """What the download would do now, against the running state; nothing applied."""
+        plc, net, req = self.runner.plc, prepared.net, prepared.request
+        old, state = plc.net, plc.state
+        if old is None or plc.engine is None:
+            detail: dict[str, Any] = {
+                "from": None, "to": net.name, "replacement": False, "kept": {}, "dropped": {},
+                "new": plc_marking(net), "records": {}, "outputs": {
+                    "released": [], "taken": sorted(online.driven(net))}}
+        else:
+            carry_plan = prepared.plan if prepared.plan is not None \
+                and prepared.plan.old is old else online.plan(old, net)
+            detail = online.describe(carry_plan, plc.engine.state)
+        detail["verdict"] = self._verdict(prepared, detail)
+        detail["accepted"] = not detail["verdict"].startswith(("refused", "online change "
+                                                               "refused"))
+        detail["state"] = state.name
+        prepared.discard()
+        return CommandReply(req.id, True, f"dry run: {detail['verdict']} (nothing applied)",
+                            state, detail=detail)
+
+    def _verdict(self, prepared: Prepared, detail: dict[str, Any]) -> str:
+        """The download's fate in the current state, by the rules of core/scan.py."""
+        plc, net, req = self.runner.plc, prepared.net, prepared.request
+        if prepared.net.io.sizes != self.config.sizes:
+            return "refused: the program's image sizes differ from the runtime's"
+        if plc.state is not PlcState.RUNNING:
+            try:
+                next_state(plc.state, Command.DOWNLOAD)
+            except CommandRejected as exc:
+                return f"refused: {exc}"
+            return f"accepted: loads from its initial marking ({plc.state.name})"
+        old = plc.net
+        assert old is not None
+        if not req.online:
+            return "refused: download while RUNNING needs online change (--online)"
+        if net.name == old.name:
+            return str(detail["verdict"])
+        same = tuple(old.io.drivers.values()) == tuple(net.io.drivers.values())
+        if same and not req.replace:
+            return (f"refused: {net.name} is another program than the running {old.name} on "
+                    "the same devices; it needs --replace (it starts from its initial marking)")
+        return (f"accepted: replacement of {old.name} by {net.name} from its initial marking"
+                + ("" if same else " (reconfiguration: new devices)"))
+
     def _relative(self, message: str) -> str:
         """Paths in a message as the sender knows them: relative to the programs' root, never
         the server's absolute paths."""
         root = Path(self.config.root).resolve() if self.config.root else Path.cwd()
+        for directory in self._bundle_roots:  # a bundle's files: named as in the bundle
+            message = message.replace(f"{directory}/", "")
         return message.replace(f"{root}/", "")
 
     def _refuse(self, req: CommandRequest, message: str) -> None:
         self._reply(CommandReply(req.id, False, message, self.runner.plc.state))
 
     def _compile(self, req: CommandRequest) -> CompiledNet:
+        if req.bundle is not None:
+            return self._compile_bundle(req.bundle)
         root = Path(self.config.root) if self.config.root else None
         name = req.program_path or "downloaded.yaml"
         if req.program_text is None:
             return compile_file(name, root)
-        return compile_text(req.program_text, self._download_name(name), root)
+        try:
+            return compile_text(req.program_text, self._download_name(name), root)
+        except ProgramError as exc:
+            if not any("cannot read" in p.message for p in exc.problems):
+                raise
+            hint = Problem(self._download_name(name), 0, "", (
+                "a program sent as plain text resolves io_image: and subnets against the "
+                f"server's programs directory {self._programs_dir()} (softplc run "
+                "--programs-dir); send a bundle instead (softplc download builds one)"))
+            raise ProgramError([*exc.problems, hint]) from None
+
+    def _programs_dir(self) -> Path:
+        if self.config.programs_dir:
+            return Path(self.config.programs_dir).resolve()
+        root = Path(self.config.root) if self.config.root else Path.cwd()
+        return (root / "programs").resolve()
 
     def _download_name(self, name: str) -> str:
-        root = Path(self.config.root) if self.config.root else Path.cwd()
-        return str(root / "programs" / Path(name).name) if not Path(name).is_absolute() else name
+        return str(self._programs_dir() / Path(name).name) if not Path(name).is_absolute() \
+            else name
+
+    def _bundle_dir(self, bundle: bundles.Bundle) -> Path:
+        """Where a bundle is unpacked: the state dir (it is the boot program's home), else a
+        directory of this process's temporary files."""
+        base = Path(self.config.state_dir) / "bundles" if self.config.state_dir else \
+            Path(tempfile.gettempdir()) / f"softplc-bundles-{os.getpid()}"
+        return base / bundle.digest[:16]
+
+    def _compile_bundle(self, blob: bytes) -> CompiledNet:
+        """Unpack (off the scan) and compile with the bundle's folder as the root: its files
+        may reference one another, nothing outside it."""
+        try:
+            bundle = bundles.unpack(blob)
+        except bundles.BundleError as exc:
+            raise ProgramError([Problem("bundle", 0, "", str(exc))]) from None
+        directory = self._bundle_dir(bundle)
+        program = bundles.extract(bundle, directory)
+        self._bundle_roots.add(str(directory.resolve()))
+        return compile_file(program, directory.resolve())
 
     def _prepare(self, req: CommandRequest) -> Prepared:
         """On the compile thread: compile, then open the devices the new io image declares if
@@ -311,8 +413,8 @@ class ScanLoop:
         running = self.runner.plc.net
         prepared = Prepared(net, req, None, specs, Engine(net, NetState.initial(net)),
                             online.plan(running, net) if running is not None
-                            and running.name == net.name else None, analysis)
-        if specs != self._driver_specs:
+                            and (running.name == net.name or req.dry_run) else None, analysis)
+        if specs != self._driver_specs and not req.dry_run:  # a dry run opens nothing
             prepared.drivers = open_drivers(net.io, self.config.seed, None)
         return prepared
 
@@ -347,7 +449,7 @@ class ScanLoop:
                 prepared.discard()
         if accepted is not None:
             self._swap_drivers(accepted)
-            self._keep_boot(accepted.request)
+            self._keep_boot(accepted.request, accepted.net)
             self.analysis = accepted.analysis
             if accepted.analysis and accepted.analysis["findings"]:
                 replies = [CommandReply(r.id, r.ok, f"{r.message}; {accepted.analysis['summary']}"
@@ -374,12 +476,19 @@ class ScanLoop:
             drivers = open_drivers(net.io, self.config.seed, self.config.plant)
         self.runner.set_drivers(drivers)
 
-    def _keep_boot(self, req: CommandRequest) -> None:
+    def _keep_boot(self, req: CommandRequest, net: CompiledNet) -> None:
         """The accepted download becomes the boot program (written off the scan)."""
-        if self.config.state_dir is None or req.program_text is None:
+        if self.config.state_dir is None:
             return
-        name = self._download_name(req.program_path or "downloaded.yaml")
-        program = boot.BootProgram(name, req.program_text, self.config.root)
+        if req.bundle is not None:
+            # Its text and folder are in the bundle, unpacked again when it boots.
+            program = boot.BootProgram(net.source, "", None, req.bundle, net.program_hash)
+        elif req.program_text is not None:
+            name = self._download_name(req.program_path or "downloaded.yaml")
+            program = boot.BootProgram(name, req.program_text, self.config.root, None,
+                                       net.program_hash)
+        else:
+            return
         if self._boot_writer is None:
             self._boot_writer = ThreadPoolExecutor(1, thread_name_prefix="boot")
         self._boot_writer.submit(boot.save, self.config.state_dir, program)
@@ -401,7 +510,21 @@ class ScanLoop:
         self._after(commands, result.replies)
         for name in result.events:
             self._event(name, now_ns)
+        self._diagnostic_events(now_ns)
         return bool(commands)
+
+    def _diagnostic_events(self, now_ns: int) -> None:
+        """New run-time diagnostics on the event stream (a few per scan: a guard failing
+        every scan must not flood it; status counts them all)."""
+        engine = self.runner.plc.engine
+        if engine is None:
+            return
+        if engine is not self._diag_engine:
+            self._diag_engine, self._diag_seen = engine, 0
+        if engine.diagnostic_count > self._diag_seen:
+            for message in engine.diagnostics[self._diag_seen:self._diag_seen + 3]:
+                self._event(f"diagnostic:{message}", now_ns)
+            self._diag_seen = engine.diagnostic_count
 
     def _confirm_safe(self, now_ns: int) -> None:
         timeout_s = min(0.5, max(0.05, 5 * self.config.period_ns / 1e9))
@@ -440,12 +563,15 @@ class ScanLoop:
             "restarts": self.config.restarts, "restart_reason": self.config.restart_reason,
             "scan_pid": os.getpid(),
             "on_stall": self.config.on_stall, "watchdog_ms": self.budget_ns / 1e6,
+            "stall_fault_ms": max(self.config.stall_fault_ns, self.budget_ns) / 1e6,
             "internal_errors": self.internal_errors, "analysis": self.analysis,
             "retain": self.retain.info() if self.retain else None,
             "health": {name: h.value for name, h in self.runner.health().items()},
             "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
+            "diagnostic_count": plc.engine.diagnostic_count if plc.engine else 0,
+            "tokens": _records(net, plc.engine.state if plc.engine else None),
             "symbols": symbols, "events": list(self.events),
-            "forced": plc.forces.values(),  # forcing (DESIGN.md section 10)
+            "forced": plc.forces.values(),  # forcing (docs/design.md section 10)
             # The operator's page (docs/web.md): structure cached per program, live state.
             "net": netview.structure(net) if net else None,
             "net_live": netview.live(net, plc.engine.state if plc.engine else None,
@@ -489,7 +615,8 @@ class ScanLoop:
         self.stalls += 1
         self.longest_gap_ns = max(self.longest_gap_ns, late_ns)
         self._event(f"stall:{late_ns // 1_000_000}ms", self.clock.now_ns())
-        if self.config.on_stall != "fault":
+        if self.config.on_stall != "fault" or late_ns < max(self.config.stall_fault_ns,
+                                                             self.budget_ns):
             return NOTHING_OBSERVED
         return Observed(stall=f"cycle started {late_ns / 1e6:.0f} ms late (budget "
                         f"{self.budget_ns / 1e6:g} ms): inputs and outputs were frozen meanwhile")
@@ -560,6 +687,20 @@ class ScanLoop:
             self.board.publish(self.document())
 
 
+def _records(net: CompiledNet | None, state: NetState | None) -> dict[str, list[Any]]:
+    """Coloured places' records (the first 20 of each), for status and the API."""
+    if net is None or state is None:
+        return {}
+    return {net.place_names[p]: [dict(t) for t in records[:20]]
+            for p, records in sorted(state.tokens.items()) if records}
+
+
+def plc_marking(net: CompiledNet) -> dict[str, int]:
+    """A net's initial marking by place name (marked places only)."""
+    return {name: int(n) for name, n in zip(net.place_names, net.initial.tolist(), strict=True)
+            if n}
+
+
 def _describe(error: BaseException) -> str:
     """A refused download's reason in one line: a device, or an internal compiler error."""
     from softplc.devices.driver import DeviceError
@@ -601,6 +742,8 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
             raise SystemExit(4) from None
         writer.publish(loop.runner.plc.image, loop.status())
         board.publish(loop.document())
+        gc.collect()  # before the first scan, not during one; then keep what start-up built
+        gc.freeze()  # out of every later collection (real-time practice, see _prepare)
         ready.set()
         loop.run(stop)
     finally:

@@ -58,7 +58,9 @@ def replay(trace_path: str | Path, net: CompiledNet) -> ReplayResult:
     note = ""
     count = 0
     drivers = list(net.io.drivers)
+    recorded: dict[str, int] = {}  # output symbols as the trace gave them ("q"; newer traces)
     for count, record in enumerate(read_trace(trace_path), 1):
+        recorded.update(record.get("q") or {})
         _apply_inputs(inputs, record.get("in", {}))
         commands, why = _commands(record, net)
         note = note or why
@@ -68,10 +70,26 @@ def replay(trace_path: str | Path, net: CompiledNet) -> ReplayResult:
         observed = observed_from(record.get("obs", {}), drivers)
         result = scan(plc, inputs, int(record["t"]), commands, hmi, observed)
         fired = list(result.fired)
-        if image_digest(result.outputs) != record["out"] or fired != record.get("fired", []):
+        differs = image_digest(result.outputs) != record["out"]
+        if differs or fired != record.get("fired", []):
             return ReplayResult(count, (
                 f"scan {record['k']} (t={record['t'] / 1e9:.3f} s): "
                 f"recorded fired {record.get('fired', [])}, replay fired {fired}; "
-                f"output image {'differs' if image_digest(result.outputs) != record['out'] else 'same'}"
+                f"output image {_difference(net, recorded, result.outputs) if differs else 'same'}"
                 f"{note}"))
     return ReplayResult(count, None)
+
+
+def _difference(net: CompiledNet, recorded: dict[str, int], outputs: ProcessImage) -> str:
+    """The first differing output symbols with both values (a trace without "q", written
+    before it existed, only says that the image differs)."""
+    diffs = []
+    for symbol in net.io.symbols.values():
+        if symbol.name in recorded:
+            value = int(outputs.get(symbol.address))
+            if value != recorded[symbol.name]:
+                diffs.append(f"{symbol.name} recorded {recorded[symbol.name]}, replay {value}")
+    if not diffs:
+        return "differs (the trace names no output symbols: it predates them, or memory differs)"
+    more = f" and {len(diffs) - 3} more" if len(diffs) > 3 else ""
+    return "differs: " + "; ".join(diffs[:3]) + more

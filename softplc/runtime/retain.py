@@ -88,6 +88,7 @@ class Capture:
     events_armed: dict[str, bool]
     field: dict[str, bytes]  # driver name -> pickled sim plant (simulation only)
     forces: tuple[tuple[str, int, int | None], ...] = ()  # (symbol, value, program's value)
+    fault_reason: str = ""
 
 
 def capture(plc: Plc, now_ns: int, plants: dict[str, object]) -> Capture | None:
@@ -99,7 +100,7 @@ def capture(plc: Plc, now_ns: int, plants: dict[str, object]) -> Capture | None:
                    plc.engine.state.copy(), plc.image.copy(), held, plc.stopped_at_ns,
                    dict(plc.events.last), dict(plc.events.armed),
                    {name: pickle.dumps(plant) for name, plant in plants.items()},
-                   tuple(plc.forces.triples()))
+                   tuple(plc.forces.triples()), plc.fault_reason)
 
 
 def encode(cap: Capture, seq: int, wall_ns: int) -> dict[str, Any]:
@@ -108,7 +109,8 @@ def encode(cap: Capture, seq: int, wall_ns: int) -> dict[str, Any]:
     return {
         "seq": seq, "written_unix_ns": wall_ns,
         "program": net.name, "program_hash": net.program_hash,
-        "state": cap.state.name, "fault_code": cap.fault_code,
+        "state": cap.state.name, "fault_code": int(cap.fault_code),
+        "fault_reason": cap.fault_reason,
         "scan_count": cap.scan_count, "now_ns": cap.now_ns, "stopped_at_ns": cap.stopped_at_ns,
         "marking": {places[p]: int(n) for p, n in enumerate(st.marking)},
         "tokens": {places[p]: [_record(places[p], i, t) for i, t in enumerate(toks)]
@@ -177,6 +179,7 @@ def restore(plc: Plc, payload: dict[str, Any], resume: bool) -> PlcState:
     plc.events = EventMemory(dict(payload["events"]["last"]), dict(payload["events"]["armed"]))
     plc.scan_count = payload["scan_count"]
     plc.fault_code = FaultCode(payload["fault_code"])
+    plc.fault_reason = str(payload.get("fault_reason", ""))
     plc.forces.restore(net.io.symbols, [(str(n), int(v), s) for n, v, s in
                                         payload.get("forces", [])])
     was = PlcState[payload["state"]]

@@ -84,6 +84,8 @@ class ScanRunner:
         self.drivers = list(drivers)
         self.inputs = ProcessImage(plc.image.sizes)
         self.trace = trace
+        self._traced_out: dict[str, int] = {}  # output symbols as the trace last gave them
+        self._traced_diag = 0
         self._last_inputs: ProcessImage | None = None
         self._digest = ""
         self.fired_counts: dict[str, int] = {}
@@ -109,6 +111,25 @@ class ScanRunner:
         """Per driver: the fault policy's verdict, scans without an answer, and why."""
         return self.devices.report()
 
+    def _extra(self, outputs: ProcessImage) -> dict[str, Any]:
+        """The trace's readable part: output symbols whose value changed since the last
+        traced scan (so replay names what differs), and the scan's new diagnostics."""
+        extra: dict[str, Any] = {}
+        net, engine = self.plc.net, self.plc.engine
+        if net is not None:
+            changed = {}
+            for symbol in net.io.symbols.values():
+                if symbol.direction.value == "out":
+                    value = int(outputs.get(symbol.address))
+                    if self._traced_out.get(symbol.name) != value:
+                        changed[symbol.name] = self._traced_out[symbol.name] = value
+            if changed:
+                extra["q"] = changed
+        if engine is not None and engine.diagnostic_count > self._traced_diag:
+            extra["diag"] = engine.diagnostics[self._traced_diag:engine.diagnostic_count]
+            self._traced_diag = engine.diagnostic_count
+        return extra
+
     def step(self, now_ns: int, commands: Sequence[ProgramCommand] = (),
              hmi: Sequence[HmiWrite] = (), timing: dict[str, int] | None = None,
              observed: Observed = NOTHING_OBSERVED) -> ScanResult:
@@ -126,7 +147,8 @@ class ScanRunner:
         for name in result.fired:
             self.fired_counts[name] = self.fired_counts.get(name, 0) + 1
         if self.trace is not None:
-            self.trace.record(self._record(now_ns, commands, hmi, result, observed), timing)
+            self.trace.record(self._record(now_ns, commands, hmi, result, observed), timing,
+                              self._extra(result.outputs))
         if self._last_inputs is None:
             self._last_inputs = self.inputs.copy()
         else:

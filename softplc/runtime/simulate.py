@@ -133,6 +133,7 @@ def _report(net: CompiledNet, runner: Any, scans: int, period_ns: int, seed: int
         "outputs_final": outputs,
         "plant": plants[0] if len(plants) == 1 else plants,
         "diagnostics": plc.engine.diagnostics if plc.engine else [],
+        "diagnostic_count": plc.engine.diagnostic_count if plc.engine else 0,
         "trace_sha256": trace.sha256,
     }
     if script is not None:

@@ -43,13 +43,15 @@ from softplc.runtime.procs import ReadySignal, StopFlag
 from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
 from softplc.runtime.retain import StateDirBusy, check_state_dir
 from softplc.runtime.runner import plant_conflict
+from softplc.runtime.sdnotify import Notifier
 from softplc.runtime.shm import SnapshotWriter
 
 SHM_PREFIX: Final = "softplc_"
 SCAN_RESTARTS: Final = 5  # scan process restarts allowed within RESTART_WINDOW_S
 COMM_RESTARTS: Final = 5  # communication process restarts allowed within RESTART_WINDOW_S
 RESTART_WINDOW_S: Final = 60.0
-BACKOFF_S: Final = (0.0, 0.5, 1.0, 2.0, 4.0)  # before the 1st, 2nd, ... restart in a window
+BACKOFF_S: Final = (0.0, 0.5, 1.0, 2.0, 4.0)  # by restarts within BACKOFF_WINDOW_S
+BACKOFF_WINDOW_S: Final = 10.0  # a scan process that ran this long restarts without delay
 STOP_S: Final = 2.0  # SIGTERM/SIGINT: every process gone within this (then SIGKILL)
 EXIT_OK, EXIT_START, EXIT_USAGE, EXIT_GAVE_UP = 0, 1, 2, 3
 
@@ -78,8 +80,8 @@ def _remove_stale_segments() -> None:
 def _record_semaphores(tag: str) -> None:
     """List this process's named semaphores (multiprocessing's Events, locks) where the next
     start finds them if this run is killed before its resource tracker can unlink them."""
-    names = sorted({o._semlock.name for o in gc.get_objects()
-                    if isinstance(o, mp_sync.SemLock)})
+    names = sorted({o._semlock.name for o in gc.get_objects()  # None: unlinked at creation
+                    if isinstance(o, mp_sync.SemLock) and o._semlock.name})
     with contextlib.suppress(OSError):
         Path(f"/dev/shm/{tag}_sems").write_text("\n".join(names), encoding="utf-8")
 
@@ -130,10 +132,12 @@ class Supervisor:
         loop_config = LoopConfig(
             program=args.program, start=args.start, period_ns=args.period, plant=args.plant,
             seed=args.seed, trace=args.trace, watchdog=args.watchdog, root=str(root),
+            programs_dir=getattr(args, "programs_dir", None),
             sizes=sizes, state_dir=args.state_dir,
             retain_interval_ns=getattr(args, "retain_interval", 1_000_000_000),
             warm_start=getattr(args, "warm_start", "run"),
             on_stall=getattr(args, "on_stall", "fault"), verify=getattr(args, "verify", "warn"),
+            stall_fault_ns=getattr(args, "stall_fault_after", 500_000_000),
             realtime=Realtime(getattr(args, "rt_priority", None), getattr(args, "scan_cpu", None)))
         comm_config = CommConfig(modbus=args.modbus, api=args.api, state_dir=args.state_dir,
                                  sizes=sizes, modbus_writes=getattr(args, "modbus_writes", "open"),
@@ -212,9 +216,12 @@ class Supervisor:
             raise GaveUp(f"the scan process {reason}; it died {used + 1} times within "
                          f"{RESTART_WINDOW_S:g} s: giving up")
         self.restart_reason = f"scan process {reason}"
-        self._restart_due = self.clock() + BACKOFF_S[min(used, len(BACKOFF_S) - 1)]
+        now = self.clock()
+        recent = sum(1 for t in self.scan_restarts if now - t <= BACKOFF_WINDOW_S)
+        delay = BACKOFF_S[min(recent, len(BACKOFF_S) - 1)]
+        self._restart_due = now + delay
         return [f"scan process {reason}; restarting it warm"
-                + (f" in {BACKOFF_S[used]:g} s" if BACKOFF_S[min(used, 4)] else "")]
+                + (f" in {delay:g} s" if delay else "")]
 
     def _restart_scan(self) -> str:
         self.scan_restarts.append(self.clock())
@@ -348,17 +355,19 @@ def run(args: argparse.Namespace) -> int:
         print(f"softplc: {exc}", file=sys.stderr)
         supervisor.stop()
         return EXIT_START
+    notifier = Notifier()
+    notifier.send(f"READY=1\nMAINPID={os.getpid()}\nSTATUS=scanning")
     _banner(args, supervisor.status())
     print(f"  scan process pid {supervisor.scan.pid} ({supervisor.status().get('realtime', '?')}), "
           f"communication process pid {supervisor.comm.pid if supervisor.comm else '-'}",
           flush=True)
     print(f"  supervisor pid {os.getpid()}: SIGTERM or SIGINT stops everything within "
           f"{STOP_S:g} s; exit code 0 then, 3 if it gives up restarting", flush=True)
-    return _supervise(supervisor, args, lambda: stopping)
+    return _supervise(supervisor, args, lambda: stopping, notifier)
 
 
 def _supervise(supervisor: Supervisor, args: argparse.Namespace,
-               stopping: Callable[[], bool]) -> int:
+               stopping: Callable[[], bool], notifier: Notifier) -> int:
     began = time.monotonic()
     tty = sys.stdout.isatty() and not args.quiet
     last_print = 0.0
@@ -374,7 +383,9 @@ def _supervise(supervisor: Supervisor, args: argparse.Namespace,
                 break
             for line in said:
                 print(("\n" if tty else "") + f"softplc: {line}", file=sys.stderr, flush=True)
+                notifier.send(f"STATUS={line}")
             now = time.monotonic()
+            notifier.ping(now)
             if args.duration and now - began >= args.duration / 1e9:
                 break
             if tty:
@@ -383,6 +394,7 @@ def _supervise(supervisor: Supervisor, args: argparse.Namespace,
                 print(status_line(supervisor.status()), flush=True)
                 last_print = now
     finally:
+        notifier.send("STOPPING=1")
         supervisor.stop()
         final = supervisor.final
     ending = "gave up" if code else "stopped"

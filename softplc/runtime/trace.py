@@ -46,13 +46,16 @@ class TraceWriter:
         self._sha = hashlib.sha256()
         self.lines = 0
 
-    def record(self, record: dict[str, Any], timing: dict[str, int] | None = None) -> None:
+    def record(self, record: dict[str, Any], timing: dict[str, int] | None = None,
+               extra: dict[str, Any] | None = None) -> None:
+        """`timing` and `extra` (output symbols that changed: "q", new diagnostics: "diag")
+        go in the file but not in the hash: golden hashes do not move when they are added."""
         canonical = json.dumps(record, sort_keys=True, separators=(",", ":"))
         self._sha.update(canonical.encode() + b"\n")
         self.lines += 1
         if self._file is not None:
-            if timing:
-                record = {**record, "timing": timing}
+            if timing or extra:
+                record = {**record, **(extra or {}), **({"timing": timing} if timing else {})}
             self._file.write(json.dumps(record, sort_keys=True, separators=(",", ":")) + "\n")
 
     @property

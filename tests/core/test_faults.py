@@ -145,7 +145,7 @@ def test_recovery_needs_reset_without_auto_recover(net: CompiledNet) -> None:
     for _ in range(5):
         rig.scan()
     assert (rig.plc.state, rig.plc.fault_code) == (S.FAULTED, FAULT_DEVICE)
-    # The lifecycle table (DESIGN.md section 4): FAULTED rejects resume; reset is the way out.
+    # The lifecycle table (docs/design.md section 4): FAULTED rejects resume; reset is the way out.
     rig.scan(cmd(Command.RESUME))
     assert rig.bench.last.replies[0].ok is False and rig.plc.state is S.FAULTED
     rig.scan(cmd(Command.RESET))

@@ -1,4 +1,4 @@
-"""One firing round (DESIGN.md section 3): hypothesis properties on random small nets, then
+"""One firing round (docs/design.md section 3): hypothesis properties on random small nets, then
 unit tests of each rule.
 
 Random nets are generated as program text and compiled by the real compiler; the oracle below
@@ -120,7 +120,7 @@ class Gen:
         return True
 
     def greedy(self, m: Sequence[int], a: bool, b: bool) -> list[int]:
-        """The step by the rule of DESIGN.md section 3: walk the candidates by priority, then
+        """The step by the rule of docs/design.md section 3: walk the candidates by priority, then
         declaration order; take each that still fits the residual marking."""
         residual = list(m)
         delta: dict[int, int] = {}

@@ -1,4 +1,4 @@
-"""Forcing (DESIGN.md section 10) in the pure scan: a forced input replaces the driver's value
+"""Forcing (docs/design.md section 10) in the pure scan: a forced input replaces the driver's value
 at the latch, a forced output replaces the program's value after Moore/Mealy; release one or
 all; kept across stop/resume and downloads of programs that declare the symbol, dropped on a
 cold start (START, RESET). No socket, no sleep: `now_ns` is an argument.
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from softplc.core.lifecycle import Command, PlcState
+from softplc.core.lifecycle import Command, PlcState, accepting
 from softplc.core.scan import FAULT_WATCHDOG, ProgramCommand
 from tests.core.helpers import Bench, compile_program
 
@@ -123,7 +123,10 @@ def test_force_needs_a_program_and_release_all_works_everywhere(tmp_path: Path) 
     bench = Bench(compile_program(tmp_path, PROGRAM))
     bench.plc = type(bench.plc).empty()
     (reply,) = bench.scan(10, [force("a", 1, id=1)]).replies
-    assert not reply.ok and "EMPTY" not in reply.message and bench.plc.state is S.EMPTY
+    assert not reply.ok and bench.plc.state is S.EMPTY
+    # not the table's generic refusal: what is missing, and where force would be accepted
+    assert "not accepted in state" not in reply.message and "no program" in reply.message
+    assert f"accepted in {accepting(C.FORCE)}" in reply.message
     (reply,) = bench.scan(20, [unforce(id=2)]).replies
     assert reply.ok and "nothing" in reply.message
 

@@ -1,4 +1,4 @@
-"""The scan and the program lifecycle (DESIGN.md section 4), in virtual time, in process.
+"""The scan and the program lifecycle (docs/design.md section 4), in virtual time, in process.
 
 Walks every (state, command) pair of the lifecycle table; checks safe outputs, stop/resume,
 kill, online change. No socket, no sleep: `now_ns` is an argument.
@@ -33,7 +33,7 @@ transitions:
 INITIAL = {"idle": 1}
 MOVED = {"busy": 1}  # the marking the walk's RUNNING/STOPPED/KILLED/FAULTED PLCs hold
 
-# The table of DESIGN.md section 4, written out again: None = rejected.
+# The table of docs/design.md section 4, written out again: None = rejected.
 TABLE: dict[PlcState, dict[Command, PlcState | None]] = {
     S.EMPTY: {C.DOWNLOAD: S.STOPPED, C.START: None, C.STOP: None, C.RESUME: None,
               C.RESET: None, C.KILL: None},
@@ -132,7 +132,11 @@ def test_a_rejected_command_in_a_scan_is_a_reply_naming_state_and_command(
     result = bench.scan(1000, [ProgramCommand(cmd, id=42)])
     (reply,) = result.replies
     assert (reply.id, reply.ok, reply.state) == (42, False, state)
-    assert reply.message == f"{cmd.value} is not accepted in state {state.name}"
+    head = f"{cmd.value} is not accepted in state {state.name} (accepted in "
+    assert reply.message.startswith(head)
+    accepting = reply.message.removeprefix(head).rstrip(")").split(", ")
+    assert accepting and state.name not in accepting  # the states that would take it
+    assert all(name.split(" ")[0] in PlcState.__members__ for name in accepting)
     assert bench.plc.state is state
 
 
@@ -142,7 +146,8 @@ def test_download_while_running_needs_online(net: CompiledNet) -> None:
     (reply,) = result.replies
     assert not reply.ok and reply.state is S.RUNNING
     assert reply.message == ("download while RUNNING needs online change (--online), "
-                             "or stop the program first")
+                             "or stop the program first (a plain download is accepted in "
+                             "EMPTY, FAULTED, KILLED, STOPPED)")
     assert bench.marking() == MOVED
 
 

@@ -314,3 +314,20 @@ def test_docs_examples_compile(tmp_path: Path, capsys: pytest.CaptureFixture[str
     summary = capsys.readouterr().out.split(" (hash")[0]
     assert summary == "program conveyor: 2 places, 2 transitions, 4 arcs, 8 symbols, 0 subnets"
     assert summary in DOCS.read_text(encoding="utf-8")
+
+
+def test_a_misspelt_token_field_is_a_located_problem_with_a_suggestion(tmp_path: Path) -> None:
+    """Issue 16: fields are inferred from initial tokens and productions."""
+    (tmp_path / "io.yaml").write_text('symbols:\n  q: {address: "%QX0.0", type: bool}\n')
+    program = tmp_path / "m.yaml"
+    program.write_text(
+        "program: m\nio_image: io.yaml\nplaces:\n"
+        "  a: {coloured: true, tokens: [{count: 0}]}\n  b: {coloured: true}\n"
+        "transitions:\n  t:\n    from: [{place: a, var: x}]\n    to: [{place: b, token: x}]\n"
+        "    when: x.count >= 3\n  u:\n    from: [{place: b, var: y}]\n"
+        "    to: [{place: a, token: {count: \"y.cont + 1\"}}]\n")
+    with pytest.raises(ProgramError) as caught:
+        compile_file(program)
+    (problem,) = caught.value.problems
+    assert (problem.line, "y.cont" in problem.message) == (13, True)
+    assert "did you mean 'count'" in problem.message

@@ -182,6 +182,13 @@ def test_a_stall_faults_by_default_and_is_counted(tmp_path: Path) -> None:
     assert timing["stalls"] == 1 and timing["longest_gap_us"] == 3_000_000
 
 
+def test_a_short_stall_is_counted_without_faulting(tmp_path: Path) -> None:
+    loop, _ = lamp_loop(tmp_path)  # budget 100 ms, stall fault after 500 ms
+    loop._guarded_scan(loop.clock.now_ns(), loop._stall(200_000_000))
+    assert loop.runner.plc.state is S.RUNNING and loop.stalls == 1
+    assert any(e["name"] == "stall:200ms" for e in loop.events)
+
+
 def test_on_stall_continue_counts_without_faulting(tmp_path: Path) -> None:
     (tmp_path / "io.yaml").write_text(IO, encoding="utf-8")
     (tmp_path / "prog.yaml").write_text(LAMP, encoding="utf-8")

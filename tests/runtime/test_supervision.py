@@ -7,6 +7,7 @@ process group leaves nothing behind after the next start. Loopback only, bounded
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import signal
@@ -57,7 +58,8 @@ RELAXED = ("--watchdog", "100", "--on-stall", "continue")
 class Run:
     """One `softplc run` in its own session (so the test can kill the whole group)."""
 
-    def __init__(self, cwd: Path, program: str, state: Path, *extra: str) -> None:
+    def __init__(self, cwd: Path, program: str, state: Path, *extra: str,
+                 env: dict[str, str] | None = None) -> None:
         extra = extra if "--on-stall" in extra else (*extra, *RELAXED)
         self.modbus, self.api_port = free_port(), free_port()
         self.proc = subprocess.Popen(
@@ -66,7 +68,7 @@ class Run:
              "--modbus", f"127.0.0.1:{self.modbus}", "--api", f"127.0.0.1:{self.api_port}",
              "--state-dir", str(state), *extra],
             cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-            start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+            start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})})
         self.lines: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
         banner = eventually(lambda: self.line("supervisor pid"), 60, "the banner")
@@ -293,3 +295,25 @@ def test_verify_refuse_refuses_a_net_with_findings_and_keeps_the_running_one(
     after = run.status()
     assert (after["program"], after["program_hash"], after["state"]) == (
         "transport", before["program_hash"], "RUNNING")
+
+
+def test_systemd_readiness_watchdog_and_stopping(tmp_path: Path, runs: list[Run]) -> None:
+    import socket
+
+    address = str(tmp_path / "notify")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        sock.bind(address)
+        sock.settimeout(30)
+        run = Run(ROOT, "programs/transport.yaml", tmp_path / "state",
+                  env={"NOTIFY_SOCKET": address, "WATCHDOG_USEC": "400000"})
+        runs.append(run)
+        messages = [sock.recv(4096).decode() for _ in range(3)]
+        assert messages[0].startswith("READY=1") and f"MAINPID={run.proc.pid}" in messages[0]
+        assert "WATCHDOG=1" in messages[1:]
+        assert run.stop() == 0
+        rest = []
+        sock.settimeout(2)
+        with contextlib.suppress(TimeoutError):
+            while True:
+                rest.append(sock.recv(4096).decode())
+        assert "STOPPING=1" in rest

@@ -126,14 +126,15 @@ def test_symbols_allows_exactly_the_hmi_writable_symbols(plc: LivePlc) -> None:
 def test_symbols_follows_a_download(plc: LivePlc) -> None:
     with _slave(plc, "symbols") as slave, connect(slave.port) as sock:
         assert refused(write_register(sock, WORDS + 0, 5), 6)  # %MW0: not a transport symbol
+        assert refused(write_coil(sock, 2), 5)  # %QX0.2: not a transport symbol
         assert plc.command(Command.STOP).ok
         drilling = (plc.loop.config.root or "") + "/programs/drilling.yaml"
         reply = plc.command(Command.DOWNLOAD, Path(drilling).read_text(), "drilling.yaml")
         assert reply.ok, reply.message
-        # drilling_time_ms is %MW0; hold (%MX0.0) is gone with transport's io image
-        eventually(lambda: accepted(write_register(sock, WORDS + 0, 5), 6))
-        assert refused(write_coil(sock, BITS), 5)
-        assert image_value(plc, "%MW0") == 5
+        # drill_down is %QX0.2 in drilling's io image; %MW0 is a symbol in neither
+        eventually(lambda: accepted(write_coil(sock, 2), 5))
+        assert refused(write_register(sock, WORDS + 0, 5), 6)
+        assert image_value(plc, "%MW0") == 0
 
 
 def test_unknown_mode_is_refused() -> None:

@@ -1,0 +1,147 @@
+"""The program workflow (issue 16) with real processes: a program in a nested folder with its
+own io image and subnets passes `check`, is downloaded as a bundle to a `softplc run`
+started in another directory, runs, is shown before an online change (`--dry-run`), and
+`softplc upload` gets it back byte for byte."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+FILES = ("deep/sub/c.yaml", "deep/nets/conveyor.yaml", "io/transport.yaml")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def softplc(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "softplc.cli", *args], cwd=cwd,
+                          capture_output=True, text=True, timeout=60)
+
+
+@pytest.fixture
+def project(tmp_path: Path) -> Path:
+    """The transport program moved into deep/sub/ with its io image two levels up and its
+    subnet beside: paths no server-side programs directory could resolve."""
+    desk = tmp_path / "desk"
+    (desk / "deep/sub").mkdir(parents=True)
+    (desk / "deep/nets").mkdir()
+    (desk / "io").mkdir()
+    text = (ROOT / "programs/transport.yaml").read_text(encoding="utf-8")
+    text = text.replace("io_image: ../io_images/transport.yaml",
+                        "io_image: ../../io/transport.yaml")
+    text = text.replace("net: nets/conveyor.yaml", "net: ../nets/conveyor.yaml")
+    (desk / "deep/sub/c.yaml").write_text(text, encoding="utf-8")
+    shutil.copy(ROOT / "programs/nets/conveyor.yaml", desk / "deep/nets/conveyor.yaml")
+    shutil.copy(ROOT / "io_images/transport.yaml", desk / "io/transport.yaml")
+    return desk
+
+
+@pytest.fixture
+def server(tmp_path: Path) -> Iterator[str]:
+    """`softplc run` without a program, in a directory of its own."""
+    where = tmp_path / "server"
+    where.mkdir()
+    port = free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "softplc.cli", "run", "--api", f"127.0.0.1:{port}",
+         "--modbus", f"127.0.0.1:{free_port()}", "--opcua", "off", "--state-dir", "state",
+         "--quiet", "--period", "10ms"],
+        cwd=where, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 40  # two processes spawning on a loaded machine
+        while softplc("status", "--api", url, "--timeout", "2", cwd=where).returncode != 0:
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "softplc run did not answer"
+            time.sleep(0.3)
+        yield url
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(10)
+
+
+def status(url: str, cwd: Path) -> dict[str, object]:
+    done = softplc("status", "--api", url, "--json", cwd=cwd)
+    assert done.returncode == 0, done.stderr
+    answer: dict[str, object] = json.loads(done.stdout)
+    return answer
+
+
+def test_a_nested_program_goes_to_a_remote_plc_runs_and_comes_back_byte_for_byte(
+        project: Path, server: str, tmp_path: Path) -> None:
+    checked = softplc("check", "deep/sub/c.yaml", cwd=project)
+    assert checked.returncode == 0, checked.stderr
+    down = softplc("download", "deep/sub/c.yaml", "--online", "--api", server, cwd=project)
+    assert down.returncode == 0, down.stderr
+    started = softplc("start", "--api", server, cwd=project)
+    assert started.returncode == 0, started.stderr
+    first = status(server, project)
+    assert first["state"] == "RUNNING" and first["program"] == "transport"
+    time.sleep(0.5)
+    assert int(status(server, project)["scan_count"]) > int(first["scan_count"])  # type: ignore[call-overload]
+
+    out = tmp_path / "back"
+    up = softplc("upload", "-o", str(out), "--api", server, cwd=project)
+    assert up.returncode == 0, up.stderr
+    back = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
+    assert back == sorted(FILES)
+    for name in FILES:
+        assert (out / name).read_bytes() == (project / name).read_bytes(), name
+
+
+def test_dry_run_shows_the_plan_and_applies_nothing(project: Path, server: str) -> None:
+    assert softplc("download", "deep/sub/c.yaml", "--api", server, cwd=project).returncode == 0
+    assert softplc("start", "--api", server, cwd=project).returncode == 0
+    before = status(server, project)
+    changed = (project / "deep/sub/c.yaml").read_text(encoding="utf-8").replace(
+        "places:\n", "places:\n  spare: {tokens: 2}\n", 1)
+    (project / "deep/sub/c.yaml").write_text(changed, encoding="utf-8")
+    dry = softplc("download", "deep/sub/c.yaml", "--online", "--dry-run", "--api", server,
+                  cwd=project)
+    assert dry.returncode == 0, dry.stderr
+    out = dry.stdout
+    assert "new places (start with their declared tokens):\n  spare" in out
+    assert "c1.idle" in out and "would be ACCEPTED" in out
+    assert '{"count": 0}' in out  # the coloured place's record
+    after = status(server, project)
+    assert after["program_hash"] == before["program_hash"]  # nothing applied
+    assert "spare" not in after["marking"]  # type: ignore[operator]
+
+    applied = softplc("download", "deep/sub/c.yaml", "--online", "--api", server, cwd=project)
+    assert applied.returncode == 0, applied.stderr
+    assert status(server, project)["marking"]["spare"] == 2  # type: ignore[index]
+
+
+def test_another_program_needs_replace_and_the_dry_run_says_so(
+        project: Path, server: str) -> None:
+    assert softplc("download", "deep/sub/c.yaml", "--api", server, cwd=project).returncode == 0
+    assert softplc("start", "--api", server, cwd=project).returncode == 0
+    other = project / "deep/sub/other.yaml"
+    other.write_text((project / "deep/sub/c.yaml").read_text(encoding="utf-8").replace(
+        "program: transport", "program: other"), encoding="utf-8")
+    dry = softplc("download", str(other), "--online", "--dry-run", "--api", server, cwd=project)
+    assert dry.returncode == 1 and "would be REFUSED" in dry.stdout and "--replace" in dry.stdout
+    refused = softplc("download", str(other), "--online", "--api", server, cwd=project)
+    assert refused.returncode == 1 and "--replace" in refused.stderr
+    assert status(server, project)["program"] == "transport"
+    replaced = softplc("download", str(other), "--online", "--replace", "--api", server,
+                       cwd=project)
+    assert replaced.returncode == 0, replaced.stderr
+    assert status(server, project)["program"] == "other"
