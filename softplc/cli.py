@@ -312,7 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--markdown", metavar="FILE",
                        help="write the report, e.g. BENCHMARKS.md (default: no report)")
     bench.add_argument("--only", help="comma-separated sections: engine, scan, modbus, "
-                       "online_change, memory, web, analysis (default: all)")
+                       "online_change, memory, web, analysis, opcua (default: all)")
     bench.add_argument("--quiet", action="store_true", help="no progress display (default: off)")
     bench.set_defaults(func=cmd_bench)
 

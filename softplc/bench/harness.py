@@ -25,7 +25,7 @@ from typing import Any
 from softplc.bench.measure import Progress
 
 SECTIONS = ("engine", "scan", "simulate", "modbus", "online_change", "restart", "memory",
-            "web", "analysis")
+            "web", "analysis", "opcua")
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,6 +84,13 @@ TARGETS = (
         period="1 ms",
     ),
     Target(
+        "opcua.p99_ratio_over_floor_1ms",
+        "<=",
+        2,
+        "p99 lateness at 1 ms with 4 subscribed OPC UA clients / empty-loop floor",
+        period="1 ms",
+    ),
+    Target(
         "online_change.missed_scans",
         "==",
         0,
@@ -124,6 +131,10 @@ def _section_runner(name: str) -> Callable[[bool, Progress], dict[str, Any]]:
         from softplc.bench import webbench
 
         return lambda quick, progress: webbench.run(quick, progress)
+    if name == "opcua":
+        from softplc.bench import opcuabench
+
+        return lambda quick, progress: opcuabench.run(quick, progress)
     if name == "analysis":
         from softplc.bench import analysisbench
 

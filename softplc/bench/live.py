@@ -227,7 +227,8 @@ class LiveRuntime:
     def __init__(self, program: Path | None = TRANSPORT, *, period_ns: int = 1_000_000,
                  start: bool = True, plant: str | None = "transport", record: bool = True,
                  capacity_s: float = 120.0, api: bool = True, modbus: bool = True,
-                 watchdog: float = BENCH_WATCHDOG, realtime: Realtime = NORMAL) -> None:
+                 watchdog: float = BENCH_WATCHDOG, realtime: Realtime = NORMAL,
+                 opcua: bool = False) -> None:
         sizes = ImageSizes()
         self.period_ns = period_ns
         self.record = record
@@ -236,11 +237,13 @@ class LiveRuntime:
             plant=plant, root=str(ROOT), sizes=sizes, watchdog=watchdog, realtime=realtime)
         self.modbus_port = free_port() if modbus else None
         self.api_port = free_port() if api else None
+        self.opcua_port = free_port() if opcua else None
         self._state_dir = tempfile.TemporaryDirectory(prefix="softplc-bench-")
         comm_config = CommConfig(
             modbus=("127.0.0.1", self.modbus_port) if self.modbus_port else None,
             api=("127.0.0.1", self.api_port) if self.api_port else None,
-            state_dir=self._state_dir.name, sizes=sizes)
+            state_dir=self._state_dir.name, sizes=sizes,
+            opcua=("127.0.0.1", self.opcua_port) if self.opcua_port else None)
         self._receiver, sender = _CTX.Pipe(duplex=False)
         capacity = int(capacity_s * 1e9 / period_ns) + 1024
         self.supervisor = Supervisor(

@@ -256,6 +256,16 @@ def _analysis_tables(section: dict[str, Any]) -> list[str]:
     return [*_table(["net", "states", "edges", "SNAKES s", "softplc s", "ratio"], rows), ""]
 
 
+def _opcua_tables(section: dict[str, Any]) -> list[str]:
+    rows = [[name, w.get("scans"), w.get("overruns"), w.get("lateness_us", {}).get("p99"),
+             w.get("lateness_us", {}).get("max")]
+            for name, w in (("floor (empty loop)", section.get("floor_1ms", {})),
+                            ("4 subscribed clients", section.get("subscribed_1ms", {})))]
+    calls = section.get("call_to_effect", {}).get("scans", [])
+    return [*_table(["1 ms", "scans", "overruns", "p99 late µs", "max late µs"], rows), "",
+            f"Call to effect, caller scans at 10 ms: {calls}", ""]
+
+
 _DETAIL = {
     "engine": _engine_tables,
     "scan": _scan_tables,
@@ -263,6 +273,7 @@ _DETAIL = {
     "online_change": _online_tables,
     "memory": _memory_tables,
     "analysis": _analysis_tables,
+    "opcua": _opcua_tables,
 }
 
 

@@ -22,6 +22,7 @@ from asyncua import ua
 
 from softplc.core.lifecycle import Command
 from softplc.core.snapshot import CommandReply, CommandRequest, HmiWrite
+from softplc.opcua.ids import numeric_id, status_code
 from softplc.runtime.channel import ChannelFull
 
 COMMAND_TIMEOUT_S: Final = 8.0  # as the HTTP API: below a client's usual 10 s
@@ -47,7 +48,7 @@ class CommandChannel(Protocol):
 class Outcome:
     """What one method call came to: `status` Good or the refusal's code."""
 
-    status: ua.StatusCodes | int
+    status: int  # a ua.StatusCodes constant (plain ints)
     message: str
     state: str = ""
     problems: tuple[str, ...] = ()
@@ -61,7 +62,7 @@ class Outcome:
         method result alone carries no text, and clients that read the raw result get it."""
         outputs = [ua.Variant(self.message, ua.VariantType.String),
                    ua.Variant(self.state, ua.VariantType.String)]
-        return ua.CallMethodResult(StatusCode=ua.StatusCode(self.status),
+        return ua.CallMethodResult(StatusCode=status_code(self.status),
                                    OutputArguments=outputs)
 
 
@@ -78,7 +79,7 @@ def arguments(method: str) -> tuple[list[ua.Argument], list[ua.Argument]]:
 
 
 def _arg(name: str, vtype: ua.VariantType, text: str) -> ua.Argument:
-    return ua.Argument(Name=name, DataType=ua.NodeId(vtype.value, 0), ValueRank=-1,
+    return ua.Argument(Name=name, DataType=numeric_id(vtype.value), ValueRank=-1,
                        Description=ua.LocalizedText(text))
 
 

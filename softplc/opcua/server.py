@@ -27,13 +27,20 @@ from pathlib import Path
 from typing import Any, Final, Protocol
 
 from asyncua import Server, ua
-from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
+from asyncua.crypto.permission_rules import (
+    USER_TYPES,
+    SimpleRoleRuleset,
+    User,
+    UserRole,
+)
 from asyncua.server.internal_session import InternalSession
+from asyncua.server.user_managers import UserManager
 
 from softplc.api import auth
 from softplc.core.image import AddressError
 from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import HmiWrite, Snapshot, SnapshotSource
+from softplc.opcua.ids import numeric_id, status_code, string_id
 from softplc.opcua.program import CommandChannel, Outcome, ProgramHandling, arguments
 from softplc.opcua.space import (
     METHODS,
@@ -59,7 +66,7 @@ class BoardSource(Protocol):
     def read(self) -> dict[str, Any]: ...
 
 
-class TokenUsers:
+class TokenUsers(UserManager):
     """asyncua UserManager: a user name with the API token as password is an operator
     (read, write, call); no identity is anonymous (read only), and only on a loopback bind."""
 
@@ -77,13 +84,14 @@ class TokenUsers:
         return None  # wrong token: BadUserAccessDenied at ActivateSession
 
 
-class ClientServices(PermissionRuleset):
+class ClientServices(SimpleRoleRuleset):
     """Which services a session may request at all: every client service, anonymous or not
     (a write or call of an anonymous session is refused per item, with a status code, by
     the session hooks); changing the address space (AddNodes etc.) for nobody."""
 
     def __init__(self) -> None:
-        self._allowed = frozenset(ua.NodeId(i) for i in USER_TYPES)
+        # SimpleRoleRuleset's own tables are not used: check_validity is the whole rule.
+        self._allowed = frozenset(numeric_id(i) for i in USER_TYPES)
 
     def check_validity(self, user: User, action_type_id: ua.NodeId, body: Any) -> bool:
         return user.role is not UserRole.Admin and action_type_id in self._allowed
@@ -131,7 +139,10 @@ class OpcUaServer:
         server = self._server
         if server is None or server.bserver is None or server.bserver._server is None:
             raise RuntimeError("the OPC UA server is not started")
-        port: int = server.bserver._server.sockets[0].getsockname()[1]
+        bound = server.bserver._server
+        if not isinstance(bound, asyncio.Server):
+            raise RuntimeError("the OPC UA server has no listening socket")
+        port: int = bound.sockets[0].getsockname()[1]
         return port
 
     async def start(self) -> None:
@@ -173,7 +184,7 @@ class OpcUaServer:
         object, browse names in namespace 0); Download is ours."""
         assert self.space is not None and self.space.program is not None
         for name in METHODS:
-            nodeid = ua.NodeId(f"{PROGRAM}.{name}", ns)
+            nodeid = string_id(f"{PROGRAM}.{name}", ns)
             if name == "Download":
                 inputs, outputs = arguments(name)
                 await self.space.program.add_method(nodeid, f"{ns}:{name}", _unguarded,
@@ -186,7 +197,7 @@ class OpcUaServer:
             ns, "SoftplcEventType", ua.ObjectIds.BaseEventType,
             [("EventName", ua.VariantType.String), ("Seq", ua.VariantType.UInt32),
              ("Scan", ua.VariantType.UInt64)])
-        return await server.get_event_generator(etype, self.space.plc)
+        return await server.get_event_generator(etype, self.space.plc.nodeid)
 
     def _hook_sessions(self, server: Server) -> None:
         iserver = server.iserver
@@ -227,7 +238,7 @@ class OpcUaServer:
                 others.append(value)
                 results.append(None)
             else:
-                results.append(ua.StatusCode(self._write_symbol(session, symbol, value)))
+                results.append(status_code(self._write_symbol(session, symbol, value)))
         if others:
             passed = iter(await inner(ua.WriteParameters(NodesToWrite=others)))
             results = [r if r is not None else next(passed) for r in results]
@@ -429,7 +440,7 @@ def _quiet_asyncua() -> None:
 
 async def _unguarded(parent: ua.NodeId, *args: ua.Variant) -> ua.StatusCode:
     """Reached only by asyncua's own session (sessions of clients are hooked)."""
-    return ua.StatusCode(ua.StatusCodes.BadUserAccessDenied)
+    return status_code(ua.StatusCodes.BadUserAccessDenied)
 
 
 def _newest_seq(document: Mapping[str, Any]) -> int:
@@ -457,4 +468,4 @@ def _status_variant(name: str, value: object) -> ua.Variant:
     vtype = _STATUS_TYPES.get(name, ua.VariantType.UInt32)
     if vtype is ua.VariantType.String:
         return ua.Variant(str(value), vtype)
-    return ua.Variant(int(value) if isinstance(value, int) else 0, vtype)  # type: ignore[arg-type]
+    return ua.Variant(int(value) if isinstance(value, int) else 0, vtype)

@@ -18,6 +18,7 @@ from asyncua import Node, Server, ua
 
 from softplc.core.image import Address, AddressError, parse_address
 from softplc.core.lifecycle import PlcState
+from softplc.opcua.ids import numeric_id, string_id
 
 NAMESPACE_URI: Final = "urn:softplc"
 PLC: Final = "PLC"
@@ -50,7 +51,7 @@ class PartState(enum.Enum):
 
     @property
     def node(self) -> ua.NodeId:
-        return ua.NodeId(self.value[2], 0)
+        return numeric_id(self.value[2])
 
 
 def part10_state(state: PlcState, previous: PartState | None) -> PartState:
@@ -122,7 +123,7 @@ class Space:
         self._marking: Node | None = None
 
     def nid(self, text: str) -> ua.NodeId:
-        return ua.NodeId(text, self.ns)
+        return string_id(text, self.ns)
 
     async def build_static(self) -> None:
         objects = self.server.nodes.objects
@@ -133,7 +134,7 @@ class Space:
                 self.nid(f"{STATUS}.{name}"), f"{self.ns}:{name}", ua.Variant(initial, vtype))
         self.program = await self.plc.add_object(
             self.nid(PROGRAM), f"{self.ns}:Program",
-            objecttype=ua.NodeId(ua.ObjectIds.ProgramStateMachineType, 0))
+            objecttype=numeric_id(ua.ObjectIds.ProgramStateMachineType))
         for name, (vtype, initial) in {"LastResult": (ua.VariantType.String, ""),
                                        "LastProblems": (ua.VariantType.String, [])}.items():
             self.status[name] = await self.program.add_variable(
