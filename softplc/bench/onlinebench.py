@@ -19,8 +19,8 @@ from softplc.bench.measure import Progress, figures
 from softplc.core import online
 from softplc.core.firing import Engine
 from softplc.core.image import ProcessImage
-from softplc.core.net import NetState
 from softplc.core.lifecycle import Command
+from softplc.core.net import NetState
 from softplc.core.scan import Plc, ProgramCommand, scan
 from softplc.core.snapshot import CommandRequest
 from softplc.program.compiler import compile_text
