@@ -97,7 +97,7 @@ def run(quick: bool, progress: Progress, kills: int | None = None) -> dict[str, 
             poller.start()
         for k in range(kills):
             # At least 1.5 s of scans since the last start: a snapshot of this run exists.
-            base = _wait(api, lambda s: s.get("restarts") == k and not s["stale"], 30)
+            base = _wait(api, lambda s, k=k: s.get("restarts") == k and not s["stale"], 30)
             _wait(api, lambda s, b=base: s["scan_count"] > b["scan_count"] + 150, 30)
             while restarts and time.monotonic() - last_kill < SPACING_S:
                 time.sleep(0.05)

@@ -145,7 +145,8 @@ class _Compiler:
             if isinstance(value, str) and len(value) > MAX_STR:
                 raise self.fail(node, f"text of {len(value)} characters (at most {MAX_STR})")
             return lambda ctx: value
-        raise self.fail(node, f"constant {value!r} is not allowed: use integers, true/false or 'text'")
+        raise self.fail(node, f"constant {value!r} is not allowed: "
+                              "use integers, true/false or 'text'")
 
     def on_Name(self, node: ast.Name) -> Thunk:
         name = node.id

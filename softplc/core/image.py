@@ -71,7 +71,8 @@ def parse_address(text: str) -> Address:
         m = _SHORT.fullmatch(raw)
         if m is None:
             raise AddressError(
-                f"bad address {text!r}: expected %IX<byte>.<bit>, %QW<n>, %MX.., or I1.2 / Q5.3 / M0.1"
+                f"bad address {text!r}: expected %IX<byte>.<bit>, %QW<n>, %MX.., "
+                "or I1.2 / Q5.3 / M0.1"
             )
     letter, width_letter, major, minor = m.groups()
     area = Area("Q" if letter == "O" else letter)

@@ -185,7 +185,8 @@ class Plc:
             engine = Engine(net, state)
         self.net, self.engine = net, engine
         self.stopped_at_ns = None
-        self.locations = {s.name: (s.address.attr, s.address.index) for s in net.io.symbols.values()}
+        self.locations = {s.name: (s.address.attr, s.address.index)
+                          for s in net.io.symbols.values()}
         by_location: dict[tuple[str, int], list[str]] = {}
         for name, loc in self.locations.items():
             by_location.setdefault(loc, []).append(name)
@@ -490,7 +491,8 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
     else:
         plc.last_events = plc.true_last = frozenset()
         plc.drive_safe()
-    outputs_changed = bool(commands or hmi or fired or completed or plc.state is not PlcState.RUNNING
+    outputs_changed = bool(commands or hmi or fired or completed
+                           or plc.state is not PlcState.RUNNING
                            or not _same_outputs(plc.image, plc.prev))
     plc.image.copy_into(plc.prev)
     plc.scan_count += 1

@@ -22,7 +22,9 @@ class Direction(enum.Enum):
     MEMORY = "memory"
 
 
-DIRECTION_OF_AREA = {Area.INPUT: Direction.IN, Area.OUTPUT: Direction.OUT, Area.MEMORY: Direction.MEMORY}
+DIRECTION_OF_AREA = {
+    Area.INPUT: Direction.IN, Area.OUTPUT: Direction.OUT, Area.MEMORY: Direction.MEMORY,
+}
 
 
 class SymType(enum.Enum):

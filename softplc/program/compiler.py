@@ -151,7 +151,8 @@ class _Compiler:
                 return None
             compiled = self.expr(value.strip(), where, tokens)
             return None if compiled is None else Action(ActionKind.WRITE, target, compiled)
-        self.problem(where, f"bad action {text!r}: expected set X, reset X, pulse X, emit E or X = expr")
+        self.problem(where, f"bad action {text!r}: "
+                            "expected set X, reset X, pulse X, emit E or X = expr")
         return None
 
     def place_of(self, arc: ArcSpec) -> int | None:
@@ -185,9 +186,11 @@ class _Compiler:
         actions = [a for a in (self.action(t, w, tokens) for t, w in spec.actions) if a]
         busy = self.outputs(spec.outputs)
         if busy and spec.duration_ns == 0:
-            self.problem(spec.where, "outputs: on a transition need a duration: (held while it runs)")
+            self.problem(spec.where,
+                         "outputs: on a transition need a duration: (held while it runs)")
         if not pre and spec.duration_ns == 0 and spec.when is None:
-            self.problem(spec.where, "a transition with no input place and no guard fires every scan")
+            self.problem(spec.where,
+                         "a transition with no input place and no guard fires every scan")
         touches = any(coloured[a.place] for a in pre) or any(coloured[o.place] for o in post)
         return Transition(spec.name, index, spec.priority, tuple(pre), tuple(post), tuple(test),
                           tuple(inhibit), guard, tuple(actions), spec.delay_ns, spec.duration_ns,
@@ -228,7 +231,8 @@ def _merged(arcs: tuple[ArcSpec, ...]) -> list[ArcSpec]:
     for arc in arcs:
         if arc.var is None and arc.token is None and arc.place in plain:
             first = out[plain[arc.place]]
-            out[plain[arc.place]] = ArcSpec(first.place, first.weight + arc.weight, where=first.where)
+            out[plain[arc.place]] = ArcSpec(first.place, first.weight + arc.weight,
+                                            where=first.where)
             continue
         if arc.var is None and arc.token is None:
             plain[arc.place] = len(out)
@@ -278,7 +282,8 @@ def _build(spec: ProgramSpec, io: IoImage, c: _Compiler) -> CompiledNet:
     for text in [*spec.texts, _io_text(io)]:
         digest.update(text.encode())
     # Highest priority first; the sort is stable, so declaration order breaks ties.
-    order = tuple(sorted(range(len(transitions)), key=[-t.priority for t in transitions].__getitem__))
+    order = tuple(sorted(range(len(transitions)),
+                         key=[-t.priority for t in transitions].__getitem__))
     capacity = np.array([-1 if p.capacity is None else p.capacity for p in spec.places], np.int64)
     return CompiledNet(
         spec.name, spec.file, digest.hexdigest(), io,
@@ -374,5 +379,6 @@ def compile_file(path: str | Path, root: Path | None = None) -> CompiledNet:
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
-        raise ProgramError([Problem(str(path), 0, "", f"cannot read program: {exc.strerror}")]) from None
+        raise ProgramError(
+            [Problem(str(path), 0, "", f"cannot read program: {exc.strerror}")]) from None
     return compile_text(text, str(path), root)

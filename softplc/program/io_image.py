@@ -163,11 +163,13 @@ class _Reader:
         if sym_type is SymType.BOOL:
             if isinstance(value, bool) or value in (0, 1):
                 return int(value)
-            self.problem(line, f"{path}.safe", f"safe value of a bool must be true or false{trap_hint(value)}")
+            self.problem(line, f"{path}.safe",
+                         f"safe value of a bool must be true or false{trap_hint(value)}")
             return 0
         if isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 0xFFFF:
             return value
-        self.problem(line, f"{path}.safe", f"safe value of a word must be 0..65535{trap_hint(value)}")
+        self.problem(line, f"{path}.safe",
+                     f"safe value of a word must be 0..65535{trap_hint(value)}")
         return 0
 
     def events(self, data: YMap, symbols: dict[str, Symbol]) -> dict[str, EventSpec]:
@@ -177,13 +179,15 @@ class _Reader:
             line, path = line_of(section, name), f"events.{name}"
             kinds = [k for k in EventKind if isinstance(spec, dict) and k.value in spec]
             if len(kinds) != 1:
-                self.problem(line, path, "expected exactly one of rising, falling, change, above, below")
+                self.problem(line, path,
+                             "expected exactly one of rising, falling, change, above, below")
                 continue
             kind = kinds[0]
             target = spec[kind.value]
             sym = symbols.get(str(target))
             if sym is None:
-                self.problem(line, path, f"unknown symbol {target!r}{did_you_mean(target, symbols)}")
+                self.problem(line, path,
+                             f"unknown symbol {target!r}{did_you_mean(target, symbols)}")
                 continue
             if kind in (EventKind.RISING, EventKind.FALLING) and sym.type is not SymType.BOOL:
                 self.problem(line, path, f"{kind.value} needs a bool symbol; {sym.name} is a word")
@@ -192,7 +196,8 @@ class _Reader:
                 self.problem(line, path, f"{kind.value} needs a word symbol; {sym.name} is a bool")
                 continue
             threshold, hysteresis = spec.get("threshold", 0), spec.get("hysteresis", 0)
-            if not all(isinstance(v, int) and not isinstance(v, bool) for v in (threshold, hysteresis)):
+            if not all(isinstance(v, int) and not isinstance(v, bool)
+                       for v in (threshold, hysteresis)):
                 self.problem(line, path, "threshold and hysteresis must be integers")
                 continue
             out[str(name)] = EventSpec(str(name), kind, sym.name, threshold, hysteresis, line)
@@ -229,7 +234,8 @@ def parse_io_image(text: str, filename: str) -> IoImage:
     events = reader.events(data, symbols)  # type: ignore[arg-type]
     for name in events:
         if name in symbols:
-            reader.problem(events[name].line, f"events.{name}", "an event cannot share a symbol's name")
+            reader.problem(events[name].line, f"events.{name}",
+                           "an event cannot share a symbol's name")
     if reader.problems:
         raise ProgramError(sorted(reader.problems))
     return IoImage(filename, sizes, MappingProxyType(symbols), MappingProxyType(drivers),
@@ -241,5 +247,6 @@ def load_io_image(path: str | Path) -> IoImage:
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
-        raise ProgramError([Problem(str(path), 0, "", f"cannot read symbols file: {exc.strerror}")]) from None
+        raise ProgramError(
+            [Problem(str(path), 0, "", f"cannot read symbols file: {exc.strerror}")]) from None
     return parse_io_image(text, str(path))

@@ -125,7 +125,8 @@ class _Parser:
 
     def parse(self, data: Any, top: bool) -> None:
         if not isinstance(data, YMap):
-            self.problem(getattr(data, "line", 1), "", "expected a mapping with places: and transitions:")
+            self.problem(getattr(data, "line", 1), "",
+                         "expected a mapping with places: and transitions:")
             return
         self.check_keys(data, TOP_KEYS, "")
         if top:
@@ -192,7 +193,8 @@ class _Parser:
     def place(self, name: str, data: Any, where: Where) -> None:
         data = YMap() if data is None else data
         if not isinstance(data, YMap):
-            self.problem(where.line, where.path, "expected {tokens: N, capacity: N, outputs: [...]}")
+            self.problem(where.line, where.path,
+                         "expected {tokens: N, capacity: N, outputs: [...]}")
             return
         self.check_keys(data, PLACE_KEYS, where.path)
         tokens, records = 0, None
@@ -242,10 +244,12 @@ class _Parser:
         if raw is None:
             return ()
         if isinstance(raw, list):
-            return tuple((self.symbol(str(s)), 1, self.where(raw, i, path)) for i, s in enumerate(raw))
+            return tuple((self.symbol(str(s)), 1, self.where(raw, i, path))
+                         for i, s in enumerate(raw))
         if isinstance(raw, YMap):
             return tuple((self.symbol(str(s)), v, self.where(raw, s, path)) for s, v in raw.items())
-        self.problem(line_of(data, "outputs"), path, "expected a list of symbols or {symbol: value}")
+        self.problem(line_of(data, "outputs"), path,
+                     "expected a list of symbols or {symbol: value}")
         return ()
 
     # -- transitions ------------------------------------------------------------------------
@@ -288,7 +292,8 @@ class _Parser:
         if len(words) == 2 and words[0] in ("set", "reset", "pulse", "emit"):
             target = words[1].strip()
             if words[0] == "emit":
-                return f"emit {self.prefix + target if target not in self.params else self.symbol(target)}"
+                event = self.prefix + target if target not in self.params else self.symbol(target)
+                return f"emit {event}"
             return f"{words[0]} {self.symbol(target)}"
         if "=" in text:
             target, _, value = text.partition("=")
@@ -345,7 +350,8 @@ class _Parser:
     def _weighted(self, place: str, weight: Any, where: Where, var: Any,
                   token: str | dict[str, str] | None) -> ArcSpec | None:
         if not isinstance(weight, int) or isinstance(weight, bool) or weight < 1:
-            self.problem(where.line, where.path, f"arc weight of {place!r} must be a whole number >= 1")
+            self.problem(where.line, where.path,
+                         f"arc weight of {place!r} must be a whole number >= 1")
             return None
         return ArcSpec(self.name(place), weight, None if var is None else str(var), token, where)
 
@@ -377,7 +383,8 @@ class _Parser:
         declared = sub.get("params", [])
         declared = [str(p) for p in declared] if isinstance(declared, list) else []
         for missing in sorted(set(declared) - set(given)):
-            self.problem(where.line, where.path, f"subnet {data['net']} needs parameter {missing!r}")
+            self.problem(where.line, where.path,
+                         f"subnet {data['net']} needs parameter {missing!r}")
         for extra in sorted(set(given) - set(declared)):
             self.problem(line_of(given, extra), f"{where.path}.with.{extra}",
                          f"subnet {data['net']} has no parameter {extra!r}"
@@ -413,7 +420,8 @@ def resolve(base: Path, ref: str, root: Path | None) -> Path | str:
     return full
 
 
-def parse_program(text: str, filename: str, root: Path | None = None) -> tuple[ProgramSpec, list[Problem]]:
+def parse_program(text: str, filename: str,
+                  root: Path | None = None) -> tuple[ProgramSpec, list[Problem]]:
     data, problems = load_yaml(text, filename)
     spec = ProgramSpec(Path(filename).stem, filename, None, texts=[text])
     if data is None:

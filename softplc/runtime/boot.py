@@ -3,8 +3,8 @@
 Owns: writing the accepted program's source (its text, the name it was downloaded under, the
 directory its relative `io_image:`/subnet paths resolve against, and its bundle: the program
 with its io image and subnets as they were downloaded, for `softplc upload`) atomically
-beside the retain snapshots, and reading it back for `softplc run` without a program argument and for a
-scan process the supervisor restarts. Does not know: compiling, the scan, retain snapshots.
+beside the retain snapshots, and reading it back for `softplc run` without a program argument and
+for a scan process the supervisor restarts. Does not know: compiling, the scan, retain snapshots.
 """
 
 from __future__ import annotations

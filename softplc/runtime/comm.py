@@ -15,7 +15,7 @@ import os
 import signal
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final, Literal, Protocol, get_args
 
@@ -46,7 +46,7 @@ class CommConfig:
     modbus: tuple[str, int] | None = ("127.0.0.1", 5020)
     api: tuple[str, int] | None = ("127.0.0.1", 8080)
     state_dir: str = "state"
-    sizes: ImageSizes = ImageSizes()
+    sizes: ImageSizes = field(default_factory=ImageSizes)
     modbus_writes: ModbusWrites = "open"
     # Connection slots, per-IP slots, idle timeout (hmi/admission.py, docs/modbus.md).
     modbus_max_connections: int = 16

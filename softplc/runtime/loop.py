@@ -73,7 +73,7 @@ class LoopConfig:
     watchdog: float = 10.0  # fault when one scan runs longer than period x this
     root: str | None = None  # downloads may only reference files under this directory
     programs_dir: str | None = None  # a plain-text download's home (None: root/programs)
-    sizes: ImageSizes = ImageSizes()
+    sizes: ImageSizes = field(default_factory=ImageSizes)
     max_scans: int | None = None  # stop after this many (tests, benchmarks)
     state_dir: str | None = None  # retain snapshots live here; None: no retain, always cold
     retain_interval_ns: int = 1_000_000_000  # 0: only on stop
@@ -141,7 +141,8 @@ class ScanLoop:
         self.longest_gap_ns = 0
         self.internal_errors = 0
         self.summary = self.stats.summary()  # refreshed every board_every scans, not every scan
-        self.runner = ScanRunner(Plc.empty(), [], TraceWriter(config.trace) if config.trace else None)
+        self.runner = ScanRunner(Plc.empty(), [],
+                                 TraceWriter(config.trace) if config.trace else None)
         self.pending: list[ProgramCommand] = []
         self.downloads = DownloadQueue(self._prepare)
         self._driver_specs: tuple[object, ...] = ()
@@ -589,7 +590,8 @@ class ScanLoop:
         period = self.config.period_ns
         schedule = Schedule(self.clock, period)
         while (stop is None or not stop.is_set()) and (
-                self.config.max_scans is None or self.runner.plc.scan_count < self.config.max_scans):
+                self.config.max_scans is None
+                or self.runner.plc.scan_count < self.config.max_scans):
             deadline = schedule.deadline_ns
             reached = schedule.wait()
             late = reached - deadline

@@ -79,7 +79,8 @@ def plant_conflict(io: IoImage, plant: str | None) -> str | None:
 class ScanRunner:
     """The PLC with its drivers. `step()` runs one scan at `now_ns`."""
 
-    def __init__(self, plc: Plc, drivers: Sequence[Driver], trace: TraceWriter | None = None) -> None:
+    def __init__(self, plc: Plc, drivers: Sequence[Driver],
+                 trace: TraceWriter | None = None) -> None:
         self.plc = plc
         self.drivers = list(drivers)
         self.inputs = ProcessImage(plc.image.sizes)

@@ -317,7 +317,8 @@ def _startup_problem(args: argparse.Namespace) -> str | None:
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as exc:
-        return f"state directory {state} is not usable: {exc.strerror} (choose one with --state-dir)"
+        return (f"state directory {state} is not usable: {exc.strerror} "
+                "(choose one with --state-dir)")
     return None
 
 

@@ -32,7 +32,8 @@ def input_changes(now: ProcessImage, before: ProcessImage | None) -> dict[str, d
         cur = getattr(now, area)
         if before is not None and cur.tobytes() == getattr(before, area).tobytes():
             continue
-        idx = np.flatnonzero(cur) if before is None else np.flatnonzero(cur != getattr(before, area))
+        idx = (np.flatnonzero(cur) if before is None
+               else np.flatnonzero(cur != getattr(before, area)))
         if len(idx):
             out[area] = {str(i): int(cur[i]) for i in idx.tolist()}
     return out

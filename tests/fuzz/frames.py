@@ -11,8 +11,8 @@ KNOWN = [1, 2, 3, 4, 5, 6, 15, 16, 23]
 UNKNOWN = [0, 7, 8, 17, 20, 22, 24, 43, 0x41, 0x7F, 0x80, 0x81, 0x83, 0xFF]
 # Table sizes for the default image: coils 1600, discrete inputs 800, input registers
 # 1024 + 18 status, holding registers 2048; and the 16-bit edge.
-ADDRESSES = [0, 1, 7, 798, 799, 800, 1023, 1024, 1040, 1041, 1042, 1043, 1044, 1599, 1600, 2047, 2048,
-             0xFFFE, 0xFFFF]
+ADDRESSES = [0, 1, 7, 798, 799, 800, 1023, 1024, 1040, 1041, 1042, 1043, 1044, 1599, 1600, 2047,
+             2048, 0xFFFE, 0xFFFF]
 COUNTS = [0, 1, 2, 8, 9, 17, 120, 121, 122, 123, 124, 125, 126, 1968, 1969, 2000, 2001,
           0x7FFF, 0xFFFF]
 MAX_PDU = 253

@@ -66,5 +66,5 @@ def test_normal_scheduling_changes_nothing() -> None:
 @pytest.mark.parametrize("kwargs", [{"priority": 0}, {"priority": 100},
                                     {"cpu": 10_000}])
 def test_bad_settings_are_refused_with_the_allowed_range(kwargs: dict[str, int]) -> None:
-    with pytest.raises(ValueError, match="1..99|not available"):
+    with pytest.raises(ValueError, match=r"1..99|not available"):
         Realtime(**kwargs)

@@ -72,7 +72,8 @@ def test_run_serves_modbus_applies_hmi_writes_and_stops_safely(
     proc, port = plc_process
     client = connect(port)
     try:
-        block = wait_for(lambda: (b := status_block(client))[STATUS_STATE] == PlcState.RUNNING and b)
+        block = wait_for(
+            lambda: (b := status_block(client))[STATUS_STATE] == PlcState.RUNNING and b)
         scans = (block[STATUS_SCAN_COUNT] << 16) | block[STATUS_SCAN_COUNT + 1]
         later = wait_for(lambda: (b := status_block(client)) and
                          ((b[STATUS_SCAN_COUNT] << 16) | b[STATUS_SCAN_COUNT + 1]) > scans + 10)

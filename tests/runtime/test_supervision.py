@@ -245,10 +245,12 @@ def test_a_scan_process_that_keeps_dying_makes_the_supervisor_give_up(
     run = Run(ROOT, "programs/transport.yaml", tmp_path / "state")
     runs.append(run)
     for restart in range(1, 6):
-        pid = eventually(lambda: (s := run.status()).get("restarts", 0) == restart - 1
-                         and not s["stale"] and s["scan_pid"], 20, f"restart {restart - 1}")
+        pid = eventually(lambda restart=restart: (s := run.status()).get("restarts", 0)
+                         == restart - 1 and not s["stale"] and s["scan_pid"],
+                         20, f"restart {restart - 1}")
         os.kill(pid, signal.SIGKILL)
-        eventually(lambda: run.line(f"restart {restart},") or run.line(f"restart {restart} "),
+        eventually(lambda restart=restart: run.line(f"restart {restart},")
+                   or run.line(f"restart {restart} "),
                    20, f"restart {restart}")
     pid = eventually(lambda: (s := run.status()).get("restarts") == 5 and s["scan_pid"], 20)
     os.kill(pid, signal.SIGKILL)
@@ -264,7 +266,8 @@ def test_a_killed_process_group_leaves_nothing_behind_after_the_next_start(
         run = Run(ROOT, "programs/transport.yaml", tmp_path / f"state{k}")
         runs.append(run)
         manifest = shm / f"softplc_{run.supervisor}_sems"
-        names = eventually(lambda: manifest.exists() and manifest.read_text().split(), 10)
+        names = eventually(
+            lambda manifest=manifest: manifest.exists() and manifest.read_text().split(), 10)
         leftovers += [shm / f"sem.{n.lstrip('/')}" for n in names]
         leftovers += list(shm.glob(f"softplc_{run.supervisor}_*"))
         run.kill_group()
