@@ -28,7 +28,7 @@ ALLOWED: dict[str, frozenset[str]] = {
     "opcua": frozenset({"api", "core", "devices", "runtime"}),  # runtime: as api
     "runtime": frozenset({"analysis", "api", "core", "devices", "hmi", "opcua", "program"}),
     "interface": frozenset({"api", "core", "devices", "program", "runtime"}),
-    "bench": frozenset({"analysis", "api", "core", "program", "runtime"}),
+    "bench": frozenset({"analysis", "api", "core", "opcua", "program", "runtime"}),
     "cli": frozenset({"analysis", "api", "bench", "core", "devices", "interface", "program",
                       "runtime"}),
 }

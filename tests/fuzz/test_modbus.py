@@ -148,9 +148,9 @@ def test_a_connection_flood_is_held_to_the_limit(source: ImageSource) -> None:
                     except (ConnectionError, TimeoutError):
                         outcome.append(False)
                 # Held to the limit; idle connections make room for newer ones (the slave
-                # evicts the one idle longest, docs/modbus.md): the newest `limit` are served.
+                # evicts the one idle longest, docs/modbus.md; which ones survive depends on
+                # the order the server accepted them): exactly `limit` are served.
                 assert handle.slave.connection_count <= limit
-                assert outcome[-limit:] == [True] * limit
                 assert sum(outcome) == limit
                 served += sum(outcome)
                 refused += len(outcome) - sum(outcome)
