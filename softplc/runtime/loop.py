@@ -12,6 +12,7 @@ Does not know: Modbus, HTTP (the communication process), terminals (the CLI).
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 import signal
@@ -150,6 +151,7 @@ class ScanLoop:
         self.retain: RetainWriter | None = None
         self._retained_ns = 0
         self._prepared: dict[int, Prepared] = {}  # downloads handed to the scan, by request id
+        self.boot_problem = ""  # why the boot program could not be kept, if it could not
         self._bundle_roots: set[str] = set()  # unpacked bundles, stripped from messages
         self._diag_engine: Engine | None = None  # diagnostics put on the event stream
         self._diag_seen = 0
@@ -181,7 +183,7 @@ class ScanLoop:
             net = compile_file(config.program)
             program = boot.from_file(config.program, net.program_hash)
             if config.state_dir is not None:  # the program the PLC runs is its boot program
-                boot.save(config.state_dir, program)
+                self._save_boot(program, unless_same=True)
             return net, program
         if config.state_dir is None or not config.boot:
             return None, None
@@ -490,8 +492,24 @@ class ScanLoop:
             return
         if self._boot_writer is None:
             self._boot_writer = ThreadPoolExecutor(1, thread_name_prefix="boot")
-        self._boot_writer.submit(boot.save, self.config.state_dir, program)
+        self._boot_writer.submit(self._save_boot, program)
         self.program_source = program.describe()
+
+    def _save_boot(self, program: boot.BootProgram, unless_same: bool = False) -> None:
+        """Keep `program` as the boot program. A full or read-only disk never stops the PLC:
+        the failure is shown in status (`boot_problem`) and the previous boot program stays."""
+        assert self.config.state_dir is not None
+        try:
+            if unless_same:
+                with contextlib.suppress(boot.BootUnreadable):
+                    kept = boot.load(self.config.state_dir)
+                    if kept is not None and kept.program_hash == program.program_hash:
+                        return  # a restart of the same program: nothing to write
+            boot.save(self.config.state_dir, program)
+            self.boot_problem = ""
+        except OSError as exc:
+            self.boot_problem = (f"{program.describe()} not saved in {self.config.state_dir}: "
+                                 f"{exc.strerror or exc}")
 
     # -- the loop ---------------------------------------------------------------------------
 
@@ -565,6 +583,7 @@ class ScanLoop:
             "on_stall": self.config.on_stall, "watchdog_ms": self.budget_ns / 1e6,
             "stall_fault_ms": max(self.config.stall_fault_ns, self.budget_ns) / 1e6,
             "internal_errors": self.internal_errors, "analysis": self.analysis,
+            "boot_problem": self.boot_problem,
             "retain": self.retain.info() if self.retain else None,
             "health": {name: h.value for name, h in self.runner.health().items()},
             "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],

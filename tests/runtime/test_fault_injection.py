@@ -242,3 +242,26 @@ def test_a_trace_with_a_device_fault_replays_bit_for_bit(tmp_path: Path) -> None
     result = replay(trace, net)
     assert result.ok, result.divergence
     assert result.scans == 400
+
+
+def test_a_full_disk_never_stops_the_plc_from_starting(tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+
+    from softplc.runtime import boot
+
+    def full(*args: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    (tmp_path / "io.yaml").write_text(IO, encoding="utf-8")
+    (tmp_path / "prog.yaml").write_text(LAMP, encoding="utf-8")
+    monkeypatch.setattr(boot, "save", full)
+    loop = ScanLoop(LoopConfig(program=str(tmp_path / "prog.yaml"), start=True,
+                               period_ns=PERIOD, state_dir=str(tmp_path / "state")),
+                    None, None, VirtualClock(0))
+    try:
+        scans(loop, 2)
+        assert loop.runner.plc.state is S.RUNNING
+        assert "No space left on device" in loop.document()["boot_problem"]
+    finally:
+        loop.shutdown()
