@@ -17,6 +17,10 @@ import numpy as np
 import numpy.typing as npt
 
 MAX_ROWS = 20_000
+# Farkas keeps dense rows of (columns + unknowns) integers in Python lists: beyond this many
+# matrix cells it is not started (a 10,000-place ring took 4.8 GB before this bound), and the
+# result says "not complete". Controller nets and the benchmark models are far below it.
+MAX_CELLS = 250_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -39,6 +43,8 @@ def _normal(row: list[int]) -> list[int]:
 def farkas(matrix: npt.NDArray[np.int64]) -> Invariants:
     """Minimal semi-positive y with y^T matrix = 0 (rows of `matrix` are the unknowns)."""
     n, m = matrix.shape
+    if n * m > MAX_CELLS:
+        return Invariants((), False)
     # Each row: (the remaining columns of y^T matrix, y itself).
     rows: list[tuple[list[int], list[int]]] = [
         ([int(x) for x in matrix[i]], [1 if j == i else 0 for j in range(n)]) for i in range(n)]

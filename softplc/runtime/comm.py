@@ -26,6 +26,7 @@ from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.fresh import FreshSource
 from softplc.runtime.procs import Flag as Event
+from softplc.runtime.procs import supervisor_pid
 from softplc.runtime.shm import SnapshotReader
 
 if TYPE_CHECKING:
@@ -157,7 +158,7 @@ async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name
     if config.opcua is not None:
         services.extend(await _start_opcua(config, channel, reader, board))
     ready.set()
-    parent = os.getppid()
+    parent = supervisor_pid()
     try:
         while not stop.is_set() and os.getppid() == parent:
             await asyncio.sleep(0.1)

@@ -92,6 +92,9 @@ class LoopConfig:
     verify: str = "warn"  # analysis gate on downloads: "refuse", "warn" or "off"
 
 
+GATE_MAX_TRANSITIONS = 2_000  # larger nets are not analysed on download (see _analyse)
+
+
 class AnalysisRefused(Exception):
     """A download the analysis gate refuses (--verify refuse): every blocking finding."""
 
@@ -424,6 +427,17 @@ class ScanLoop:
         AnalysisRefused under --verify refuse (when `gate`); otherwise the findings go along."""
         if self.config.verify == "off":
             return None
+        if len(net.transitions) > GATE_MAX_TRANSITIONS:
+            # Exploring a state space per download must stay a matter of seconds: beyond this
+            # size it is `softplc analyze`'s job, offline. Under refuse, what was not verified
+            # is not accepted.
+            why = (f"{self._relative(net.source)}:1: not analysed: {len(net.transitions)} "
+                   f"transitions exceed the download gate's {GATE_MAX_TRANSITIONS} (run "
+                   "`softplc analyze` on it offline)")
+            if gate and self.config.verify == "refuse":
+                raise AnalysisRefused((why,))
+            return {"summary": "analysis skipped (net too large for the download gate)",
+                    "blocking": False, "findings": [why], "policy": self.config.verify}
         from softplc.analysis.gate import verify
 
         verdict = verify(net)
@@ -734,12 +748,12 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
                       ready: Event, stop: Event) -> None:
     """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`.
     Exit codes: 0 stopped, 3 state directory busy, 4 cannot start (program, devices)."""
-    from softplc.runtime.procs import die_with_parent, once
+    from softplc.runtime.procs import die_with_parent, once, supervisor_pid
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, once(stop.set))
     die_with_parent()
-    parent = os.getppid()
+    parent = supervisor_pid()
 
     def watch_parent() -> None:
         while not stop.wait(0.5):

@@ -28,6 +28,16 @@ def die_with_parent() -> None:
         pass
 
 
+def supervisor_pid() -> int:
+    """The pid of the process that started this one, as it was recorded at the start (not
+    os.getppid() now: a parent killed before the child looked would leave it orphaned for
+    good, its parent then being init)."""
+    import multiprocessing
+
+    parent = multiprocessing.parent_process()
+    return parent.pid if parent is not None and parent.pid is not None else os.getppid()
+
+
 class Flag(Protocol):
     """What a child's loop needs of a stop or ready signal (StopFlag, ReadySignal,
     threading.Event)."""

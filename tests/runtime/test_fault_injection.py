@@ -265,3 +265,36 @@ def test_a_full_disk_never_stops_the_plc_from_starting(tmp_path: Path,
         assert "No space left on device" in loop.document()["boot_problem"]
     finally:
         loop.shutdown()
+
+
+def test_a_net_too_large_for_the_download_gate_is_not_analysed_and_refused_under_refuse(
+        tmp_path: Path) -> None:
+    from softplc.bench.onlinebench import ring_program
+    from softplc.program.compiler import compile_text
+    from softplc.runtime.loop import GATE_MAX_TRANSITIONS, AnalysisRefused
+
+    net = compile_text(ring_program(GATE_MAX_TRANSITIONS + 1, 0),
+                       str(REPO / "programs" / "ring.yaml"), REPO)
+    began = time.monotonic()
+    for policy in ("warn", "refuse"):
+        loop = ScanLoop(LoopConfig(verify=policy), None, None, VirtualClock(0))
+        if policy == "warn":
+            analysis = loop._analyse(net)
+            assert analysis is not None and not analysis["blocking"]
+            assert "not analysed" in analysis["findings"][0]
+        else:
+            with pytest.raises(AnalysisRefused, match="not analysed"):
+                loop._analyse(net)
+    assert time.monotonic() - began < 30  # bounded: never a state space of 2,001 places
+
+
+def test_invariants_of_a_large_net_are_skipped_not_exhausting_memory() -> None:
+    import numpy as np
+
+    from softplc.analysis.invariants import MAX_CELLS, p_invariants
+
+    n = int(MAX_CELLS ** 0.5) + 1
+    pre = np.eye(n, dtype=np.int64)
+    post = np.roll(pre, 1, axis=1)  # a ring of n places and n transitions
+    result = p_invariants(pre, post)
+    assert not result.complete and result.vectors == ()
