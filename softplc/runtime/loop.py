@@ -408,7 +408,19 @@ class ScanLoop:
     def _prepare(self, req: CommandRequest) -> Prepared:
         """On the compile thread: compile, then open the devices the new io image declares if
         they are not the running ones, so that a program whose devices cannot be opened is
-        refused before anything changes (the reconfiguration of the seed paper, checked)."""
+        refused before anything changes (the reconfiguration of the seed paper, checked).
+
+        The cyclic collector is off meanwhile: a compile allocates enough to trigger full
+        collections, each holding the GIL for tens of ms over the whole heap (the scan thread
+        then misses its slots); what the compile built is frozen at the end instead."""
+        gc.disable()
+        try:
+            return self._prepare_net(req)
+        finally:
+            gc.freeze()
+            gc.enable()
+
+    def _prepare_net(self, req: CommandRequest) -> Prepared:
         net = self._compile(req)
         analysis = self._analyse(net)
         specs = tuple(net.io.drivers.values())
