@@ -15,6 +15,7 @@ Does not know: how the runtime starts (live.py), the server's internals.
 from __future__ import annotations
 
 import asyncio
+import logging
 import multiprocessing as mp
 import os
 import statistics
@@ -70,6 +71,9 @@ class _Counter:
 
 
 async def _clients(url: str, duration_s: float) -> dict[str, Any]:
+    # asyncua warns when the server revises a session timeout or a subscription's intervals
+    # (it does, as servers may): in a benchmark's output that is noise, not news.
+    logging.getLogger("asyncua").setLevel(logging.ERROR)
     clients = [Client(url, timeout=10) for _ in range(CLIENTS)]
     counters = [_Counter() for _ in clients]
     for client in clients:

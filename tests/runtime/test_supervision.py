@@ -320,3 +320,23 @@ def test_systemd_readiness_watchdog_and_stopping(tmp_path: Path, runs: list[Run]
             while True:
                 rest.append(sock.recv(4096).decode())
         assert "STOPPING=1" in rest
+
+
+def test_the_last_accepted_program_boots_after_a_stop(tmp_path: Path, runs: list[Run]) -> None:
+    """Issue 18: download a program to a running PLC, stop it with Ctrl-C, then
+    `softplc run --start` with the same state dir and no program runs that program again."""
+    state = tmp_path / "state"
+    first = Run(ROOT, "programs/transport.yaml", state)
+    runs.append(first)
+    eventually(lambda: first.status()["scan_count"] > 20, 30, "scans")
+    assert first.api.download(ROOT / "programs" / "drilling.yaml", online=True)["ok"]
+    eventually(lambda: first.status()["program"] == "drilling", 30, "drilling running")
+    time.sleep(1.5)  # a retain snapshot of drilling
+    assert first.stop(signal.SIGINT) == 0
+    second = Run(ROOT, "", state)
+    runs.append(second)
+    status = eventually(lambda: (s := second.status())["program"] == "drilling" and s, 30,
+                        "the boot program")
+    assert status["state"] == "RUNNING" and status["start_mode"] == "warm"
+    assert "boot program drilling.yaml" in status["program_source"]
+    assert second.stop() == 0
