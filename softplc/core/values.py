@@ -14,7 +14,6 @@ is not JSON, a list or a nested mapping cannot be compared or shown as one cell.
 
 from __future__ import annotations
 
-import datetime
 from collections.abc import Mapping
 
 from softplc.core.expr import INT_LIMIT, MAX_STR
@@ -30,8 +29,9 @@ def describe(value: object) -> str:
         return "null (an empty value)"
     if isinstance(value, float):
         return f"the fraction {value!r}"
-    if isinstance(value, datetime.date):  # datetime is a date too
-        return f"the date {value.isoformat()}"
+    isoformat = getattr(value, "isoformat", None)  # a date or time a loader produced
+    if callable(isoformat):
+        return f"the date {isoformat()}"
     if isinstance(value, list | tuple):
         return "a list"
     if isinstance(value, Mapping):

@@ -111,7 +111,6 @@ class Prepared:
     net: CompiledNet
     request: CommandRequest
     drivers: list[Driver] | None = None
-    specs: tuple[object, ...] = field(default=())
     engine: Engine | None = None  # the engine's tables for `net`
     plan: online.CarryPlan | None = None  # the marking's carry-over from the running net
     analysis: dict[str, Any] | None = None  # the gate's summary and findings
@@ -427,7 +426,7 @@ class ScanLoop:
         # Everything the swap needs, built here: the engine's tables and the carry plan
         # against the net running now (the scan checks it is still that net).
         running = self.runner.plc.net
-        prepared = Prepared(net, req, None, specs, Engine(net, NetState.initial(net)),
+        prepared = Prepared(net, req, None, Engine(net, NetState.initial(net)),
                             online.plan(running, net) if running is not None
                             and (running.name == net.name or req.dry_run) else None, analysis)
         if specs != self._driver_specs and not req.dry_run:  # a dry run opens nothing
@@ -650,10 +649,6 @@ class ScanLoop:
                 self._watchdog(exec_ns, done)
             self.stats.record(exec_ns, late, skipped=schedule.advance(done))
         self.shutdown()
-
-    @staticmethod
-    def _observed_none() -> Observed:
-        return NOTHING_OBSERVED
 
     def _stall(self, late_ns: int) -> Observed:
         """A cycle that started more than the watchdog budget late: the process was paused or

@@ -15,7 +15,7 @@ from softplc.core.firing import Engine
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.problems import FaultCode, PlcFault
-from softplc.core.scan import ProgramCommand
+from softplc.core.scan import NOTHING_OBSERVED, ProgramCommand
 from softplc.core.snapshot import CommandRequest
 from softplc.devices.driver import Health
 from softplc.program.compiler import compile_file
@@ -87,7 +87,7 @@ def scans(loop: ScanLoop, n: int, commands: list[ProgramCommand] | None = None) 
     for k in range(n):
         if commands and k == 0:
             loop.pending = list(commands)
-        loop._guarded_scan(loop.clock.now_ns(), loop._observed_none())
+        loop._guarded_scan(loop.clock.now_ns(), NOTHING_OBSERVED)
         loop.clock.advance(PERIOD)
 
 
