@@ -637,7 +637,9 @@ class ScanLoop:
                 self.config.max_scans is None
                 or self.runner.plc.scan_count < self.config.max_scans):
             deadline = schedule.deadline_ns
+            self.downloads.pace.waiting()
             reached = schedule.wait()
+            self.downloads.pace.scanning()
             late = reached - deadline
             observed = self._stall(late) if late > self.budget_ns else NOTHING_OBSERVED
             handled_commands = self._guarded_scan(reached, observed)

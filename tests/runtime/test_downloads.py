@@ -108,3 +108,58 @@ def test_the_scan_loop_keeps_scanning_while_a_download_compiles(tmp_path: Path) 
         gate.set()
         sender.join(10)
         loop.shutdown()
+
+
+def test_a_compile_runs_only_while_the_scan_waits_for_its_slot() -> None:
+    """ScanPace: while the scan thread says it is scanning, the compile thread makes no
+    progress (it parks at its next Python call, without the interpreter lock); it goes on
+    when the scan waits again, and a queue closed while a scan was running frees it."""
+    calls = [0]
+    started = threading.Event()
+
+    def step() -> None:
+        calls[0] += 1
+
+    def busy_compile(request: CommandRequest) -> str:
+        started.set()
+        while calls[0] < 200_000:
+            step()
+        return "compiled"
+
+    queue = DownloadQueue(busy_compile)
+    queue.put([CommandRequest(1, Command.DOWNLOAD, program_text="-")])
+    try:
+        assert started.wait(10)
+        queue.pace.scanning()
+        time.sleep(0.05)  # the compile thread reaches its next call and parks there
+        parked = calls[0]
+        time.sleep(0.1)
+        assert calls[0] == parked < 200_000
+        queue.pace.waiting()
+        decided = take_until(queue, 1)
+        assert [d.net for d in decided] == ["compiled"]
+        assert sys.gettrace() is None  # the hook is the compile thread's alone
+    finally:
+        queue.close()
+
+
+def test_closing_the_queue_releases_a_compile_parked_on_a_scan() -> None:
+    finished = threading.Event()
+    started = threading.Event()
+
+    def tick() -> None:  # a Python call: a parking point
+        time.sleep(0.001)
+
+    def compile_program(request: CommandRequest) -> None:
+        started.set()
+        for _ in range(200):
+            tick()
+        finished.set()
+
+    queue = DownloadQueue(compile_program)
+    queue.put([CommandRequest(1, Command.DOWNLOAD, program_text="-")])
+    assert started.wait(10)
+    queue.pace.scanning()
+    assert not finished.wait(0.5)  # parked: 200 ticks take 0.2 s
+    queue.close()  # the loop's shutdown: no scan will come again
+    assert finished.wait(10)
