@@ -39,11 +39,11 @@ from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel, pid_alive
 from softplc.runtime.comm import CommConfig, comm_process_main, modbus_limits
 from softplc.runtime.config import LoopConfig
-from softplc.runtime.loop import scan_process_main
 from softplc.runtime.procs import ReadySignal, StopFlag
 from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
 from softplc.runtime.retain import StateDirBusy, check_state_dir
 from softplc.runtime.runner import plant_conflict
+from softplc.runtime.scanproc import scan_process_main
 from softplc.runtime.sdnotify import Notifier
 from softplc.runtime.shm import SnapshotWriter
 
