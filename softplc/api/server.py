@@ -18,6 +18,7 @@ import itertools
 import json
 import logging
 import re
+import time
 from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,12 +40,18 @@ from softplc.api.limits import HttpBounds, HttpLimits
 from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
 from softplc.core.image import AddressError, parse_address
 from softplc.core.lifecycle import Command
-from softplc.core.snapshot import CommandReply, CommandRequest, HmiWrite, SnapshotSource
+from softplc.core.snapshot import (
+    ChannelFull,
+    CommandReply,
+    CommandRequest,
+    HmiWrite,
+    NotQueued,
+    SnapshotSource,
+    SnapshotUnavailable,
+    age_ns,
+)
+from softplc.program import boot
 from softplc.program import bundle as bundles
-from softplc.runtime import boot
-from softplc.runtime.channel import ChannelFull, NotQueued
-from softplc.runtime.fresh import FreshSource
-from softplc.runtime.shm import SnapshotUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -364,7 +371,7 @@ class ApiServer:
         with contextlib.suppress(SnapshotUnavailable):
             snapshot = self._snapshots.latest()
             if snapshot.status.stale:
-                age = FreshSource.age_ns(snapshot)
+                age = age_ns(snapshot, time.monotonic_ns())
                 raise ApiProblem(503, "PLC not responding: no scan published for "
                                  + (f"{age / 1e6:.0f} ms" if age >= 0 else "ever")
                                  + "; the command was not sent", headers={"Retry-After": "1"},
@@ -435,9 +442,9 @@ class ApiServer:
             # shows at once. Marking and timing stay the board's (board_scan_count).
             snapshot = self._snapshots.latest()
             s = snapshot.status
-            age_ns = FreshSource.age_ns(snapshot)
+            age = age_ns(snapshot, time.monotonic_ns())
             status["stale"] = s.stale
-            status["snapshot_age_ms"] = round(age_ns / 1e6, 1) if age_ns >= 0 else None
+            status["snapshot_age_ms"] = round(age / 1e6, 1) if age >= 0 else None
             if s.scan_count >= status["board_scan_count"] or "state" not in status:
                 status.update(state=s.state.name, scan_count=s.scan_count,
                               fault_code=s.fault_code)

@@ -24,8 +24,7 @@ from aiohttp import web
 
 from softplc.api.openapi import API_PREFIX
 from softplc.core.lifecycle import Command
-from softplc.core.snapshot import CommandReply
-from softplc.runtime.shm import SnapshotUnavailable
+from softplc.core.snapshot import CommandReply, SnapshotUnavailable
 
 if TYPE_CHECKING:
     from softplc.api.server import ApiServer

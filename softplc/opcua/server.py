@@ -39,7 +39,13 @@ from asyncua.server.user_managers import UserManager
 from softplc.api import auth
 from softplc.core.image import AddressError
 from softplc.core.lifecycle import PlcState
-from softplc.core.snapshot import HmiWrite, Snapshot, SnapshotSource
+from softplc.core.snapshot import (
+    ChannelFull,
+    HmiWrite,
+    Snapshot,
+    SnapshotSource,
+    SnapshotUnavailable,
+)
 from softplc.opcua.ids import numeric_id, status_code, string_id
 from softplc.opcua.program import CommandChannel, Outcome, ProgramHandling, arguments
 from softplc.opcua.space import (
@@ -51,8 +57,6 @@ from softplc.opcua.space import (
     SymbolNode,
     part10_state,
 )
-from softplc.runtime.channel import ChannelFull
-from softplc.runtime.shm import SnapshotUnavailable
 
 log = logging.getLogger(__name__)
 

@@ -36,9 +36,10 @@ from softplc.core.problems import FaultCode, Problem, ProgramError
 from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
 from softplc.devices.driver import Driver
+from softplc.program import boot
 from softplc.program import bundle as bundles
 from softplc.program.compiler import compile_file, compile_text
-from softplc.runtime import boot, netview
+from softplc.runtime import netview
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.clock import Clock, MonotonicClock, Schedule
