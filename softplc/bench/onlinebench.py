@@ -104,6 +104,7 @@ def split_cost_ms(old_transitions: int, new_transitions: int) -> dict[str, float
     scan(plc, inputs, 0, [ProgramCommand(Command.DOWNLOAD, old), ProgramCommand(Command.START)])
     # As runtime/loop.py hands it over: the engine's tables and the carry plan built first.
     engine, carry_plan = Engine(new, NetState.initial(new)), online.plan(old, new)
+    engine.prime()
     swap_began = time.perf_counter_ns()
     scan(plc, inputs, 1_000_000, [ProgramCommand(Command.DOWNLOAD, new, online=True,
                                                  engine=engine, plan=carry_plan)])

@@ -82,6 +82,16 @@ class _Bound:
         return self.tokens[var]
 
 
+@dataclass(frozen=True, slots=True)
+class _Primed:
+    """Engine.prime()'s result: the marking it looked at, the arcs-only transitions enabled on
+    it, and the transitions it did not decide (guards, inhibitors, colours, capacities)."""
+
+    marking: np.ndarray
+    ready: frozenset[int]
+    others: frozenset[int]
+
+
 class Engine:
     """Runs rounds of one compiled net over its NetState (mutated in place)."""
 
@@ -98,6 +108,7 @@ class Engine:
         self._dirty_places: set[int] = set()
         self._dirty_edges: set[str] = set()  # edges seen last round: they "change back" now
         self._fresh = True
+        self._primed: _Primed | None = None  # see prime()
         self._pulsed: set[str] = set()
         self._recheck: set[int] = set()  # fired or completed: enabledness may hold again
         self._remoore: set[str] = set()  # place-driven outputs an action overwrote
@@ -246,8 +257,10 @@ class Engine:
 
     def _refresh(self, ctx: EvalContext, now_ns: int, changed: Collection[str]) -> None:
         net = self.net
+        primed = False
         if self._fresh:
-            dirty: Iterable[int] = range(len(net.transitions))
+            dirty: Iterable[int] = self._unprimed()
+            primed = not isinstance(dirty, range)
             self._fresh = False
         else:
             todo: set[int] = set()
@@ -265,6 +278,43 @@ class Engine:
         self._recheck = set()
         self._dirty_edges = {n for n in changed if n in net.edge_deps} if changed else set()
         self._recompute(dirty, ctx, now_ns)
+        if primed:
+            self._align_timers(now_ns)
+
+    def prime(self) -> None:
+        """Off the scan (an online change's compile thread): which transitions that only their
+        arcs decide are enabled on the current marking. The first round after the next
+        invalidate() then re-checks only the transitions reading a place whose tokens differ
+        from it, and those with guards, inhibitors, colours or capacities, instead of every
+        transition: the same enabledness, without O(transitions) work in the swap scan."""
+        m, need = self._view(), self._need
+        arcs = [ti for ti, kind in enumerate(self._enable_kind) if kind is _ARCS]
+        ready = {ti for ti in arcs if all(m[p] >= w for p, w in need[ti])}
+        others = frozenset(range(len(self.net.transitions))).difference(arcs)
+        self._primed = _Primed(self.state.marking.copy(), frozenset(ready), others)
+
+    def _unprimed(self) -> Iterable[int]:
+        """The transitions a fresh round must check: all of them, or after prime() what may
+        differ from it (with the primed enabled ones taken as ready)."""
+        primed, self._primed = self._primed, None
+        marking, everything = self.state.marking, range(len(self.net.transitions))
+        if primed is None or self.state.busy or primed.marking.shape != marking.shape:
+            return everything
+        todo = set(primed.others)
+        touching = self.net.touching
+        for p in np.flatnonzero(marking != primed.marking).tolist():
+            todo.update(touching[p])
+        self._ready.update(primed.ready)
+        return todo
+
+    def _align_timers(self, now_ns: int) -> None:
+        """After a primed round: enabling timers as a full recompute leaves them (ready
+        transitions keep a carried start or start now; the others have none)."""
+        since, ready = self.state.enabled_since, self._ready
+        for ti in ready:
+            since.setdefault(ti, now_ns)
+        for ti in [t for t in since if t not in ready]:
+            del since[ti]
 
     def _recompute(self, dirty: Iterable[int], ctx: EvalContext, now_ns: int) -> None:
         """Enabledness of the `dirty` transitions on the round-start marking: the cost every

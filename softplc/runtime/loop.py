@@ -427,7 +427,9 @@ class ScanLoop:
         # Everything the swap needs, built here: the engine's tables and the carry plan
         # against the net running now (the scan checks it is still that net).
         running = self.runner.plc.net
-        prepared = Prepared(net, req, None, Engine(net, NetState.initial(net)),
+        engine = Engine(net, NetState.initial(net))
+        engine.prime()  # the swap scan then re-checks only what the carried marking changes
+        prepared = Prepared(net, req, None, engine,
                             online.plan(running, net) if running is not None
                             and (running.name == net.name or req.dry_run) else None, analysis)
         if specs != self._driver_specs and not req.dry_run:  # a dry run opens nothing
