@@ -43,7 +43,7 @@ from softplc.runtime import netview
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.clock import Clock, MonotonicClock, Schedule
-from softplc.runtime.downloads import DownloadQueue
+from softplc.runtime.downloads import DownloadQueue, ScanPace
 from softplc.runtime.procs import Flag as Event
 from softplc.runtime.realtime import NORMAL, Realtime, apply
 from softplc.runtime.retain import (
@@ -94,6 +94,9 @@ class LoopConfig:
 
 
 GATE_MAX_TRANSITIONS = 2_000  # larger nets are not analysed on download (see _analyse)
+# A compile parks this long before the clock's final spin begins: time to reach its next
+# Python call (a piece of a regex search, a numpy call) and let go of the interpreter.
+PACE_MARGIN_NS = 150_000
 
 
 class AnalysisRefused(Exception):
@@ -148,7 +151,7 @@ class ScanLoop:
         self.runner = ScanRunner(Plc.empty(), [],
                                  TraceWriter(config.trace) if config.trace else None)
         self.pending: list[ProgramCommand] = []
-        self.downloads = DownloadQueue(self._prepare)
+        self.downloads = DownloadQueue(self._prepare, pace=self._pace())
         self._driver_specs: tuple[object, ...] = ()
         self._boot_writer: ThreadPoolExecutor | None = None
         self.retain: RetainWriter | None = None
@@ -174,6 +177,13 @@ class ScanLoop:
             self._cold(net)
         if config.restarts:
             self._event(f"plc_restarted:{config.restarts}", 0)
+
+    def _pace(self) -> ScanPace:
+        """Compiles run between scans, parked from before the clock's final spin until the
+        slot is done; on a virtual clock (tests) they run freely."""
+        if isinstance(self.clock, MonotonicClock):
+            return ScanPace(time.monotonic_ns, self.clock.spin_ns + PACE_MARGIN_NS)
+        return ScanPace()
 
     def _program(self) -> tuple[CompiledNet | None, boot.BootProgram | None]:
         """The program to run: the command line's, else the boot program of the state dir.
@@ -634,13 +644,20 @@ class ScanLoop:
                       self.config.period_ns // 1000, len(plc.forces))
 
     def run(self, stop: Event | None = None) -> None:
+        try:
+            self._run(stop)
+        finally:
+            self.downloads.pace.release()  # a compile parked on this loop must not hang on
+        self.shutdown()
+
+    def _run(self, stop: Event | None) -> None:
         period = self.config.period_ns
         schedule = Schedule(self.clock, period)
         while (stop is None or not stop.is_set()) and (
                 self.config.max_scans is None
                 or self.runner.plc.scan_count < self.config.max_scans):
             deadline = schedule.deadline_ns
-            self.downloads.pace.waiting()
+            self.downloads.pace.waiting(deadline)
             reached = schedule.wait()
             self.downloads.pace.scanning()
             late = reached - deadline
@@ -653,7 +670,6 @@ class ScanLoop:
                     and self.runner.plc.state is PlcState.RUNNING):
                 self._watchdog(exec_ns, done)
             self.stats.record(exec_ns, late, skipped=schedule.advance(done))
-        self.shutdown()
 
     def _stall(self, late_ns: int) -> Observed:
         """A cycle that started more than the watchdog budget late: the process was paused or
