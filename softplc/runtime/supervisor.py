@@ -27,8 +27,9 @@ from softplc.core.image import ImageSizes
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.comm import CommConfig, comm_process_main, modbus_limits
+from softplc.runtime.config import LoopConfig
 from softplc.runtime.leftovers import SHM_PREFIX, record_semaphores
-from softplc.runtime.loop import LoopConfig, scan_process_main
+from softplc.runtime.loop import scan_process_main
 from softplc.runtime.procs import ReadySignal, StopFlag
 from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
 from softplc.runtime.shm import SnapshotWriter
