@@ -3,7 +3,7 @@ kept as the next start's program (written off the scan).
 
 Owns: the command line's program or else the state directory's boot program; the boot
 program rewritten only when it changed; a disk that cannot take it shown (`problem`), never a
-stopped PLC. Storage itself: runtime/boot.py.
+stopped PLC. Storage itself: program/boot.py.
 Does not know: the scan, the channel.
 """
 
@@ -16,9 +16,9 @@ from pathlib import Path
 from softplc.core.net import CompiledNet
 from softplc.core.problems import ProgramError
 from softplc.core.snapshot import CommandRequest
+from softplc.program import boot
 from softplc.program import bundle as bundles
 from softplc.program.compiler import compile_file, compile_text
-from softplc.runtime import boot
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.prepare import Preparer
 from softplc.runtime.runner import plant_conflict

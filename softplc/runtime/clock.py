@@ -1,8 +1,11 @@
 """Time for the runtime: the real monotonic clock, a virtual clock, and duration parsing.
 
-Owns: the Clock protocol, MonotonicClock (the only place in softplc that reads the real
-clock), VirtualClock (jumps to each deadline; simulation and tests), Schedule (absolute
-deadlines, skipped slots), parse_duration_ns.
+Owns: the Clock protocol, MonotonicClock (the real clock of the scan: the scan time `now_ns`
+handed to the core is read here, or from a VirtualClock), VirtualClock (jumps to each
+deadline; simulation and tests), Schedule (absolute deadlines, skipped slots),
+parse_duration_ns. Other code reads time.monotonic directly for what never reaches the scan's
+semantics: timeouts and deadlines of commands and connections, the age of a snapshot, I/O
+threads' backoff, benchmarks.
 Does not know: scans, programs, processes.
 """
 
