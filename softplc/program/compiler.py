@@ -36,6 +36,7 @@ from softplc.program.io_image import load_io_image
 from softplc.program.spec import parse_program, resolve
 from softplc.program.specvalues import ArcSpec, ProgramSpec, TransitionSpec, Where
 from softplc.program.suggest import did_you_mean
+from softplc.program.teardown import bury
 
 _UNKNOWN_NAME = re.compile(r"unknown name '([^']+)'")
 
@@ -360,7 +361,11 @@ def compile_text(text: str, filename: str, root: Path | None = None) -> Compiled
         raise ProgramError(sorted(set(problems)))
     compiler = _Compiler(spec, io, problems)
     compiler.check_names()
-    return _build(spec, io, compiler)
+    net = _build(spec, io, compiler)
+    box = [spec, compiler]  # the parsed program, let go of a piece at a time (teardown.py)
+    del spec, compiler
+    bury(box)
+    return net
 
 
 def compile_text_with_io(text: str, filename: str, io: IoImage,
@@ -372,7 +377,11 @@ def compile_text_with_io(text: str, filename: str, io: IoImage,
         raise ProgramError(sorted(set(problems)))
     compiler = _Compiler(spec, io, problems)
     compiler.check_names()
-    return _build(spec, io, compiler)
+    net = _build(spec, io, compiler)
+    box = [spec, compiler]  # the parsed program, let go of a piece at a time (teardown.py)
+    del spec, compiler
+    bury(box)
+    return net
 
 
 def compile_file(path: str | Path, root: Path | None = None) -> CompiledNet:

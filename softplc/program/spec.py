@@ -18,6 +18,7 @@ from softplc.core.units import parse_duration_ns
 from softplc.core.values import record_problems
 from softplc.program.specvalues import ArcSpec, PlaceSpec, ProgramSpec, TransitionSpec, Where
 from softplc.program.suggest import did_you_mean, did_you_mean_key
+from softplc.program.teardown import bury
 from softplc.program.yamlload import YList, YMap, line_of, load_yaml, trap_hint
 
 TOP_KEYS = {"program", "net", "description", "io_image", "params", "places", "transitions",
@@ -373,4 +374,7 @@ def parse_program(text: str, filename: str,
             problems.append(Problem(filename, 1, "", "empty program"))
         return spec, problems
     _Parser(spec, problems, filename, "", {}, root, 0).parse(data, top=True)
+    box = [data]  # the YAML document, let go of a piece at a time (teardown.py)
+    del data
+    bury(box)
     return spec, problems

@@ -22,7 +22,7 @@ from typing import Any
 
 from softplc.core.lifecycle import Command
 from softplc.core.snapshot import CommandRequest
-from softplc.runtime.realtime import background_thread
+from softplc.runtime.realtime import compile_thread
 
 # While a compile runs, a waiting scan thread gets the GIL back after at most this long. The
 # scan thread gives the GIL up at every blocking call and waits this long to get it back:
@@ -161,7 +161,7 @@ class DownloadQueue:
     def _pool(self) -> ThreadPoolExecutor:
         if self._executor is None:
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="compile",
-                                                initializer=background_thread)
+                                                initializer=compile_thread)
         return self._executor
 
     def close(self) -> None:
