@@ -87,6 +87,7 @@ class ScanRunner:
         self.trace = trace
         self._traced_out: dict[str, int] = {}  # output symbols as the trace last gave them
         self._traced_diag = 0
+        self._traced_net: CompiledNet | None = None  # the net whose outputs _traced_out holds
         self._last_inputs: ProcessImage | None = None
         self._digest = ""
         self.fired_counts: dict[str, int] = {}
@@ -113,12 +114,13 @@ class ScanRunner:
         """Per driver: the fault policy's verdict, scans without an answer, and why."""
         return self.devices.report()
 
-    def _extra(self, outputs: ProcessImage) -> dict[str, Any]:
+    def _extra(self, result: ScanResult) -> dict[str, Any]:
         """The trace's readable part: output symbols whose value changed since the last
         traced scan (so replay names what differs), and the scan's new diagnostics."""
         extra: dict[str, Any] = {}
-        net, engine = self.plc.net, self.plc.engine
-        if net is not None:
+        net, engine, outputs = self.plc.net, self.plc.engine, result.outputs
+        if net is not None and (result.outputs_changed or net is not self._traced_net):
+            self._traced_net = net  # an unchanged output image has the values traced last
             changed = {}
             for symbol in net.io.symbols.values():
                 if symbol.direction.value == "out":
@@ -133,8 +135,8 @@ class ScanRunner:
         return extra
 
     def step(self, now_ns: int, commands: Sequence[ProgramCommand] = (),
-             hmi: Sequence[HmiWrite] = (), timing: dict[str, int] | None = None,
-             observed: Observed = NOTHING_OBSERVED) -> ScanResult:
+             hmi: Sequence[HmiWrite] = (), observed: Observed = NOTHING_OBSERVED
+             ) -> ScanResult:
         """Read inputs, scan, write outputs, trace. A driver that raises is a device that did
         not answer this scan (its exception is the reason): the PLC never dies of a driver."""
         for driver in self.drivers:
@@ -149,8 +151,7 @@ class ScanRunner:
         for name in result.fired:
             self.fired_counts[name] = self.fired_counts.get(name, 0) + 1
         if self.trace is not None:
-            self.trace.record(self._record(now_ns, commands, hmi, result, observed), timing,
-                              self._extra(result.outputs))
+            self._trace(self.trace, now_ns, commands, hmi, result, observed)
         if self._last_inputs is None:
             self._last_inputs = self.inputs.copy()
         else:
@@ -205,12 +206,22 @@ class ScanRunner:
             return driver.problem() or driver.health().value
         return driver.health().value
 
-    def _record(self, now_ns: int, commands: Sequence[ProgramCommand],
-                hmi: Sequence[HmiWrite], result: ScanResult, observed: Observed
-                ) -> dict[str, Any]:
+    def _trace(self, trace: TraceWriter, now_ns: int, commands: Sequence[ProgramCommand],
+               hmi: Sequence[HmiWrite], result: ScanResult, observed: Observed) -> None:
+        """The scan's trace record; a scan in which only time passed takes the short way
+        (TraceWriter.steady: the same line, no dictionary, no encoder)."""
+        extra = self._extra(result) if trace.writes_file else None
+        inputs = self._input_changes()
+        digest = self._output_digest(result)
+        steady_obs = self._noted is None and (observed is self._steady
+                                              or observed is NOTHING_OBSERVED)
+        if (steady_obs and not extra and not inputs and not commands and not hmi
+                and not result.fired and not result.completed and not result.marking_changes
+                and not result.events):
+            trace.steady(self.plc.scan_count - 1, now_ns, digest, self.plc.state.name)
+            return
         record: dict[str, Any] = {"k": self.plc.scan_count - 1, "t": now_ns,
-                                  "in": self._input_changes(),
-                                  "out": self._output_digest(result), "state": self.plc.state.name}
+                                  "in": inputs, "out": digest, "state": self.plc.state.name}
         obs = _observation(observed, self._noted)
         self._noted = None
         if obs:
@@ -227,7 +238,7 @@ class ScanRunner:
             record["m"] = result.marking_changes
         if result.events:
             record["ev"] = list(result.events)
-        return record
+        trace.record(record, None, extra)
 
     def _input_changes(self) -> dict[str, dict[str, int]]:
         last = self._last_inputs
