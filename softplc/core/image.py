@@ -104,7 +104,7 @@ class ProcessImage:
     """Inputs, outputs and memory. Arrays are public so that drivers and the HMI map can
     move whole ranges with numpy; single locations go through get/set, which check bounds."""
 
-    __slots__ = ("buf", "iw", "ix", "mw", "mx", "qw", "qx", "sizes")
+    __slots__ = ("_ins", "_outs", "buf", "iw", "ix", "mw", "mx", "qw", "qx", "sizes")
     ix: BoolArray
     qx: BoolArray
     mx: BoolArray
@@ -127,6 +127,9 @@ class ProcessImage:
         for name, nbytes, dtype in _layout(self.sizes):
             setattr(self, name, buf[at:at + nbytes].view(dtype))
             at += nbytes
+        # The input part and the output part of the buffer, sliced once, not every scan.
+        n = _inputs_bytes(self.sizes)
+        self._ins, self._outs = buf[:n], buf[n:]
 
     def area(self, area: Area, width: Width) -> BoolArray | WordArray:
         table: dict[tuple[Area, Width], BoolArray | WordArray] = {
@@ -180,8 +183,7 @@ class ProcessImage:
     def latch_inputs(self, source: ProcessImage) -> None:
         """Copy the input areas (%IX, %IW) of `source` (same sizes) into this image."""
         if self.buf is not None and source.buf is not None:
-            n = _inputs_bytes(self.sizes)
-            np.copyto(self.buf[:n], source.buf[:n])
+            np.copyto(self._ins, source._ins)
             return
         np.copyto(self.ix, source.ix)
         np.copyto(self.iw, source.iw)
@@ -189,13 +191,13 @@ class ProcessImage:
     def inputs_bytes(self) -> bytes:
         """The input areas (%IX, %IW) as bytes, for comparing."""
         if self.buf is not None:
-            return self.buf[:_inputs_bytes(self.sizes)].tobytes()
+            return self._ins.tobytes()
         return self.ix.tobytes() + self.iw.tobytes()
 
     def outputs_bytes(self) -> bytes:
         """The output and memory areas (OUTPUT_AREAS) as bytes, for comparing and digests."""
         if self.buf is not None:
-            return self.buf[_inputs_bytes(self.sizes):].tobytes()
+            return self._outs.tobytes()
         return b"".join(getattr(self, n).tobytes() for n in _BUFFER_OUTPUTS)
 
     def equals(self, other: ProcessImage) -> bool:
@@ -210,6 +212,15 @@ def _layout(sizes: ImageSizes) -> tuple[tuple[str, int, type[np.generic]], ...]:
     bits, words = sizes.bits, 2 * sizes.words
     return (("ix", bits, np.bool_), ("iw", words, np.uint16), ("qx", bits, np.bool_),
             ("mx", bits, np.bool_), ("qw", words, np.uint16), ("mw", words, np.uint16))
+
+
+def image_offsets(sizes: ImageSizes) -> dict[str, tuple[int, int]]:
+    """Each area's (start, stop) byte offsets in a ProcessImage's buffer (`buf`)."""
+    offsets, at = {}, 0
+    for name, nbytes, _ in _layout(sizes):
+        offsets[name] = (at, at + nbytes)
+        at += nbytes
+    return offsets
 
 
 def _inputs_bytes(sizes: ImageSizes) -> int:

@@ -17,7 +17,7 @@ import numpy as np
 from softplc.core import events as event_conditions
 from softplc.core import online
 from softplc.core.expr import Value
-from softplc.core.faults import DeviceMonitor
+from softplc.core.faults import DeviceMonitor, Verdict
 from softplc.core.firing import Engine
 from softplc.core.forcing import Force, ForceRefused, Forces
 from softplc.core.image import AREAS, Area, ProcessImage
@@ -124,6 +124,8 @@ class Plc:
     _policies_of: CompiledNet | None = None
     _policies: Mapping[str, FaultPolicy] = field(default_factory=dict)
     forces: Forces = field(default_factory=Forces)  # docs/design.md section 10
+    # The device answers judged last with every device OK (scan.judge's steady scan), if so.
+    steady_answers: Mapping[str, bool] | None = None
 
     @classmethod
     def empty(cls, image: ProcessImage | None = None) -> Plc:
@@ -388,18 +390,41 @@ def judge(plc: Plc, observed: Observed, now_ns: int) -> list[str]:
     """The runtime's measurements, judged before the scan's commands and program. The
     runtime also calls it between scans for a watchdog overrun, so safe outputs go out at
     once; the trace then carries the observation with the next scan."""
+    if not observed.overrun and not observed.stall:
+        if not observed.answering or _quiet(plc, observed.answering):
+            return []  # the steady scan: nothing measured, or every device as it was
+        return _judge_devices(plc, observed, now_ns)
     events: list[str] = []
-    measured = (((FaultCode.WATCHDOG, observed.overrun), (FaultCode.STALL, observed.stall))
-                if observed.overrun or observed.stall else ())
-    for code, reason in measured:
+    for code, reason in ((FaultCode.WATCHDOG, observed.overrun),
+                         (FaultCode.STALL, observed.stall)):
         if reason and plc.state is PlcState.RUNNING:
             plc.fault(code, None, reason)
             events.append(f"plc_fault:{code.name.lower()}")
     if observed.answering:
-        events += plc.devices.before_scan(plc, observed.answering, plc.policies(),
-                                          lambda name: observed.why.get(name, "not answering"),
-                                          now_ns)
+        events += _judge_devices(plc, observed, now_ns)
     return events
+
+
+def _judge_devices(plc: Plc, observed: Observed, now_ns: int) -> list[str]:
+    devices = plc.devices
+    events = devices.before_scan(plc, observed.answering, plc.policies(),
+                                 lambda name: observed.why.get(name, "not answering"), now_ns)
+    # The same answers again next scan change nothing (DeviceMonitor.before_scan would only
+    # look at every device to find it answering), as long as every watch stays OK.
+    steady = (not events and all(observed.answering.values())
+              and len(devices.watches) == len(observed.answering)
+              and all(w.verdict is Verdict.OK for w in devices.watches.values()))
+    plc.steady_answers = observed.answering if steady else None
+    return events
+
+
+def _quiet(plc: Plc, answering: Mapping[str, bool]) -> bool:
+    """`answering` is the mapping last judged steady, and the device monitor has nothing to
+    do: no failed device, no device fault to recover from, no culprits to clear."""
+    devices = plc.devices
+    return (answering is plc.steady_answers and not devices.failed and not devices.culprits
+            and len(devices.watches) == len(answering)
+            and (plc.state is not PlcState.FAULTED or plc.fault_code != FAULT_DEVICE))
 
 
 def _apply_commands(plc: Plc, commands: Sequence[ProgramCommand],
@@ -501,7 +526,7 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
 
 
 def _same_outputs(a: ProcessImage, b: ProcessImage) -> bool:
-    return a.outputs_bytes() == b.outputs_bytes()
+    return a.outputs_bytes() == b.outputs_bytes()  # one memcmp of the contiguous tail
 
 
 _NO_EVENTS: frozenset[str] = frozenset()

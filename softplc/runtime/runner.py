@@ -152,6 +152,8 @@ class ScanRunner:
             self.fired_counts[name] = self.fired_counts.get(name, 0) + 1
         if self.trace is not None:
             self._trace(self.trace, now_ns, commands, hmi, result, observed)
+        if self.trace is None:
+            return result  # only the trace's input changes compare with the last inputs
         if self._last_inputs is None:
             self._last_inputs = self.inputs.copy()
         else:
