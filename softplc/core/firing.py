@@ -35,6 +35,7 @@ MAX_BINDINGS = 1000  # coloured binding search bound per transition and round
 MAX_DIAGNOSTICS = 100
 SMALL_NET = 64  # places: below this a Python reduction is cheaper than a numpy call
 _NO_TOKENS: Mapping[str, Token] = MappingProxyType({})
+_NO_EDGES: frozenset[str] = frozenset()
 # How a transition's enabledness is computed (Engine._enable_kind): its input and test arcs
 # only; those and inhibitors, guard or a busy check; or the general path (colour, capacity).
 _ARCS, _ARCS_GUARD, _GENERAL = "arcs", "arcs+guard", "general"
@@ -49,6 +50,9 @@ class Step:
     writes: tuple[tuple[str, int], ...]  # (symbol, value) in order: last writer wins
     emitted: tuple[str, ...]
     changed_places: frozenset[int]
+
+
+_IDLE = Step((), (), (), (), frozenset())  # a round that fired, completed and wrote nothing
 
 
 def _counts(marking: IntArray) -> MutableSequence[int]:
@@ -96,7 +100,7 @@ class Engine:
                                  if any(net.capacity[o.place] >= 0 for o in t.post))
         self._ready: set[int] = set()  # marking-enabled, not busy, guard (or a binding) holds
         self._dirty_places: set[int] = set()
-        self._dirty_edges: set[str] = set()  # edges seen last round: they "change back" now
+        self._dirty_edges: Collection[str] = _NO_EDGES  # edges seen last round: "change back" now
         self._fresh = True
         self._pulsed: set[str] = set()
         self._recheck: set[int] = set()  # fired or completed: enabledness may hold again
@@ -143,7 +147,7 @@ class Engine:
         self._growers = frozenset(t.index for t in ts if sum(o.weight for o in t.post)
                                   > sum(a.weight for a in t.pre))
         self._delays = [t.delay_ns for t in ts]
-        self._any_coloured = any(t.coloured for t in ts)
+        self._coloured_ts = frozenset(t.index for t in ts if t.coloured)
         self._any_actions = any(t.actions for t in ts)
         self._output_places = frozenset(net.place_outputs)
 
@@ -246,9 +250,15 @@ class Engine:
 
     def _refresh(self, ctx: EvalContext, now_ns: int, changed: Collection[str]) -> None:
         net = self.net
+        # Ready coloured transitions are re-bound every round (their token lists may differ);
+        # listed in the ready set's order, so the re-checks run in the same order as ever.
+        coloured = self._coloured_ts
+        bound = [t for t in self._ready if t in coloured] if coloured and self._ready else ()
         if self._fresh:
             dirty: Iterable[int] = range(len(net.transitions))
             self._fresh = False
+        elif not (self._dirty_places or changed or self._dirty_edges or self._recheck or bound):
+            return  # nothing changed since the last round: every enabling still holds
         else:
             todo: set[int] = set()
             touching = net.touching
@@ -258,12 +268,13 @@ class Engine:
                 for name in itertools.chain(changed, self._dirty_edges):
                     todo.update(net.guard_deps.get(name, ()))
             todo.update(self._recheck)
-            if self._any_coloured:
-                todo.update(t for t in self._ready if net.transitions[t].coloured)
+            todo.update(bound)
             dirty = todo
-        self._dirty_places = set()
-        self._recheck = set()
-        self._dirty_edges = {n for n in changed if n in net.edge_deps} if changed else set()
+        if self._dirty_places:
+            self._dirty_places = set()
+        if self._recheck:
+            self._recheck = set()
+        self._dirty_edges = {n for n in changed if n in net.edge_deps} if changed else _NO_EDGES
         self._recompute(dirty, ctx, now_ns)
 
     def _recompute(self, dirty: Iterable[int], ctx: EvalContext, now_ns: int) -> None:
@@ -334,6 +345,9 @@ class Engine:
         cands = self.candidates(now_ns)
         if only is not None:
             cands = [t for t in cands if t == only]
+        if (not cands and not self.state.busy and not self._high and not self._pulsed
+                and not self._remoore and not self._outputs_pending):
+            return _IDLE  # what _fire returns for an empty step, without building it
         selected, bindings = self._select(cands, ctx)
         return self._fire(selected, bindings, ctx, now_ns)
 
