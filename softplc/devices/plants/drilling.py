@@ -33,6 +33,7 @@ S1 = Zone(fm(0), fm(60_000), True)  # input/unload position
 S2 = Zone(fm(470_000), fm(530_000), True)  # machine position
 # Boundaries where a moving part's fate changes: input end, edge of the drill's reach, output end.
 BOUNDARIES = (0, X_DRILL - NEAR_DRILL, X_END)
+_NEVER = 1 << 62  # no event ahead (ns): later than any advance() can ask for
 
 
 @dataclass(frozen=True, slots=True)
@@ -90,18 +91,31 @@ class DrillingPlant:
         self._bottom_since_ns: int | None = None  # set while at the bottom after a drilling
         self._dwell_s: list[float] = []
 
+    # The next event's absolute time, or None when it must be computed again (as in
+    # TransportPlant: event times are absolute and positions exact integers, so it holds
+    # until an event, an actuator change or a part's unload timer starting or stopping).
+    # A class default: a plant pickled by an older version has no such attribute.
+    _next_event_ns: int | None = None
+
     def set_actuators(self, values: Mapping[str, int]) -> None:
         apply_actuators(self._out, values)
+        self._next_event_ns = None
 
     def advance(self, now_ns: int) -> None:
         check_time(self._now_ns, now_ns)
         # Between two events the belt and the drill move at constant speed: each step is exact.
+        # Arrivals, falls, drilling, unloads and placing all happen at an event: a step that
+        # ends between events only moves (issue 15.5).
         while self._now_ns < now_ns:
-            self._settle()
-            step_end = min((now_ns, *self._event_times()))
+            if self._settle() or self._next_event_ns is None:
+                self._next_event_ns = min(self._event_times(), default=_NEVER)
+            event = self._next_event_ns
+            step_end = now_ns if now_ns < event else event
             reached_bottom = self._move(step_end - self._now_ns)
             self._now_ns = step_end
-            self._resolve(reached_bottom)
+            if step_end == event or reached_bottom:
+                self._next_event_ns = None
+                self._resolve(reached_bottom)
 
     def read_sensors(self) -> dict[str, int]:
         return {
@@ -163,18 +177,23 @@ class DrillingPlant:
         self._z_ns = z
         return arrived
 
-    def _settle(self) -> None:
-        """Bookkeeping of states that start or end with an actuator change or an event."""
+    def _settle(self) -> bool:
+        """Bookkeeping of states that start or end with an actuator change or an event; True
+        if an unload timer started or stopped."""
         self._check_clash("conveyor", "m_fwd", "m_rev")
         self._check_clash("drill", "drill_down", "drill_up")
         self._check_drill_leaving()
         self._check_moving_under_drill()
         still = self._belt_v() == 0
+        timers = False  # an unload timer started or stopped: the event times differ
         for p in self._parts:
             if not (p.drilled and still and p.x_fm in S1):
+                timers = timers or p.rest_since_ns is not None
                 p.rest_since_ns = None
             elif p.rest_since_ns is None:
                 p.rest_since_ns = self._now_ns
+                timers = True
+        return timers
 
     def _check_clash(self, what: str, one: str, other: str) -> None:
         if not (self._out[one] and self._out[other]):

@@ -262,18 +262,19 @@ class TransportPlant:
             p.x_fm = X1 if stopped_c2 and p.x_fm < X1 <= x else x
 
     def _settle(self) -> bool:
-        """Parts at rest in the unload zone start their unload timer; True if one did (a new
-        event time)."""
+        """Parts at rest in the unload zone start their unload timer, moving ones stop it; True
+        if a timer started or stopped (the event times differ)."""
         unload_zone = SENSOR_ZONES["s2_o"]
-        started = False
+        timers = False
         for p in self._parts:
             resting = p.x_fm in unload_zone and self._speed(p.x_fm) == 0
             if not resting:
+                timers = timers or p.rest_since_ns is not None
                 p.rest_since_ns = None
             elif p.rest_since_ns is None:
                 p.rest_since_ns = self._now_ns
-                started = True
-        return started
+                timers = True
+        return timers
 
     def _resolve(self) -> None:
         self._arrivals.catch_up(self._now_ns)
