@@ -126,6 +126,7 @@ class Plc:
     forces: Forces = field(default_factory=Forces)  # docs/design.md section 10
     # The device answers judged last with every device OK (scan.judge's steady scan), if so.
     steady_answers: Mapping[str, bool] | None = None
+    context: _Context | None = None  # the guards' view of the image, kept between scans
 
     @classmethod
     def empty(cls, image: ProcessImage | None = None) -> Plc:
@@ -483,7 +484,11 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
         now_events = (frozenset(occurred) | plc.last_events if occurred or plc.last_events
                       else _NO_EVENTS)
         plc.forces.unapply_outputs(plc.image)  # forcing: the program sees its own values
-        ctx = _Context(plc.image, plc.prev, plc.locations, now_events)
+        ctx = plc.context
+        if (ctx is None or ctx.image is not plc.image or ctx.prev is not plc.prev
+                or ctx.locations is not plc.locations):
+            ctx = plc.context = _Context(plc.image, plc.prev, plc.locations, now_events)
+        ctx.events = now_events  # one context per image and program, not one per scan
         # Symbols the program wrote last scan count as changed too: the end-of-scan image
         # already holds them, so the image difference alone would miss them.
         changed = plc._changed()

@@ -13,7 +13,7 @@ from typing import Any
 
 from softplc.core.faults import DeviceMonitor
 from softplc.core.image import ProcessImage
-from softplc.core.lifecycle import Command
+from softplc.core.lifecycle import Command, PlcState
 from softplc.core.net import CompiledNet
 from softplc.core.scan import (
     NOTHING_OBSERVED,
@@ -94,11 +94,14 @@ class ScanRunner:
         self._noted: Observed | None = None  # judged between scans; traced with the next one
         self._raised: dict[str, str] = {}  # drivers whose call raised this scan, and how
         self._steady = NOTHING_OBSERVED  # every device answering, as last observed
+        self._state_seen: PlcState | None = None  # the state whose name _state_name is
+        self._state_name = ""
 
     def set_drivers(self, drivers: Sequence[Driver]) -> None:
         for driver in self.drivers:
             driver.close()
         self.drivers = list(drivers)
+        self._steady = NOTHING_OBSERVED  # other devices: their first answers are judged anew
         self.devices.forget()
         self.inputs = ProcessImage(self.plc.image.sizes)
         self._last_inputs = None
@@ -187,6 +190,14 @@ class ScanRunner:
     def _observe(self, observed: Observed) -> Observed:
         # Health after read_inputs: the inputs this scan uses are the ones it judges.
         raised = self._raised
+        steady = self._steady
+        if (not raised and not observed.overrun and not observed.stall
+                and len(steady.answering) == len(self.drivers)):
+            for driver in self.drivers:
+                if driver.health() is not Health.OK:
+                    break
+            else:  # every device answers, as in the last such scan: no dictionary to build
+                return steady
         if raised:
             self._raised = {}
         answering = {d.name: d.health() is Health.OK and d.name not in raised
@@ -220,7 +231,10 @@ class ScanRunner:
         if (steady_obs and not extra and not inputs and not commands and not hmi
                 and not result.fired and not result.completed and not result.marking_changes
                 and not result.events):
-            trace.steady(self.plc.scan_count - 1, now_ns, digest, self.plc.state.name)
+            state = self.plc.state
+            if state is not self._state_seen:  # Enum.name is a descriptor call: once per state
+                self._state_seen, self._state_name = state, state.name
+            trace.steady(self.plc.scan_count - 1, now_ns, digest, self._state_name)
             return
         record: dict[str, Any] = {"k": self.plc.scan_count - 1, "t": now_ns,
                                   "in": inputs, "out": digest, "state": self.plc.state.name}
