@@ -65,10 +65,11 @@ class SimDriver:
         self._open = False
 
     def read_inputs(self, image: ProcessImage, now_ns: int) -> None:
-        self.plant.advance(now_ns)
+        plant = self._plant
+        plant.advance(now_ns)
         if self.offline:
             return
-        sensors = self.plant.read_sensors()
+        sensors = plant.read_sensors()
         if image is not self._image:
             self._bind(image)
         for arr, index, bit, channel in self._in_slots:

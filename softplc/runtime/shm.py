@@ -173,6 +173,14 @@ class SnapshotWriter:
             for at in self._slot_at
         ]
         self._runs = [_runs(buf, at, sizes) for at in self._slot_at]
+        self._source: npt.NDArray[np.uint8] | None = None  # the image buffer _copies reads
+        self._copies: list[list[tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]]] = []
+
+    def _bind(self, source: npt.NDArray[np.uint8]) -> None:
+        """Slice an image buffer once into the runs each slot copies (not every publish)."""
+        self._copies = [[(target, source[lo:hi]) for target, lo, hi in runs]
+                        for runs in self._runs]
+        self._source = source
 
     @classmethod
     def create(cls, sizes: ImageSizes | None = None, name: str | None = None) -> SnapshotWriter:
@@ -250,8 +258,10 @@ class SnapshotWriter:
         control[1 + slot] = 2 * seq - 1  # odd: this slot is being written
         self._buf()[at : at + _STATUS.size] = packed
         if image.buf is not None:  # one image buffer: its areas in runs (issue 15.5)
-            for target, lo, hi in self._runs[slot]:
-                target[:] = image.buf[lo:hi]
+            if image.buf is not self._source:
+                self._bind(image.buf)
+            for target, source in self._copies[slot]:
+                np.copyto(target, source)
         else:
             for name, target in self._targets[slot]:
                 target[:] = getattr(image, name)
@@ -266,6 +276,8 @@ class SnapshotWriter:
         self._control = np.zeros(3, dtype=np.uint64)
         self._targets = []
         self._runs = []
+        self._copies = []
+        self._source = None
         self._shm.close()
 
     def unlink(self) -> None:

@@ -33,6 +33,7 @@ S1 = Zone(fm(0), fm(60_000), True)  # input/unload position
 S2 = Zone(fm(470_000), fm(530_000), True)  # machine position
 # Boundaries where a moving part's fate changes: input end, edge of the drill's reach, output end.
 BOUNDARIES = (0, X_DRILL - NEAR_DRILL, X_END)
+assert S1.hi_inclusive and S2.hi_inclusive  # read_sensors tests them inline
 _NEVER = 1 << 62  # no event ahead (ns): later than any advance() can ask for
 
 
@@ -118,9 +119,17 @@ class DrillingPlant:
                 self._resolve(reached_bottom)
 
     def read_sensors(self) -> dict[str, int]:
+        # The two zones' tests spelled out (both include their upper bound): every scan.
+        s1 = s2 = 0
+        for p in self._parts:
+            x = p.x_fm
+            if S1.lo_fm <= x <= S1.hi_fm:
+                s1 = 1
+            if S2.lo_fm <= x <= S2.hi_fm:
+                s2 = 1
         return {
-            "s1": int(any(p.x_fm in S1 for p in self._parts)),
-            "s2": int(any(p.x_fm in S2 for p in self._parts)),
+            "s1": s1,
+            "s2": s2,
             "drill_top": int(self._z_ns == 0),
             "drill_bottom": int(self._z_ns == self.config.drill_travel_ns),
         }
