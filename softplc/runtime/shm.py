@@ -174,13 +174,24 @@ class SnapshotWriter:
         ]
         self._runs = [_runs(buf, at, sizes) for at in self._slot_at]
         self._source: npt.NDArray[np.uint8] | None = None  # the image buffer _copies reads
-        self._copies: list[list[tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]]] = []
+        # Memoryviews: a slice assignment between them is a plain memcpy, ~4x cheaper than
+        # np.copyto for these few KB (issue 15.5).
+        self._copies: list[list[tuple[memoryview, memoryview]]] = []
 
     def _bind(self, source: npt.NDArray[np.uint8]) -> None:
         """Slice an image buffer once into the runs each slot copies (not every publish)."""
-        self._copies = [[(target, source[lo:hi]) for target, lo, hi in runs]
+        self._release_copies()
+        self._copies = [[(target.data, source[lo:hi].data) for target, lo, hi in runs]
                         for runs in self._runs]
         self._source = source
+
+    def _release_copies(self) -> None:
+        for runs in self._copies:
+            for target, source in runs:
+                target.release()
+                source.release()
+        self._copies = []
+        self._source = None
 
     @classmethod
     def create(cls, sizes: ImageSizes | None = None, name: str | None = None) -> SnapshotWriter:
@@ -260,8 +271,8 @@ class SnapshotWriter:
         if image.buf is not None:  # one image buffer: its areas in runs (issue 15.5)
             if image.buf is not self._source:
                 self._bind(image.buf)
-            for target, source in self._copies[slot]:
-                np.copyto(target, source)
+            for into, run in self._copies[slot]:
+                into[:] = run
         else:
             for name, target in self._targets[slot]:
                 target[:] = getattr(image, name)
@@ -276,8 +287,7 @@ class SnapshotWriter:
         self._control = np.zeros(3, dtype=np.uint64)
         self._targets = []
         self._runs = []
-        self._copies = []
-        self._source = None
+        self._release_copies()
         self._shm.close()
 
     def unlink(self) -> None:
