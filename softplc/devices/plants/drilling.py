@@ -108,7 +108,8 @@ class DrillingPlant:
         # Arrivals, falls, drilling, unloads and placing all happen at an event: a step that
         # ends between events only moves (issue 15.5).
         while self._now_ns < now_ns:
-            if self._settle() or self._next_event_ns is None:
+            if self._next_event_ns is None:  # the start, an event or new actuator values
+                self._settle()  # between events it would find everything as it left it
                 self._next_event_ns = min(self._event_times(), default=_NEVER)
             event = self._next_event_ns
             step_end = now_ns if now_ns < event else event
@@ -186,23 +187,19 @@ class DrillingPlant:
         self._z_ns = z
         return arrived
 
-    def _settle(self) -> bool:
-        """Bookkeeping of states that start or end with an actuator change or an event; True
-        if an unload timer started or stopped."""
+    def _settle(self) -> None:
+        """Bookkeeping of states that start or end with an actuator change or an event (so
+        advance() calls it only after one)."""
         self._check_clash("conveyor", "m_fwd", "m_rev")
         self._check_clash("drill", "drill_down", "drill_up")
         self._check_drill_leaving()
         self._check_moving_under_drill()
         still = self._belt_v() == 0
-        timers = False  # an unload timer started or stopped: the event times differ
         for p in self._parts:
             if not (p.drilled and still and p.x_fm in S1):
-                timers = timers or p.rest_since_ns is not None
                 p.rest_since_ns = None
             elif p.rest_since_ns is None:
                 p.rest_since_ns = self._now_ns
-                timers = True
-        return timers
 
     def _check_clash(self, what: str, one: str, other: str) -> None:
         if not (self._out[one] and self._out[other]):

@@ -188,7 +188,8 @@ class TransportPlant:
         # nothing is resolved between events (arrivals, falls, unloads, placing and contacts
         # all happen at one), so a scan between events only moves the parts (issue 15.5).
         while self._now_ns < now_ns:
-            if self._settle() or self._next_event_ns is None:
+            if self._next_event_ns is None:  # the start, an event or new actuator values
+                self._settle()  # between events it would find everything as it left it
                 self._next_event_ns = min(self._event_times(), default=_NEVER)
             event = self._next_event_ns
             step_end = now_ns if now_ns < event else event
@@ -261,20 +262,17 @@ class TransportPlant:
             # A stopped conveyor 2 holds back what conveyor 1 pushes onto it.
             p.x_fm = X1 if stopped_c2 and p.x_fm < X1 <= x else x
 
-    def _settle(self) -> bool:
-        """Parts at rest in the unload zone start their unload timer, moving ones stop it; True
-        if a timer started or stopped (the event times differ)."""
+    def _settle(self) -> None:
+        """Parts at rest in the unload zone start their unload timer, moving ones stop it. A
+        part comes to rest or moves again only when the motors change (advance() calls this
+        only after an actuator change or an event)."""
         unload_zone = SENSOR_ZONES["s2_o"]
-        timers = False
         for p in self._parts:
             resting = p.x_fm in unload_zone and self._speed(p.x_fm) == 0
             if not resting:
-                timers = timers or p.rest_since_ns is not None
                 p.rest_since_ns = None
             elif p.rest_since_ns is None:
                 p.rest_since_ns = self._now_ns
-                timers = True
-        return timers
 
     def _resolve(self) -> None:
         self._arrivals.catch_up(self._now_ns)
