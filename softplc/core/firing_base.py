@@ -23,6 +23,7 @@ NO_EDGES: frozenset[str] = frozenset()
 # How a transition's enabledness is computed (Engine._enable_kind): its input and test arcs
 # only; those and inhibitors, guard or a busy check; or the general path (colour, capacity).
 ARCS, ARCS_GUARD, GENERAL = "arcs", "arcs+guard", "general"
+ARC = "arc"  # ARCS with a single input or test arc (a ring's, a chain's): one comparison
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,9 +125,15 @@ class EngineCore:
         self._simple = simple
         self._enable_kind = [(ARCS if t.guard is None and not t.inhibit else ARCS_GUARD)
                              if s else GENERAL for s, t in zip(simple, ts, strict=True)]
+        self._enable_kind = [ARC if kind is ARCS and len(need) == 1 else kind
+                             for kind, need in zip(self._enable_kind, self._need, strict=True)]
         self._plain_fire = [s and t.duration_ns == 0 and not t.actions
                             for s, t in zip(simple, ts, strict=True)]
         self._post = [tuple((o.place, o.weight) for o in t.post) for t in ts]
+        # A simple transition with one input arc (and none other to take from): selection
+        # takes its tokens with one comparison (firing_select.py).
+        self._single_pre = [pre[0] if s and len(pre) == 1 else None
+                            for s, pre in zip(simple, self._pre, strict=True)]
         # Only a firing that puts more tokens than it takes can raise a count past a limit.
         self._growers = frozenset(t.index for t in ts if sum(o.weight for o in t.post)
                                   > sum(a.weight for a in t.pre))

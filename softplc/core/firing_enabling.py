@@ -14,6 +14,7 @@ from collections.abc import Collection, Iterable, Mapping
 
 from softplc.core.expr import EvalContext
 from softplc.core.firing_base import (
+    ARC,
     ARCS,
     GENERAL,
     MAX_BINDINGS,
@@ -102,10 +103,9 @@ class Enabling(EngineCore):
         elif not (self._dirty_places or changed or self._dirty_edges or self._recheck or bound):
             return  # nothing changed since the last round: every enabling still holds
         else:
-            todo: set[int] = set()
-            touching = net.touching
-            for p in self._dirty_places:
-                todo.update(touching[p])
+            # One C-level pass, inserting in the same order as a loop over the places would.
+            todo = set(itertools.chain.from_iterable(
+                map(net.touching.__getitem__, self._dirty_places)))
             if changed or self._dirty_edges:
                 for name in itertools.chain(changed, self._dirty_edges):
                     todo.update(net.guard_deps.get(name, ()))
@@ -127,7 +127,10 @@ class Enabling(EngineCore):
         busy, since, ready = st.busy, st.enabled_since, self._ready
         for ti in dirty:
             kind = kinds[ti]
-            if kind is ARCS and not busy:
+            if kind is ARC and not busy:
+                p, w = need[ti][0]
+                ok = m[p] >= w
+            elif kind is ARCS and not busy:
                 ok = True
                 for p, w in need[ti]:
                     if m[p] < w:

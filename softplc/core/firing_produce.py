@@ -66,7 +66,10 @@ class Production(Outputs):
             self._dirty_places.update(a.place for a in ts[ti].pre)
         self._recheck.update(selected)
         self._recheck.update(completed)
-        self._dirty_places |= changed
+        if self._dirty_places:
+            self._dirty_places |= changed
+        else:  # the common case: this round's set is the next refresh's, no copy
+            self._dirty_places = changed
         writes = self._outputs(changed, busy_changed)
         emitted: list[str] = []
         for ti in selected if self._any_actions else ():  # actions, in step order

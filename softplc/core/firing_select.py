@@ -26,7 +26,16 @@ class Selection(Enabling):
         taken: dict[int, set[int]] = {}  # coloured place -> token positions taken this round
         selected: list[int] = []
         bindings: dict[int, dict[str, tuple[int, int]]] = {}
+        single = None if track else self._single_pre
         for ti in cands:
+            one = single[ti] if single is not None else None
+            if one is not None:  # simple, one input arc: the loops below in one comparison
+                p, w = one
+                left = residual.get(p, m[p]) - w
+                if left >= 0:
+                    residual[p] = left
+                    selected.append(ti)
+                continue
             arcs, fits = pre[ti], True
             for p, w in arcs:  # inline, not any(): a generator costs more than the test
                 if residual.get(p, m[p]) < w:
