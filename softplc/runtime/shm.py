@@ -46,9 +46,10 @@ from typing import Any, Final
 import numpy as np
 import numpy.typing as npt
 
-from softplc.core.image import ImageSizes, ProcessImage, image_offsets
+from softplc.core.image import ImageSizes, ProcessImage
 from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import Snapshot, Status
+from softplc.runtime.shmcopy import SlotCopies
 
 MAGIC: Final = b"SPLCSNAP"
 VERSION: Final = 3  # 2: status carries published_ns; 3: and `forced`
@@ -94,21 +95,6 @@ def _area_layout(sizes: ImageSizes) -> list[tuple[str, int, int, type[np.generic
         layout.append((name, offset, offset + 2 * sizes.words, np.uint16))
         offset += 2 * sizes.words
     return layout
-
-
-def _runs(buf: npt.NDArray[np.uint8], at: int, sizes: ImageSizes
-          ) -> list[tuple[npt.NDArray[np.uint8], int, int]]:
-    """The slot at `at` as byte runs that are contiguous in a ProcessImage's buffer too:
-    (slot bytes, buffer start, buffer stop). %QX %MX are adjacent in both, so are %QW %MW:
-    four copies instead of six."""
-    offsets = image_offsets(sizes)
-    slot = {name: (at + start, at + stop) for name, start, stop, _ in _area_layout(sizes)}
-    runs = []
-    for first, last in (("ix", "ix"), ("qx", "mx"), ("iw", "iw"), ("qw", "mw")):
-        lo, hi = offsets[first][0], offsets[last][1]
-        assert slot[last][1] - slot[first][0] == hi - lo
-        runs.append((buf[slot[first][0]:slot[last][1]], lo, hi))
-    return runs
 
 
 def _pack_status(status: Status, published_ns: int = 0) -> bytes:
@@ -172,26 +158,7 @@ class SnapshotWriter:
             [(name, buf[at + start : at + stop].view(dtype)) for name, start, stop, dtype in layout]
             for at in self._slot_at
         ]
-        self._runs = [_runs(buf, at, sizes) for at in self._slot_at]
-        self._source: npt.NDArray[np.uint8] | None = None  # the image buffer _copies reads
-        # Memoryviews: a slice assignment between them is a plain memcpy, ~4x cheaper than
-        # np.copyto for these few KB (issue 15.5).
-        self._copies: list[list[tuple[memoryview, memoryview]]] = []
-
-    def _bind(self, source: npt.NDArray[np.uint8]) -> None:
-        """Slice an image buffer once into the runs each slot copies (not every publish)."""
-        self._release_copies()
-        self._copies = [[(target.data, source[lo:hi].data) for target, lo, hi in runs]
-                        for runs in self._runs]
-        self._source = source
-
-    def _release_copies(self) -> None:
-        for runs in self._copies:
-            for target, source in runs:
-                target.release()
-                source.release()
-        self._copies = []
-        self._source = None
+        self._copies = SlotCopies(buf, self._slot_at, sizes, layout)
 
     @classmethod
     def create(cls, sizes: ImageSizes | None = None, name: str | None = None) -> SnapshotWriter:
@@ -268,11 +235,8 @@ class SnapshotWriter:
         control = self._control
         control[1 + slot] = 2 * seq - 1  # odd: this slot is being written
         self._buf()[at : at + _STATUS.size] = packed
-        if image.buf is not None:  # one image buffer: its areas in runs (issue 15.5)
-            if image.buf is not self._source:
-                self._bind(image.buf)
-            for into, run in self._copies[slot]:
-                into[:] = run
+        if image.buf is not None:  # one image buffer: its areas in four runs (shmcopy.py)
+            self._copies.copy(slot, image.buf)
         else:
             for name, target in self._targets[slot]:
                 target[:] = getattr(image, name)
@@ -286,8 +250,7 @@ class SnapshotWriter:
         # numpy views export the buffer; they must go before the mapping can close.
         self._control = np.zeros(3, dtype=np.uint64)
         self._targets = []
-        self._runs = []
-        self._release_copies()
+        self._copies.close()
         self._shm.close()
 
     def unlink(self) -> None:
