@@ -33,7 +33,8 @@ from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.clock import MonotonicClock, Schedule
 from softplc.runtime.comm import CommConfig
-from softplc.runtime.loop import LoopConfig, ScanLoop, scan_process_main
+from softplc.runtime.config import LoopConfig
+from softplc.runtime.loop import ScanLoop, scan_process_main
 from softplc.runtime.procs import die_with_parent
 from softplc.runtime.realtime import NORMAL, Realtime, apply
 from softplc.runtime.shm import SnapshotWriter

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Iterable
 from typing import Any
 
 from softplc.api.client import ApiClient, ApiError, ApiUnreachable
@@ -28,6 +29,7 @@ from softplc.program.compiler import compile_text
 PROGRAM = "online_bench"
 FILE_NAME = "online_bench.yaml"  # resolved under the runtime's programs/ directory
 _SETUP_IDS = iter(range(1_000_000, 2_000_000))  # far from the API's ids (1, 2, ...)
+BIG_SETTLE_S = 4.0  # before a net over 1,000 transitions: its change takes up to ~3 s
 
 
 def ring_program(transitions: int, variant: int) -> str:
@@ -56,8 +58,9 @@ def _command(runtime: LiveRuntime, command: Command, text: str | None = None) ->
 
 
 def _download_online(runtime: LiveRuntime, api: ApiClient, text: str,
-                     timeout_s: float) -> dict[str, Any]:
+                     timeout_s: float, settle_s: float) -> dict[str, Any]:
     before = runtime.status().get("program_hash")
+    quiet_since = time.monotonic_ns() - int(settle_s * 1e9)
     t_request = time.monotonic_ns()
     try:
         outcome = api.download_text(text, online=True, name=FILE_NAME)["message"]
@@ -70,7 +73,8 @@ def _download_online(runtime: LiveRuntime, api: ApiClient, text: str,
         if time.monotonic() > deadline:
             raise RuntimeError(f"the online change did not happen within {timeout_s} s")
         time.sleep(0.02)
-    return {"t_request_ns": t_request, "t_reply_ns": t_reply, "api": str(outcome)}
+    return {"t_request_ns": t_request, "t_reply_ns": t_reply, "api": str(outcome),
+            "quiet_since_ns": quiet_since}
 
 
 def _evaluate(request: dict[str, Any], record: ScanRecord, period_ns: int) -> dict[str, Any]:
@@ -78,6 +82,12 @@ def _evaluate(request: dict[str, Any], record: ScanRecord, period_ns: int) -> di
     i = min(change["index"], record.at_ns.size - 1)  # beyond the capacity: the last kept
     t0 = request["t_request_ns"]
     span = (record.at_ns >= t0) & (record.at_ns <= record.at_ns[i])
+    # The machine's own noise, side by side: the slots missed in a window as long, just
+    # before the request, while nothing was being downloaded (None when that window reaches
+    # back into the previous change).
+    length = int(record.at_ns[i]) - t0
+    quiet_from = request["quiet_since_ns"]
+    before = (record.at_ns >= t0 - length) & (record.at_ns < t0)
     return {
         "request_to_first_scan_ms": (change["done_ns"] - t0) / 1e6,
         "request_to_reply_ms": (request["t_reply_ns"] - t0) / 1e6,
@@ -85,6 +95,8 @@ def _evaluate(request: dict[str, Any], record: ScanRecord, period_ns: int) -> di
         # shared machine included), and those the swap scan itself skipped (the compile).
         "missed_scans": int(record.missed[span].sum()),
         "swap_scan_missed": int(record.missed[i]),
+        "missed_scans_before": int(record.missed[before].sum())
+        if t0 - length >= quiet_from else None,
         "swap_scan_exec_ms": int(record.exec_ns[i]) / 1e6,  # compile + swap + first scan
         "transitions": change["transitions"], "api": request["api"],
     }
@@ -104,6 +116,7 @@ def split_cost_ms(old_transitions: int, new_transitions: int) -> dict[str, float
     scan(plc, inputs, 0, [ProgramCommand(Command.DOWNLOAD, old), ProgramCommand(Command.START)])
     # As runtime/loop.py hands it over: the engine's tables and the carry plan built first.
     engine, carry_plan = Engine(new, NetState.initial(new)), online.plan(old, new)
+    engine.prime()
     swap_began = time.perf_counter_ns()
     scan(plc, inputs, 1_000_000, [ProgramCommand(Command.DOWNLOAD, new, online=True,
                                                  engine=engine, plan=carry_plan)])
@@ -128,9 +141,11 @@ def _drive(runtime: LiveRuntime, sizes: tuple[int, ...], counts: dict[int, int],
         for k in range(counts[n]):
             variant = 1 - variant
             progress(f"online_change: download online, {n} transitions ({k + 1}/{counts[n]})")
-            time.sleep(settle_s)
+            # Long enough before a big net for a baseline window as long as its change.
+            settle = settle_s if n <= 1000 else max(settle_s, BIG_SETTLE_S)
+            time.sleep(settle)
             requests.append((running, n, _download_online(
-                runtime, api, ring_program(n, variant), timeout_s)))
+                runtime, api, ring_program(n, variant), timeout_s, settle)))
             running = n
     time.sleep(settle_s)
     return requests
@@ -144,7 +159,8 @@ def _by_size(changes: list[dict[str, Any]], sizes: tuple[int, ...], split_limit:
         latency = figures([c["request_to_first_scan_ms"] for c in mine])
         by_size[str(n)] = {"changes": len(mine), "request_to_first_scan_ms": {
             "median": latency.median, "max": latency.max},
-            "missed_scans": max(c["missed_scans"] for c in mine)}
+            "missed_scans": max(c["missed_scans"] for c in mine),
+            "missed_scans_before": _worst(c["missed_scans_before"] for c in mine)}
         if n <= split_limit:
             progress(f"online_change: compile vs swap cost in-process, {n} transitions")
             by_size[str(n)]["split"] = split_cost_ms(min(sizes), n)
@@ -179,4 +195,10 @@ def run(quick: bool, progress: Progress, *, sizes: tuple[int, ...] = (10, 10_000
     return {"period_ms": period_ms, "via": "HTTP API POST /api/v1/program?online=true",
             "load_average_1m": [load_before[0], os.getloadavg()[0]],
             "changes": changes, "by_size": by_size,
-            "missed_scans": max(v["missed_scans"] for v in by_size.values())}
+            "missed_scans": max(v["missed_scans"] for v in by_size.values()),
+            "missed_scans_before": _worst(v["missed_scans_before"] for v in by_size.values())}
+
+
+def _worst(values: Iterable[int | None]) -> int | None:
+    known = [v for v in values if v is not None]
+    return max(known) if known else None

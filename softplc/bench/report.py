@@ -1,37 +1,19 @@
-"""Turn a benchmark result into what people read: a terminal table, PNG plots, BENCHMARKS.md.
+"""Turn a benchmark result into what people read: the terminal table and summary here; PNG
+plots (plots.py) and BENCHMARKS.md (markdown.py), whose writers callers also import from here.
 
-Owns: the layout of the headline table, the plots (latency histograms, scaling curves,
-Modbus throughput) and the generated markdown. Reads only the result dictionary.
+Owns: the layout of the headline table and of the summary `softplc bench` prints.
+Reads only the result dictionary.
 Does not know: how anything was measured.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
-
-def _fmt(value: Any) -> str:
-    if value is None:
-        return "—"
-    if isinstance(value, bool):
-        return "yes" if value else "no"
-    if isinstance(value, float):
-        return f"{value:.3g}" if abs(value) < 1000 else f"{value:,.0f}"
-    if isinstance(value, int):
-        return f"{value:,}"
-    return str(value)
-
-
-def _verdict(met: bool | None) -> str:
-    return {True: "met", False: "MISSED", None: "not measured"}[met]
-
-
-def _with_unit(value: Any, unit: str) -> str:
-    if value is None:
-        return "—"
-    return f"{_fmt(value)}x" if unit == "x" else f"{_fmt(value)} {unit}"
+from softplc.bench.cells import fmt, verdict, with_unit
+from softplc.bench.markdown import write_markdown as write_markdown
+from softplc.bench.plots import write_plots as write_plots
 
 
 def _bound(row: dict[str, Any]) -> str:
@@ -43,13 +25,13 @@ def _bound(row: dict[str, Any]) -> str:
 def headline_table(results: dict[str, Any]) -> str:
     """The headline figures: value with its unit (x: a ratio, times), the target, the verdict,
     the scan period it was measured at and what it means."""
-    rows = [(r["key"], _with_unit(r["value"], r.get("unit", "x")), _bound(r),
-             _verdict(r["met"]), r.get("period") or "-", r["meaning"]) for r in results["targets"]]
+    rows = [(r["key"], with_unit(r["value"], r.get("unit", "x")), _bound(r),
+             verdict(r["met"]), r.get("period") or "-", r["meaning"]) for r in results["targets"]]
     rss = results["headline"].get("memory.rss_mb")
     memory = results.get("sections", {}).get("memory", {})
     period = f"{memory['period_ms']} ms" if isinstance(memory, dict) and "period_ms" in memory \
         else "-"
-    rows.append(("memory.rss_mb", _with_unit(rss, "MB"), "-", "reported", period,
+    rows.append(("memory.rss_mb", with_unit(rss, "MB"), "-", "reported", period,
                  "resident memory of the scan process after the soak (4 Modbus clients + HTTP)"))
     head = ("figure", "value", "target", "verdict", "period", "meaning")
     widths = [max(len(str(r[i])) for r in [head, *rows]) for i in range(5)]
@@ -69,7 +51,7 @@ def summary(results: dict[str, Any], written: Sequence[str] = ()) -> str:
     lines = [
         f"softplc bench ({results.get('mode')}): {len(seconds)} section(s) in "
         f"{sum(seconds.values()):.0f} s on {machine.get('cpu')} ({machine.get('cores')} cores, "
-        f"load {_fmt(load)} at start)",
+        f"load {fmt(load)} at start)",
         "Ratios (x) compare with a baseline measured in the same run on this machine, so "
         "they hold across machines better than raw times; period = the PLC scan period.",
         "",
@@ -87,371 +69,3 @@ def summary(results: dict[str, Any], written: Sequence[str] = ()) -> str:
                  "(`make bench` regenerates it from a full run)"
                  + (f"; this run written to {', '.join(written)}" if written else ""))
     return "\n".join(lines)
-
-
-def _table(headers: list[str], rows: list[list[Any]]) -> list[str]:
-    out = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
-    out += ["| " + " | ".join(_fmt(v) for v in row) + " |" for row in rows]
-    return out
-
-
-def _us(figures: Any, key: str) -> Any:
-    return figures.get(key) if isinstance(figures, dict) else None
-
-
-def _engine_tables(section: dict[str, Any]) -> list[str]:
-    out = [
-        f"Ratios use the {section.get('key_family')} family: {section.get('key_note')}. "
-        f"All engines reached the same steps and marking before timing: "
-        f"{_fmt(section.get('all_agreed'))}.",
-        "",
-    ]
-    for family, data in section.get("families", {}).items():
-        out += [f"**{family}**: {data.get('description', '')}", ""]
-        rows = []
-        for r in data.get("rows", []):
-            if "skipped" in r:
-                rows.append([r.get("n_transitions"), r.get("engine"), r["skipped"], "", "", "", ""])
-                continue
-            rows.append(
-                [
-                    r.get("n_transitions"),
-                    r.get("engine"),
-                    _us(r.get("round_us"), "median"),
-                    _us(r.get("round_us"), "p99"),
-                    r.get("firings_per_round"),
-                    r.get("firings_per_s"),
-                    r.get("memory_mb"),
-                ]
-            )
-        out += [
-            *_table(
-                [
-                    "transitions",
-                    "engine",
-                    "µs/round median",
-                    "µs/round p99",
-                    "firings/round",
-                    "firings/s",
-                    "memory MB",
-                ],
-                rows,
-            ),
-            "",
-        ]
-    for key in ("vs_snakes", "vs_snakes_incremental", "vs_reference"):
-        ratios = section.get(key, {})
-        sizes = sorted({int(n) for per in ratios.values() for n in per})
-        if sizes:
-            out += [f"**{key}** (their median round time / ours)", ""]
-            out += _table(
-                ["family", *map(str, sizes)],
-                [[f, *(per.get(str(n)) for n in sizes)] for f, per in ratios.items()],
-            )
-            out += [""]
-    return out
-
-
-def _scan_tables(section: dict[str, Any]) -> list[str]:
-    rows = []
-    for name, c in section.get("configs", {}).items():
-        late, exe, load = c.get("lateness_us", {}), c.get("exec_us", {}), c.get("load") or {}
-        rows.append(
-            [
-                name,
-                c.get("scans"),
-                c.get("overruns"),
-                late.get("p50"),
-                late.get("p99"),
-                late.get("p999"),
-                late.get("max"),
-                exe.get("median"),
-                exe.get("p99"),
-                load.get("requests_per_s"),
-            ]
-        )
-    return [
-        *_table(
-            [
-                "run",
-                "scans",
-                "overruns",
-                "late p50 µs",
-                "late p99 µs",
-                "late p999 µs",
-                "late max µs",
-                "exec median µs",
-                "exec p99 µs",
-                "Modbus req/s",
-            ],
-            rows,
-        ),
-        "",
-    ]
-
-
-def _modbus_tables(section: dict[str, Any]) -> list[str]:
-    rows = []
-    for name, run in section.items():
-        if isinstance(run, dict) and "requests_per_s" in run:
-            lat = run.get("latency_us", {})
-            rows.append(
-                [
-                    name,
-                    run.get("requests"),
-                    run.get("requests_per_s"),
-                    lat.get("p50"),
-                    lat.get("p99"),
-                    run.get("server_cpu_us_per_request"),
-                    run.get("errors"),
-                ]
-            )
-    return [
-        *_table(
-            [
-                "server and clients",
-                "requests",
-                "requests/s",
-                "latency p50 µs",
-                "latency p99 µs",
-                "server CPU µs/request",
-                "errors",
-            ],
-            rows,
-        ),
-        "",
-    ]
-
-
-def _online_tables(section: dict[str, Any]) -> list[str]:
-    rows = [
-        [
-            c.get("transitions"),
-            c.get("request_to_first_scan_ms"),
-            c.get("missed_scans"),
-            c.get("swap_scan_exec_ms"),
-        ]
-        for c in section.get("changes", [])
-    ]
-    return [
-        *_table(["transitions", "request to first scan ms", "missed scans", "swap scan ms"], rows),
-        "",
-    ]
-
-
-def _memory_tables(section: dict[str, Any]) -> list[str]:
-    start, end = section.get("start_mb", {}), section.get("end_mb", {})
-    return [
-        *_table(
-            ["process", "RSS at start MB", "RSS at end MB"],
-            [[p, start.get(p), end.get(p)] for p in ("scan", "comm", "total")],
-        ),
-        "",
-    ]
-
-
-def _analysis_tables(section: dict[str, Any]) -> list[str]:
-    rows = [[r.get("net"), r.get("states"), r.get("edges"), r.get("snakes_s"), r.get("softplc_s"),
-             r.get("ratio")] for r in section.get("nets", [])]
-    return [*_table(["net", "states", "edges", "SNAKES s", "softplc s", "ratio"], rows), ""]
-
-
-def _opcua_tables(section: dict[str, Any]) -> list[str]:
-    rows = [[name, w.get("scans"), w.get("overruns"), w.get("lateness_us", {}).get("p99"),
-             w.get("lateness_us", {}).get("max")]
-            for name, w in (("floor (empty loop)", section.get("floor_1ms", {})),
-                            ("4 subscribed clients", section.get("subscribed_1ms", {})))]
-    calls = section.get("call_to_effect", {}).get("scans", [])
-    return [*_table(["1 ms", "scans", "overruns", "p99 late µs", "max late µs"], rows), "",
-            f"Call to effect, caller scans at 10 ms: {calls}", ""]
-
-
-_DETAIL = {
-    "engine": _engine_tables,
-    "scan": _scan_tables,
-    "modbus": _modbus_tables,
-    "online_change": _online_tables,
-    "memory": _memory_tables,
-    "analysis": _analysis_tables,
-    "opcua": _opcua_tables,
-}
-
-
-def _section_tables(name: str, section: dict[str, Any]) -> list[str]:
-    if "error" in section:
-        return [f"**This section failed:** `{section['error']}`", ""]
-    scalars = {
-        k: v for k, v in section.items() if isinstance(v, (int, float, str, bool)) or v is None
-    }
-    out = [*_table(["figure", "value"], [[k, v] for k, v in scalars.items()]), ""]
-    return out + _DETAIL[name](section) if name in _DETAIL else out
-
-
-def write_markdown(results: dict[str, Any], path: Path) -> None:
-    m = results["machine"]
-    lines = [
-        "# softplc benchmarks",
-        "",
-        "Generated by `make bench` (`softplc bench --json bench.json --plots docs/bench "
-        "--markdown BENCHMARKS.md`); do not edit by hand. Every headline figure is a ratio "
-        "against a baseline measured in the same run on the same machine.",
-        "",
-        f"- Run: `{results.get('command', 'softplc bench')}`, {results['mode']} mode, "
-        f"started {results['started']}",
-        f"- Machine: {m['cpu']}, {m['cores']} cores, {m['memory_gb']} GiB, {m['os']}, "
-        f"Python {m['python']}",
-        f"- Load average at start {', '.join(f'{x:.2f}' for x in m['load_average'])}; at end "
-        f"{', '.join(f'{x:.2f}' for x in m.get('load_average_end', []))}",
-        "- Versions: " + ", ".join(f"{k} {v}" for k, v in m["versions"].items() if v),
-        "- Seconds per section: " + ", ".join(f"{k} {v}" for k, v in results["seconds"].items()),
-        "",
-        "## Headline figures and targets",
-        "",
-    ]
-    rows = [
-        [t["key"], t["value"], t["target"], _verdict(t["met"]), t["meaning"]]
-        for t in results["targets"]
-    ]
-    rows.append(
-        [
-            "memory.rss_mb",
-            results["headline"].get("memory.rss_mb"),
-            "",
-            "reported",
-            "resident memory of the scan and communication processes after the soak",
-        ]
-    )
-    lines += [*_table(["key", "value", "target", "verdict", "meaning"], rows), ""]
-    notes = results.get("notes") or explain(results)
-    if notes:
-        lines += ["## Where a target is missed", ""] + [f"- {n}" for n in notes] + [""]
-    for name, section in results["sections"].items():
-        lines += [f"## {name.replace('_', ' ').capitalize()}", ""]
-        lines += _section_tables(name, section)
-    plots = results.get("plots", [])
-    if plots:
-        lines += ["## Plots", ""]
-        lines += [f"![{Path(p).stem}]({Path(p).as_posix()})" for p in plots] + [""]
-    path.write_text("\n".join(lines) + "\n")
-
-
-def write_plots(results: dict[str, Any], directory: Path) -> list[str]:
-    """PNG files for the sections that have data; returns their paths."""
-    import matplotlib
-
-    matplotlib.use("Agg")  # no display on a server
-    import matplotlib.pyplot as plt
-
-    directory.mkdir(parents=True, exist_ok=True)
-    written: list[str] = []
-    engine = results["sections"].get("engine", {})
-    families = engine.get("families", {}) if isinstance(engine, dict) else {}
-    if families:
-        fig, axes = plt.subplots(
-            1, len(families), figsize=(4 * len(families), 4), sharey=True, squeeze=False
-        )
-        for ax, (family, data) in zip(axes[0], families.items(), strict=True):
-            series: dict[str, list[tuple[float, float]]] = {}
-            for r in data.get("rows", []):
-                median = _us(r.get("round_us"), "median")
-                if isinstance(median, (int, float)) and median > 0:
-                    series.setdefault(str(r.get("engine")), []).append((r["n_transitions"], median))
-            for engine_name, points in sorted(series.items()):
-                points.sort()
-                ax.plot(
-                    [p[0] for p in points], [p[1] for p in points], marker="o", label=engine_name
-                )
-            ax.set(xscale="log", yscale="log", xlabel="transitions", title=family)
-            ax.grid(True, which="both", alpha=0.3)
-            ax.legend(fontsize=7)
-        axes[0][0].set_ylabel("µs per firing round (median)")
-        fig.suptitle("Engine scaling: softplc vs SNAKES vs plain reference")
-        written.append(_save(fig, directory / "engine_scaling.png"))
-    scan = results["sections"].get("scan", {})
-    histograms = scan.get("histograms", {}) if isinstance(scan, dict) else {}
-    for period in sorted({k.rsplit("_", 1)[-1] for k in histograms}):
-        fig, ax = plt.subplots(figsize=(8, 5))
-        for name, h in sorted(histograms.items()):
-            if not name.endswith("_" + period) or not h.get("counts"):
-                continue
-            edges, counts = h["edges_us"], h["counts"]
-            ax.stairs(counts, edges, label=name.rsplit("_", 1)[0])
-        ax.set(
-            xscale="symlog",
-            yscale="log",
-            xlabel="lateness (µs, logarithmic above 1)",
-            ylabel="scans",
-            title=f"Scan lateness at {period} period",
-        )
-        ax.legend()
-        ax.grid(True, alpha=0.3)
-        written.append(_save(fig, directory / f"lateness_{period}.png"))
-    for _path in written:
-        plt.close("all")
-    return written
-
-
-def _save(fig: Any, path: Path) -> str:
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    return str(path)
-
-
-def _get(results: dict[str, Any], *path: str) -> Any:
-    value: Any = results.get("sections", {})
-    for key in path:
-        value = value.get(key) if isinstance(value, dict) else None
-    return value
-
-
-def explain(results: dict[str, Any]) -> list[str]:
-    """Why each missed target was missed, from this run's own figures, and what would close
-    it. Written with the measurements of docs/realtime.md and runtime/downloads.py."""
-    missed = {t["key"] for t in results["targets"] if t["met"] is False}
-    notes: list[str] = []
-    floor = _get(results, "scan", "configs", "floor_1ms") or {}
-    idle = _get(results, "scan", "configs", "idle_1ms") or {}
-    loaded = _get(results, "scan", "configs", "loaded_1ms") or {}
-    if missed & {"scan.p99_ratio_loaded_over_floor_1ms", "scan.overruns_loaded_1ms"}:
-        notes.append(
-            f"Scan at 1 ms: the empty loop alone (the floor, same scheduler, SCHED_FIFO on its "
-            f"own CPU) overran {_fmt(floor.get('overruns'))} times in {_fmt(floor.get('scans'))}"
-            f" slots with p99 lateness {_fmt(_us(floor.get('lateness_us'), 'p99'))} µs and max "
-            f"{_fmt(_us(floor.get('lateness_us'), 'max'))} µs: this 2-core virtual machine "
-            "takes the CPU away from a FIFO process (hypervisor steal), which nothing inside "
-            f"the guest removes. The transport scan itself runs "
-            f"{_fmt(_us(idle.get('exec_us'), 'median'))} µs median, "
-            f"{_fmt(_us(idle.get('exec_us'), 'p99'))} µs p99 idle and "
-            f"{_fmt(_us(loaded.get('exec_us'), 'p99'))} µs p99 loaded, so on this machine a "
-            "1 ms period leaves too little slack for the steal spikes: idle "
-            f"{_fmt(idle.get('overruns'))} and loaded {_fmt(loaded.get('overruns'))} overruns. "
-            "What would close it: an isolated core (isolcpus, nohz_full) on real hardware, "
-            "and a cheaper scan (engine, simulated plant, status copy and drivers are all "
-            "Python). At 10 ms the same machine shows "
-            f"{_fmt(_get(results, 'scan', 'configs', 'loaded_10ms', 'overruns'))} loaded "
-            "overruns.")
-    if "online_change.missed_scans" in missed:
-        changes = _get(results, "online_change", "changes") or []
-        small = [c for c in changes if c.get("transitions", 0) <= 100]
-        big = [c for c in changes if c.get("transitions", 0) > 100]
-        worst_small = max((c.get("missed_scans", 0) for c in small), default=0)
-        swap_big = max((c.get("swap_scan_exec_ms", 0) for c in big), default=0)
-        notes.append(
-            "Online change: downloads compile on a background thread of the scan process "
-            "(50 µs GIL switch interval while compiling), so the scan goes on meanwhile. For "
-            f"the 10-transition net the worst change missed {worst_small} scans during its "
-            "compile of about 10 ms: the scan thread still waits for the interpreter at each "
-            "blocking call. For 10,000 transitions the swap scan itself (building the "
-            f"engine's tables for the new net and carrying the marking over) took up to "
-            f"{_fmt(swap_big)} ms, and the compile thread still shares the interpreter with "
-            "the scan for about 2 s. What would close it: build the new engine's tables on the "
-            "compile thread as well (only the marking carry-over at the boundary), and "
-            "compile in another process with a picklable compiled net.")
-    if "engine.vs_snakes_1k" in missed:
-        notes.append("Engine vs SNAKES at 1,000 transitions: SNAKES rejects the ~990 "
-                     "transitions with an empty input place in a few µs each; see the ring "
-                     "table. The ratio moves with the load on this machine between runs.")
-    if "modbus.throughput_ratio_vs_pymodbus_4c" in missed:
-        notes.append("Modbus throughput: both servers are asyncio on one core each here; "
-                     "see the per-request server CPU column, steadier than requests/s.")
-    return notes

@@ -71,6 +71,16 @@ class Bound:
         return self.tokens[var]
 
 
+@dataclass(frozen=True, slots=True)
+class Primed:
+    """Engine.prime()'s result: the marking it looked at, the arcs-only transitions enabled on
+    it, and the transitions it did not decide (guards, inhibitors, colours, capacities)."""
+
+    marking: IntArray
+    ready: frozenset[int]
+    others: frozenset[int]
+
+
 class EngineCore:
     """What every part of the engine shares: the net, its state, caches and tables."""
 
@@ -87,6 +97,7 @@ class EngineCore:
         self._dirty_places: set[int] = set()
         self._dirty_edges: Collection[str] = NO_EDGES  # edges seen last round: "change back" now
         self._fresh = True
+        self._primed: Primed | None = None  # see Enabling.prime()
         self._pulsed: set[str] = set()
         self._recheck: set[int] = set()  # fired or completed: enabledness may hold again
         self._remoore: set[str] = set()  # place-driven outputs an action overwrote

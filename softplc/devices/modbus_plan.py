@@ -2,7 +2,8 @@
 range per table (pure: no socket, no thread).
 
 Owns: Table, Channel, Block, IoPlan, parse_channel, plan_channels, channel_problems and the
-protocol's per-request quantity limits. Does not know: pymodbus, the I/O thread, the scan.
+use of the protocol's per-request quantity limits (core/modbus.py).
+Does not know: pymodbus, the I/O thread, the scan.
 """
 
 from __future__ import annotations
@@ -12,9 +13,16 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 from softplc.core.image import Area
+from softplc.core.modbus import (
+    MAX_ADDRESS,
+    MAX_READ_BITS,
+    MAX_READ_REGISTERS,
+    MAX_WRITE_BITS,
+    MAX_WRITE_REGISTERS,
+)
 from softplc.core.symbols import Symbol
 
-MAX_OFFSET = 0xFFFF
+MAX_OFFSET = MAX_ADDRESS
 
 
 class Table(enum.Enum):
@@ -29,8 +37,9 @@ class Table(enum.Enum):
 
 
 # Per-request quantity limits of the Modbus application protocol (FC 1/2, 3/4, 15, 16).
-_READ_LIMIT = {Table.COIL: 2000, Table.DI: 2000, Table.HR: 125, Table.IR: 125}
-_WRITE_LIMIT = {Table.COIL: 1968, Table.HR: 123}
+_READ_LIMIT = {Table.COIL: MAX_READ_BITS, Table.DI: MAX_READ_BITS,
+               Table.HR: MAX_READ_REGISTERS, Table.IR: MAX_READ_REGISTERS}
+_WRITE_LIMIT = {Table.COIL: MAX_WRITE_BITS, Table.HR: MAX_WRITE_REGISTERS}
 # Where an image location may come from (inputs) or go to (outputs), keyed (area, is_bit).
 _ALLOWED = {
     (Area.INPUT, True): (Table.DI, Table.COIL),

@@ -14,20 +14,20 @@ from functools import partial
 
 import numpy as np
 
+from softplc.core.modbus import (
+    MAX_READ_BITS,
+    MAX_READ_REGISTERS,
+    MAX_RW_READ_REGISTERS,
+    MAX_RW_WRITE_REGISTERS,
+    MAX_WRITE_BITS,
+    MAX_WRITE_REGISTERS,
+)
 from softplc.core.snapshot import HmiWrite, SnapshotSource
 from softplc.hmi.map import ExceptionCode, MapError, RegisterMap, Table
 
 MBAP_SIZE = 7  # transaction id, protocol id, length, unit id
 MIN_LENGTH = 2  # MBAP length field: unit id + function code at least
 MAX_LENGTH = 254  # unit id + a PDU of at most 253 bytes (ADU <= 260)
-
-# Quantity limits per request (Modbus Application Protocol V1.1b3, section 6).
-MAX_READ_BITS = 2000
-MAX_READ_REGISTERS = 125
-MAX_WRITE_BITS = 1968
-MAX_WRITE_REGISTERS = 123
-MAX_RW_READ_REGISTERS = 125
-MAX_RW_WRITE_REGISTERS = 121
 
 COIL_ON, COIL_OFF = 0xFF00, 0x0000
 

@@ -33,7 +33,8 @@ from softplc.core.symbols import Direction, IoImage, SymType
 from softplc.core.values import MAX_FIELDS, field_name_problem
 from softplc.program import fields as token_fields
 from softplc.program.io_image import load_io_image
-from softplc.program.spec import ArcSpec, ProgramSpec, TransitionSpec, Where, parse_program, resolve
+from softplc.program.spec import parse_program, resolve
+from softplc.program.specvalues import ArcSpec, ProgramSpec, TransitionSpec, Where
 from softplc.program.suggest import did_you_mean
 
 _UNKNOWN_NAME = re.compile(r"unknown name '([^']+)'")

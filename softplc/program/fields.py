@@ -12,7 +12,7 @@ import ast
 from collections.abc import Callable, Iterator, Sequence
 
 from softplc.core.net import Transition
-from softplc.program.spec import ProgramSpec, TransitionSpec, Where
+from softplc.program.specvalues import ProgramSpec, TransitionSpec, Where
 from softplc.program.suggest import did_you_mean
 
 

@@ -1,13 +1,13 @@
 """Program text -> flat spec: parse the YAML shape, expand subnets, substitute parameters.
 
-Owns: the program file format (places, transitions, arcs, subnets, params, events) and the
-frozen spec values it yields, each with its file and line. Problems are collected, not raised.
+Owns: the program file format (places, transitions, arcs, subnets, params, events), read
+into the spec values of specvalues.py, each with its file and line. Problems are collected,
+not raised.
 Does not know: symbols' meaning, expressions' meaning (compiler.py checks those).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +16,7 @@ from softplc.core.expr import ExprError, Value, substitute
 from softplc.core.problems import Problem
 from softplc.core.units import parse_duration_ns
 from softplc.core.values import record_problems
+from softplc.program.specvalues import ArcSpec, PlaceSpec, ProgramSpec, TransitionSpec, Where
 from softplc.program.suggest import did_you_mean, did_you_mean_key
 from softplc.program.yamlload import YList, YMap, line_of, load_yaml, trap_hint
 
@@ -25,63 +26,6 @@ PLACE_KEYS = {"tokens", "capacity", "outputs", "coloured", "description"}
 TRANSITION_KEYS = {"from", "to", "read", "inhibit", "priority", "when", "do", "delay",
                    "duration", "outputs", "description"}
 MAX_SUBNET_DEPTH = 4
-
-
-@dataclass(frozen=True, slots=True)
-class Where:
-    file: str
-    line: int
-    path: str
-
-
-@dataclass(frozen=True, slots=True)
-class ArcSpec:
-    place: str
-    weight: int
-    var: str | None = None
-    token: str | dict[str, str] | None = None  # output arcs: pass var through, or fields
-    where: Where = Where("", 0, "")
-
-
-@dataclass(frozen=True, slots=True)
-class PlaceSpec:
-    name: str
-    tokens: int
-    records: tuple[dict[str, Value], ...] | None  # coloured initial tokens
-    coloured: bool
-    capacity: int | None
-    outputs: tuple[tuple[str, Value, Where], ...]
-    where: Where
-
-
-@dataclass(frozen=True, slots=True)
-class TransitionSpec:
-    name: str
-    pre: tuple[ArcSpec, ...]
-    post: tuple[ArcSpec, ...]
-    test: tuple[ArcSpec, ...]
-    inhibit: tuple[ArcSpec, ...]
-    priority: int
-    when: tuple[str, Where] | None
-    actions: tuple[tuple[str, Where], ...]
-    delay_ns: int
-    duration_ns: int
-    outputs: tuple[tuple[str, Value, Where], ...]
-    where: Where
-
-
-@dataclass(slots=True)
-class ProgramSpec:
-    name: str
-    file: str
-    io_image: tuple[str, Where] | None
-    places: list[PlaceSpec] = field(default_factory=list)
-    transitions: list[TransitionSpec] = field(default_factory=list)
-    events: list[tuple[str, Where]] = field(default_factory=list)
-    subnets: list[str] = field(default_factory=list)
-    texts: list[str] = field(default_factory=list)  # every file's text, for the program hash
-    place_names: set[str] = field(default_factory=set)  # of `places`, for lookups
-    limits: dict[str, tuple[int, Where]] = field(default_factory=dict)  # `limits:` overrides
 
 
 class _Parser:

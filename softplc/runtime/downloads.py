@@ -31,34 +31,61 @@ from softplc.runtime.realtime import background_thread
 COMPILE_SWITCH_INTERVAL_S = 0.00005
 
 
+_OPEN = 1 << 62  # a pace nobody keeps: compiles never park
+
+
 class ScanPace:
-    """The scan thread says when it scans and when it waits for its next slot; a compile
-    thread runs only while it waits.
+    """The scan thread says until when it will wait for its next slot; a compile thread runs
+    only until then, and parks (without the interpreter lock) from then until the scan says
+    it waits again.
 
     Why: threads of one CPython process share one interpreter lock. With the short switch
-    interval alone the two threads alternated every 50 µs while a big net compiled, so every
+    interval alone, the two threads alternated every 50 µs while a big net compiled, so every
     scan took about twice as long and a 10,000-transition online change still missed 26-35
-    slots at 1 ms (bench online_change). Here the compile thread looks at the pace at every
-    Python function call it makes (a trace hook on that thread only, ~2x its compile time) and
-    parks, without the lock, while a scan runs: a scan loses at most one switch to it."""
+    slots at 1 ms (bench online_change). Parking only while a scan runs still let the compile
+    hold the lock when the scan woke (missed slots under load). So the compile parks `margin`
+    before the deadline, ahead of the clock's final spin: at its slot the scan finds the lock
+    free. The compile thread looks at the pace at every Python function call it makes (a trace
+    hook on that thread only, about twice its compile time).
 
-    __slots__ = ("_idle",)
+    `now_ns` is the clock the deadlines are on; without one (a virtual clock, tests) the pace is
+    open and compiles run freely."""
 
-    def __init__(self) -> None:
-        self._idle = threading.Event()
-        self._idle.set()  # nobody scanning: compiles run freely (tests, start-up)
+    __slots__ = ("_margin_ns", "_now_ns", "_turn", "_until_ns")
+
+    def __init__(self, now_ns: Callable[[], int] | None = None, margin_ns: int = 0) -> None:
+        self._now_ns = now_ns
+        self._margin_ns = margin_ns
+        self._until_ns = _OPEN
+        self._turn = threading.Condition()
 
     def scanning(self) -> None:
-        self._idle.clear()
+        """From the scan thread, when its slot has come: a compile parks at its next call."""
+        if self._now_ns is not None:
+            self._until_ns = 0
 
-    def waiting(self) -> None:
-        self._idle.set()
+    def waiting(self, deadline_ns: int) -> None:
+        """From the scan thread, done with its slot: a compile may run until `margin` before
+        `deadline_ns`."""
+        if self._now_ns is not None:
+            with self._turn:
+                self._until_ns = deadline_ns - self._margin_ns
+                self._turn.notify_all()
+
+    def release(self) -> None:
+        """No scan will come again (the loop ended): a parked compile goes on, freely."""
+        with self._turn:
+            self._now_ns, self._until_ns = None, _OPEN
+            self._turn.notify_all()
 
     def hook(self, frame: FrameType, event: str, arg: Any) -> None:
         """sys.settrace hook of a compile thread: 'call' events only (it returns None, so no
         per-line tracing); a trace function is itself not traced."""
-        if not self._idle.is_set():
-            self._idle.wait()
+        now_ns = self._now_ns
+        if now_ns is not None and now_ns() >= self._until_ns:
+            with self._turn:
+                while self._now_ns is not None and self._now_ns() >= self._until_ns:
+                    self._turn.wait()
 
     def paced(self, work: Callable[[CommandRequest], Any]) -> Callable[[CommandRequest], Any]:
         """`work`, run on the calling thread at the scan's pace."""
@@ -139,7 +166,7 @@ class DownloadQueue:
 
     def close(self) -> None:
         """Drop what is queued; a compile in progress finishes on its own and is discarded."""
-        self.pace.waiting()  # a compile parked on a scan that will not come again goes on
+        self.pace.release()  # a compile parked on a scan that will not come again goes on
         self._queue.clear()
         if self._executor is not None:
             self._executor.shutdown(wait=False, cancel_futures=True)

@@ -17,34 +17,37 @@ import gc
 import os
 import signal
 import sys
-import tempfile
 import threading
 import time
 from collections import deque
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from softplc.core import online
 from softplc.core.firing import Engine
-from softplc.core.image import ImageSizes
-from softplc.core.lifecycle import Command, CommandRejected, PlcState, next_state
+from softplc.core.lifecycle import Command, PlcState
 from softplc.core.net import CompiledNet, NetState
-from softplc.core.problems import FaultCode, Problem, ProgramError
+from softplc.core.problems import FaultCode, ProgramError
 from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
-from softplc.devices.driver import Driver
 from softplc.program import bundle as bundles
 from softplc.program.compiler import compile_file, compile_text
 from softplc.runtime import boot, netview
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.clock import Clock, MonotonicClock, Schedule
-from softplc.runtime.downloads import DownloadQueue
+from softplc.runtime.config import LoopConfig as LoopConfig  # importable from here too
+from softplc.runtime.downloads import DownloadQueue, ScanPace
+from softplc.runtime.prepare import (
+    AnalysisRefused,
+    Prepared,
+    Preparer,
+    describe_error,
+    dry_run,
+)
 from softplc.runtime.procs import Flag as Event
-from softplc.runtime.realtime import NORMAL, Realtime, apply
+from softplc.runtime.realtime import apply
 from softplc.runtime.retain import (
     ContinuedClock,
     Loaded,
@@ -62,63 +65,9 @@ from softplc.runtime.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
 from softplc.runtime.trace import TraceWriter
 
-
-@dataclass(frozen=True, slots=True)
-class LoopConfig:
-    program: str | None = None  # compiled and downloaded on the first scan
-    start: bool = False
-    period_ns: int = 10_000_000
-    plant: str | None = None  # overrides the plant of a sim driver
-    seed: int = 0
-    trace: str | None = None
-    watchdog: float = 10.0  # fault when one scan runs longer than period x this
-    root: str | None = None  # downloads may only reference files under this directory
-    programs_dir: str | None = None  # a plain-text download's home (None: root/programs)
-    sizes: ImageSizes = field(default_factory=ImageSizes)
-    max_scans: int | None = None  # stop after this many (tests, benchmarks)
-    state_dir: str | None = None  # retain snapshots live here; None: no retain, always cold
-    retain_interval_ns: int = 1_000_000_000  # 0: only on stop
-    warm_start: str = "run"  # a warm restart of a RUNNING snapshot: "run" resumes, "stop" waits
-    realtime: Realtime = NORMAL  # SCHED_FIFO priority and CPU of the scan process
-    on_stall: str = "fault"  # a stall long enough to fault (below): "fault" or "continue"
-    # A cycle that starts period x watchdog late is a stall: counted, an event. It faults (with
-    # on_stall "fault") once it is also this long: a general-purpose OS delays a sleeping
-    # process by tens of ms under load, which lateness and overruns already show; a pause of
-    # half a second or more (SIGSTOP, VM pause, swap storm) is no hiccup.
-    stall_fault_ns: int = 500_000_000
-    restarts: int = 0  # how often the supervisor restarted the scan process before this one
-    restart_reason: str = ""  # why it restarted it last
-    boot: bool = True  # no program given: run the boot program of state_dir, if any
-    verify: str = "warn"  # analysis gate on downloads: "refuse", "warn" or "off"
-
-
-GATE_MAX_TRANSITIONS = 2_000  # larger nets are not analysed on download (see _analyse)
-
-
-class AnalysisRefused(Exception):
-    """A download the analysis gate refuses (--verify refuse): every blocking finding."""
-
-    def __init__(self, findings: tuple[str, ...]) -> None:
-        super().__init__("\n".join(findings))
-        self.findings = findings
-
-
-@dataclass(slots=True)
-class Prepared:
-    """A download compiled and its devices opened off the scan: the scan only swaps. `drivers`
-    is None when the program's io image declares the drivers already running."""
-
-    net: CompiledNet
-    request: CommandRequest
-    drivers: list[Driver] | None = None
-    engine: Engine | None = None  # the engine's tables for `net`
-    plan: online.CarryPlan | None = None  # the marking's carry-over from the running net
-    analysis: dict[str, Any] | None = None  # the gate's summary and findings
-
-    def discard(self) -> None:
-        for driver in self.drivers or ():
-            driver.close()
-        self.drivers = None
+# A compile parks this long before the clock's final spin begins: time to reach its next
+# Python call (a piece of a regex search, a numpy call) and let go of the interpreter.
+PACE_MARGIN_NS = 150_000
 
 
 class ScanLoop:
@@ -147,20 +96,20 @@ class ScanLoop:
         self.runner = ScanRunner(Plc.empty(), [],
                                  TraceWriter(config.trace) if config.trace else None)
         self.pending: list[ProgramCommand] = []
-        self.downloads = DownloadQueue(self._prepare)
+        self.prep = Preparer(config, lambda: self.runner.plc.net, lambda: self._driver_specs)
+        self.downloads = DownloadQueue(self.prep.prepare, pace=self._pace())
         self._driver_specs: tuple[object, ...] = ()
         self._boot_writer: ThreadPoolExecutor | None = None
         self.retain: RetainWriter | None = None
         self._retained_ns = 0
         self._prepared: dict[int, Prepared] = {}  # downloads handed to the scan, by request id
         self.boot_problem = ""  # why the boot program could not be kept, if it could not
-        self._bundle_roots: set[str] = set()  # unpacked bundles, stripped from messages
         self._diag_engine: Engine | None = None  # diagnostics put on the event stream
         self._diag_seen = 0
         net, self._boot = self._program()
         # The program the PLC starts with is analysed too, never refused: the person at the
         # console chose it. Its findings are in status.
-        self.analysis = self._analyse(net, gate=False) if net is not None else None
+        self.analysis = self.prep.analyse(net, gate=False) if net is not None else None
         decision = StartDecision("cold", self.start_reason)
         if config.state_dir is not None:
             store = RetainStore.open(config.state_dir)  # StateDirBusy: another runtime has it
@@ -173,6 +122,13 @@ class ScanLoop:
             self._cold(net)
         if config.restarts:
             self._event(f"plc_restarted:{config.restarts}", 0)
+
+    def _pace(self) -> ScanPace:
+        """Compiles run between scans, parked from before the clock's final spin until the
+        slot is done; on a virtual clock (tests) they run freely."""
+        if isinstance(self.clock, MonotonicClock):
+            return ScanPace(time.monotonic_ns, self.clock.spin_ns + PACE_MARGIN_NS)
+        return ScanPace()
 
     def _program(self) -> tuple[CompiledNet | None, boot.BootProgram | None]:
         """The program to run: the command line's, else the boot program of the state dir.
@@ -199,7 +155,7 @@ class ScanLoop:
         program = loaded
         try:
             if program.bundle is not None:
-                net = self._compile_bundle(program.bundle)  # unpacked anew if removed
+                net = self.prep.compile_bundle(program.bundle)  # unpacked anew if removed
             else:
                 net = compile_text(program.text, program.filename,
                                    Path(program.root) if program.root else None)
@@ -284,16 +240,16 @@ class ScanLoop:
                 self._refuse(req, "download refused by the analysis gate (--verify refuse):\n"
                              + "\n".join(item.error.findings))
             elif isinstance(item.error, ProgramError):
-                self._refuse(req, f"download refused:\n{self._relative(str(item.error))}")
+                self._refuse(req, f"download refused:\n{self.prep.relative(str(item.error))}")
             elif item.error is not None:  # a device that cannot open, or a compiler bug
                 self._refuse(req, "download refused: "
-                             + self._relative(_describe(item.error)))
+                             + self.prep.relative(describe_error(item.error)))
             elif prepared is not None and prepared.net.io.sizes != self.config.sizes:
                 prepared.discard()
                 self._refuse(req, "download refused: the program's image sizes "
                              f"{prepared.net.io.sizes} differ from the runtime's")
             elif prepared is not None and req.dry_run:
-                self._reply(self._dry_run(prepared))
+                self._reply(dry_run(self.runner.plc, prepared, self.config.sizes))
             elif prepared is not None:
                 self._prepared[req.id] = prepared
                 commands.append(ProgramCommand(
@@ -301,162 +257,8 @@ class ScanLoop:
                     engine=prepared.engine, plan=prepared.plan))
         return commands
 
-    def _dry_run(self, prepared: Prepared) -> CommandReply:
-        """What the download would do now, against the running state; nothing applied."""
-        plc, net, req = self.runner.plc, prepared.net, prepared.request
-        old, state = plc.net, plc.state
-        if old is None or plc.engine is None:
-            detail: dict[str, Any] = {
-                "from": None, "to": net.name, "replacement": False, "kept": {}, "dropped": {},
-                "new": plc_marking(net), "records": {}, "outputs": {
-                    "released": [], "taken": sorted(online.driven(net))}}
-        else:
-            carry_plan = prepared.plan if prepared.plan is not None \
-                and prepared.plan.old is old else online.plan(old, net)
-            detail = online.describe(carry_plan, plc.engine.state)
-        detail["verdict"] = self._verdict(prepared, detail)
-        detail["accepted"] = not detail["verdict"].startswith(("refused", "online change "
-                                                               "refused"))
-        detail["state"] = state.name
-        prepared.discard()
-        return CommandReply(req.id, True, f"dry run: {detail['verdict']} (nothing applied)",
-                            state, detail=detail)
-
-    def _verdict(self, prepared: Prepared, detail: dict[str, Any]) -> str:
-        """The download's fate in the current state, by the rules of core/scan.py."""
-        plc, net, req = self.runner.plc, prepared.net, prepared.request
-        if prepared.net.io.sizes != self.config.sizes:
-            return "refused: the program's image sizes differ from the runtime's"
-        if plc.state is not PlcState.RUNNING:
-            try:
-                next_state(plc.state, Command.DOWNLOAD)
-            except CommandRejected as exc:
-                return f"refused: {exc}"
-            return f"accepted: loads from its initial marking ({plc.state.name})"
-        old = plc.net
-        assert old is not None
-        if not req.online:
-            return "refused: download while RUNNING needs online change (--online)"
-        if net.name == old.name:
-            return str(detail["verdict"])
-        same = tuple(old.io.drivers.values()) == tuple(net.io.drivers.values())
-        if same and not req.replace:
-            return (f"refused: {net.name} is another program than the running {old.name} on "
-                    "the same devices; it needs --replace (it starts from its initial marking)")
-        return (f"accepted: replacement of {old.name} by {net.name} from its initial marking"
-                + ("" if same else " (reconfiguration: new devices)"))
-
-    def _relative(self, message: str) -> str:
-        """Paths in a message as the sender knows them: relative to the programs' root, never
-        the server's absolute paths."""
-        root = Path(self.config.root).resolve() if self.config.root else Path.cwd()
-        for directory in self._bundle_roots:  # a bundle's files: named as in the bundle
-            message = message.replace(f"{directory}/", "")
-        return message.replace(f"{root}/", "")
-
     def _refuse(self, req: CommandRequest, message: str) -> None:
         self._reply(CommandReply(req.id, False, message, self.runner.plc.state))
-
-    def _compile(self, req: CommandRequest) -> CompiledNet:
-        if req.bundle is not None:
-            return self._compile_bundle(req.bundle)
-        root = Path(self.config.root) if self.config.root else None
-        name = req.program_path or "downloaded.yaml"
-        if req.program_text is None:
-            return compile_file(name, root)
-        try:
-            return compile_text(req.program_text, self._download_name(name), root)
-        except ProgramError as exc:
-            if not any("cannot read" in p.message for p in exc.problems):
-                raise
-            hint = Problem(self._download_name(name), 0, "", (
-                "a program sent as plain text resolves io_image: and subnets against the "
-                f"server's programs directory {self._programs_dir()} (softplc run "
-                "--programs-dir); send a bundle instead (softplc download builds one)"))
-            raise ProgramError([*exc.problems, hint]) from None
-
-    def _programs_dir(self) -> Path:
-        if self.config.programs_dir:
-            return Path(self.config.programs_dir).resolve()
-        root = Path(self.config.root) if self.config.root else Path.cwd()
-        return (root / "programs").resolve()
-
-    def _download_name(self, name: str) -> str:
-        return str(self._programs_dir() / Path(name).name) if not Path(name).is_absolute() \
-            else name
-
-    def _bundle_dir(self, bundle: bundles.Bundle) -> Path:
-        """Where a bundle is unpacked: the state dir (it is the boot program's home), else a
-        directory of this process's temporary files."""
-        base = Path(self.config.state_dir) / "bundles" if self.config.state_dir else \
-            Path(tempfile.gettempdir()) / f"softplc-bundles-{os.getpid()}"
-        return base / bundle.digest[:16]
-
-    def _compile_bundle(self, blob: bytes) -> CompiledNet:
-        """Unpack (off the scan) and compile with the bundle's folder as the root: its files
-        may reference one another, nothing outside it."""
-        try:
-            bundle = bundles.unpack(blob)
-        except bundles.BundleError as exc:
-            raise ProgramError([Problem("bundle", 0, "", str(exc))]) from None
-        directory = self._bundle_dir(bundle)
-        program = bundles.extract(bundle, directory)
-        self._bundle_roots.add(str(directory.resolve()))
-        return compile_file(program, directory.resolve())
-
-    def _prepare(self, req: CommandRequest) -> Prepared:
-        """On the compile thread: compile, then open the devices the new io image declares if
-        they are not the running ones, so that a program whose devices cannot be opened is
-        refused before anything changes (the reconfiguration of the seed paper, checked).
-
-        The cyclic collector is off meanwhile: a compile allocates enough to trigger full
-        collections, each holding the GIL for tens of ms over the whole heap (the scan thread
-        then misses its slots); what the compile built is frozen at the end instead."""
-        gc.disable()
-        try:
-            return self._prepare_net(req)
-        finally:
-            gc.freeze()
-            gc.enable()
-
-    def _prepare_net(self, req: CommandRequest) -> Prepared:
-        net = self._compile(req)
-        analysis = self._analyse(net)
-        specs = tuple(net.io.drivers.values())
-        # Everything the swap needs, built here: the engine's tables and the carry plan
-        # against the net running now (the scan checks it is still that net).
-        running = self.runner.plc.net
-        prepared = Prepared(net, req, None, Engine(net, NetState.initial(net)),
-                            online.plan(running, net) if running is not None
-                            and (running.name == net.name or req.dry_run) else None, analysis)
-        if specs != self._driver_specs and not req.dry_run:  # a dry run opens nothing
-            prepared.drivers = open_drivers(net.io, self.config.seed, None)
-        return prepared
-
-    def _analyse(self, net: CompiledNet, gate: bool = True) -> dict[str, Any] | None:
-        """The analysis gate (docs/analysis.md), off the scan. Refuses by raising
-        AnalysisRefused under --verify refuse (when `gate`); otherwise the findings go along."""
-        if self.config.verify == "off":
-            return None
-        if len(net.transitions) > GATE_MAX_TRANSITIONS:
-            # Exploring a state space per download must stay a matter of seconds: beyond this
-            # size it is `softplc analyze`'s job, offline. Under refuse, what was not verified
-            # is not accepted.
-            why = (f"{self._relative(net.source)}:1: not analysed: {len(net.transitions)} "
-                   f"transitions exceed the download gate's {GATE_MAX_TRANSITIONS} (run "
-                   "`softplc analyze` on it offline)")
-            if gate and self.config.verify == "refuse":
-                raise AnalysisRefused((why,))
-            return {"summary": "analysis skipped (net too large for the download gate)",
-                    "blocking": False, "findings": [why], "policy": self.config.verify}
-        from softplc.analysis.gate import verify
-
-        verdict = verify(net)
-        if gate and verdict.blocking and self.config.verify == "refuse":
-            raise AnalysisRefused(tuple(self._relative(f) for f in verdict.findings))
-        return {"summary": verdict.summary, "blocking": verdict.blocking,
-                "findings": [self._relative(f) for f in verdict.findings],
-                "policy": self.config.verify}
 
     def _reply(self, reply: CommandReply) -> None:
         if reply.id == 0 or self.channel is None:
@@ -510,7 +312,7 @@ class ScanLoop:
             # Its text and folder are in the bundle, unpacked again when it boots.
             program = boot.BootProgram(net.source, "", None, req.bundle, net.program_hash)
         elif req.program_text is not None:
-            name = self._download_name(req.program_path or "downloaded.yaml")
+            name = self.prep.download_name(req.program_path or "downloaded.yaml")
             program = boot.BootProgram(name, req.program_text, self.config.root, None,
                                        net.program_hash)
         else:
@@ -631,13 +433,20 @@ class ScanLoop:
                       self.config.period_ns // 1000, len(plc.forces))
 
     def run(self, stop: Event | None = None) -> None:
+        try:
+            self._run(stop)
+        finally:
+            self.downloads.pace.release()  # a compile parked on this loop must not hang on
+        self.shutdown()
+
+    def _run(self, stop: Event | None) -> None:
         period = self.config.period_ns
         schedule = Schedule(self.clock, period)
         while (stop is None or not stop.is_set()) and (
                 self.config.max_scans is None
                 or self.runner.plc.scan_count < self.config.max_scans):
             deadline = schedule.deadline_ns
-            self.downloads.pace.waiting()
+            self.downloads.pace.waiting(deadline)
             reached = schedule.wait()
             self.downloads.pace.scanning()
             late = reached - deadline
@@ -650,7 +459,6 @@ class ScanLoop:
                     and self.runner.plc.state is PlcState.RUNNING):
                 self._watchdog(exec_ns, done)
             self.stats.record(exec_ns, late, skipped=schedule.advance(done))
-        self.shutdown()
 
     def _stall(self, late_ns: int) -> Observed:
         """A cycle that started more than the watchdog budget late: the process was paused or
@@ -738,21 +546,6 @@ def _records(net: CompiledNet | None, state: NetState | None) -> dict[str, list[
             for p, records in sorted(state.tokens.items()) if records}
 
 
-def plc_marking(net: CompiledNet) -> dict[str, int]:
-    """A net's initial marking by place name (marked places only)."""
-    return {name: int(n) for name, n in zip(net.place_names, net.initial.tolist(), strict=True)
-            if n}
-
-
-def _describe(error: BaseException) -> str:
-    """A refused download's reason in one line: a device, or an internal compiler error."""
-    from softplc.devices.driver import DeviceError
-
-    if isinstance(error, DeviceError | ValueError | OSError):
-        return f"its devices cannot be opened: {error}"
-    return f"internal compiler error ({type(error).__name__}: {error})"
-
-
 def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: Event, stop: Event) -> None:
     """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`.
@@ -786,7 +579,7 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
         writer.publish(loop.runner.plc.image, loop.status())
         board.publish(loop.document())
         gc.collect()  # before the first scan, not during one; then keep what start-up built
-        gc.freeze()  # out of every later collection (real-time practice, see _prepare)
+        gc.freeze()  # out of every later collection (real-time practice, see Preparer.prepare)
         ready.set()
         loop.run(stop)
     finally:

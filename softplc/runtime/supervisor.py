@@ -38,7 +38,8 @@ from softplc.program.compiler import compile_file
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel, pid_alive
 from softplc.runtime.comm import CommConfig, comm_process_main, modbus_limits
-from softplc.runtime.loop import LoopConfig, scan_process_main
+from softplc.runtime.config import LoopConfig
+from softplc.runtime.loop import scan_process_main
 from softplc.runtime.procs import ReadySignal, StopFlag
 from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
 from softplc.runtime.retain import StateDirBusy, check_state_dir

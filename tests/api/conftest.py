@@ -8,10 +8,10 @@ import asyncio
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import pytest
 
@@ -24,19 +24,6 @@ from softplc.runtime.shm import SnapshotReader, SnapshotWriter
 
 ROOT = Path(__file__).resolve().parents[2]
 PERIOD_NS = 10_000_000
-T = TypeVar("T")
-
-
-def eventually(probe: Callable[[], T | None], timeout_s: float = 5.0) -> T:
-    """The first truthy result of `probe`, polled until `timeout_s`."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        result = probe()
-        if result:
-            return result
-        if time.monotonic() > deadline:
-            raise AssertionError(f"condition not met within {timeout_s} s")
-        time.sleep(0.01)
 
 
 class ScanThread:

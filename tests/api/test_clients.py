@@ -22,8 +22,9 @@ from softplc.api.client import ApiClient, ApiError, ApiUnreachable
 from softplc.core.lifecycle import PlcState
 from softplc.devices.driver import DeviceUnavailable, ProgramHandlingError
 from softplc.interface.remote import RemoteProgramRefused, RemoteSoftplc
-from tests.api.conftest import Plc, ScanThread, ServerThread, eventually, make_server
+from tests.api.conftest import Plc, ScanThread, ServerThread, make_server
 from tests.api.helpers import BAD_PROGRAM, TRANSPORT
+from tests.support import eventually
 
 
 @pytest.fixture

@@ -9,8 +9,9 @@ from aiohttp import web
 
 from softplc.api.openapi import openapi_document
 from softplc.api.server import MAX_BODY_BYTES
-from tests.api.conftest import ServerThread, eventually
+from tests.api.conftest import ServerThread
 from tests.api.helpers import BAD_PROGRAM, DRILLING, TRANSPORT, Answer, call
+from tests.support import eventually
 
 
 def post(api: ServerThread, path: str, body: bytes | str | None = None,

@@ -8,6 +8,7 @@ timeout. When it does not, the module trips: every coil drops to 0 (its fail-saf
 held there until the heartbeat changes again. The watchdog arms at the first heartbeat change,
 so a controller that never sends one (or a timeout of 0) leaves the outputs alone.
 
+Unlike tests.support.SimModbusServer (a plain server), it has this watchdog and a latency:
 `latency_s` delays every request from the network by that much before it takes effect and is
 answered, like a real module behind a real network (a few ms); the test side's own reads and
 writes are not delayed.
@@ -17,7 +18,6 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
-import socket
 import threading
 import time
 from typing import Any
@@ -26,18 +26,13 @@ from pymodbus.pdu import ModbusPDU
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from tests.support import free_port
+
 FC_COIL, FC_DI, FC_HR, FC_IR = 1, 2, 3, 4
 SIZE = 64  # per table; a multiple of 16 (pymodbus checks bit areas per 16-bit word)
 CHECK_S = 0.005  # how often the module's watchdog looks at the heartbeat register
 # Set in the tasks of the module itself and of the test side: their accesses are not requests.
 _INTERNAL: contextvars.ContextVar[bool] = contextvars.ContextVar("internal", default=False)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 class RemoteIoDevice:

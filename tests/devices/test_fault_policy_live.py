@@ -16,7 +16,8 @@ from softplc.core.lifecycle import Command, PlcState
 from softplc.core.scan import FAULT_DEVICE, FAULT_NONE, ProgramCommand
 from softplc.hmi.map import STATUS_FAULT_CODE, STATUS_STATE, status_registers
 from softplc.runtime.loop import LoopConfig, ScanLoop
-from tests.devices.test_modbus_io import FC_COIL, FC_DI, SimServer, free_port
+from tests.devices.test_modbus_io import FC_COIL, FC_DI
+from tests.support import SimModbusServer, free_port
 
 S = PlcState
 SCAN_GAP_S = 0.002
@@ -84,18 +85,18 @@ class Rig:
 
 
 @pytest.fixture
-def remote_io() -> Iterator[SimServer]:
-    srv = SimServer(free_port())
+def remote_io() -> Iterator[SimModbusServer]:
+    srv = SimModbusServer(free_port())
     srv.start()
     yield srv
     srv.dispose()
 
 
-def lamp(server: SimServer) -> bool:
+def lamp(server: SimModbusServer) -> bool:
     return bool(server.get(FC_COIL, 0, 1)[0])
 
 
-def test_hold_then_fault_and_reset_after_the_device_returns(remote_io: SimServer,
+def test_hold_then_fault_and_reset_after_the_device_returns(remote_io: SimModbusServer,
                                                             tmp_path: Path) -> None:
     server = remote_io
     rig = Rig(tmp_path, server.port, "on_failure: hold, hold_scans: 3")
@@ -135,7 +136,7 @@ def test_hold_then_fault_and_reset_after_the_device_returns(remote_io: SimServer
         rig.close()
 
 
-def test_fault_at_once_and_auto_recover_when_the_device_returns(remote_io: SimServer,
+def test_fault_at_once_and_auto_recover_when_the_device_returns(remote_io: SimModbusServer,
                                                                 tmp_path: Path) -> None:
     server = remote_io
     rig = Rig(tmp_path, server.port, "on_failure: fault, auto_recover: true")

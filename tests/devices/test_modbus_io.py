@@ -4,10 +4,8 @@ Every wait is bounded by a deadline."""
 
 from __future__ import annotations
 
-import asyncio
 import socket
 import statistics
-import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -15,14 +13,12 @@ from types import MappingProxyType
 from typing import Any
 
 import pytest
-from pymodbus.pdu import ModbusPDU
-from pymodbus.server import ModbusTcpServer
-from pymodbus.simulator import DataType, SimData, SimDevice
 
 from softplc.core.image import ProcessImage, parse_address
 from softplc.core.symbols import DIRECTION_OF_AREA, DriverSpec, Symbol, SymType
 from softplc.devices.driver import Health
 from softplc.devices.modbus_io import Block, ModbusIoDriver, Table, parse_channel, plan_channels
+from tests.support import SimModbusServer, free_port, wait_until
 
 FC_COIL, FC_DI, FC_HR, FC_IR = 1, 2, 3, 4
 FC_WRITE_COILS, FC_WRITE_HR = 15, 16
@@ -40,22 +36,6 @@ def spec(port: int, **params: Any) -> DriverSpec:
     base.update(reconnect_min_s=0.05, reconnect_max_s=0.2)
     base.update(params)
     return DriverSpec(DRIVER, "modbus", MappingProxyType(base))
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
-def wait_until(cond: Callable[[], bool], timeout_s: float = 2.0, step_s: float = 0.002) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(step_s)
-    return cond()
 
 
 class Scanner:
@@ -76,76 +56,12 @@ class Scanner:
             self.scan()
             return cond()
 
-        return wait_until(step, timeout_s)
-
-
-class SimServer:
-    """pymodbus server in a background loop. Records every request as (fc, address, count)."""
-
-    def __init__(self, port: int) -> None:
-        self.port = port
-        self.requests: list[tuple[int, int, int]] = []
-        self._lock = threading.Lock()
-        self.loop = asyncio.new_event_loop()
-        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
-        self.thread.start()
-        self.server: ModbusTcpServer | None = None
-
-    def _call(self, coro: Any) -> Any:
-        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout=2)
-
-    def _trace(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU:
-        if not sending:
-            with self._lock:
-                self.requests.append((pdu.function_code, pdu.address, pdu.count))
-        return pdu
-
-    async def _start(self) -> None:
-        device = SimDevice(
-            id=0,
-            simdata=(
-                [SimData(0, values=[False] * 64, datatype=DataType.BITS)],
-                [SimData(0, values=[False] * 64, datatype=DataType.BITS)],
-                [SimData(0, values=[0] * 64, datatype=DataType.REGISTERS)],
-                [SimData(0, values=[0] * 64, datatype=DataType.REGISTERS)],
-            ),
-        )
-        self.server = ModbusTcpServer(
-            device, address=("127.0.0.1", self.port), trace_pdu=self._trace
-        )
-        await self.server.serve_forever(background=True)
-
-    def start(self) -> None:
-        self._call(self._start())
-
-    def stop(self) -> None:
-        if self.server is not None:
-            self._call(self.server.shutdown())
-            self.server = None
-
-    def set(self, fc: int, address: int, values: list[Any]) -> None:
-        assert self.server is not None
-        self._call(self.server.async_setValues(0, fc, address, values))
-
-    def get(self, fc: int, address: int, count: int) -> list[Any]:
-        assert self.server is not None
-        return list(self._call(self.server.async_getValues(0, fc, address, count)))
-
-    def take_requests(self) -> list[tuple[int, int, int]]:
-        with self._lock:
-            taken, self.requests = self.requests, []
-        return taken
-
-    def dispose(self) -> None:
-        self.stop()
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(timeout=2)
-        self.loop.close()
+        return wait_until(step, timeout_s, step_s=0.002)
 
 
 @pytest.fixture
-def server() -> Iterator[SimServer]:
-    srv = SimServer(free_port())
+def server() -> Iterator[SimModbusServer]:
+    srv = SimModbusServer(free_port())
     srv.start()
     yield srv
     srv.dispose()
@@ -272,7 +188,7 @@ def test_driver_rejects_symbols_of_another_driver() -> None:
 
 
 def test_reads_discrete_inputs_and_input_registers_into_the_image(
-    server: SimServer, open_driver: Callable[[DriverSpec, list[Symbol]], ModbusIoDriver]
+    server: SimModbusServer, open_driver: Callable[[DriverSpec, list[Symbol]], ModbusIoDriver]
 ) -> None:
     server.set(FC_DI, 0, [True, False, True])
     server.set(FC_IR, 4, [1234, 65535])
@@ -297,7 +213,7 @@ def test_reads_discrete_inputs_and_input_registers_into_the_image(
 
 
 def test_writes_coils_and_holding_registers_to_the_server(
-    server: SimServer, open_driver: Callable[[DriverSpec, list[Symbol]], ModbusIoDriver]
+    server: SimModbusServer, open_driver: Callable[[DriverSpec, list[Symbol]], ModbusIoDriver]
 ) -> None:
     drv = open_driver(
         spec(server.port),
@@ -318,7 +234,7 @@ def test_writes_coils_and_holding_registers_to_the_server(
 
 
 def test_one_request_per_contiguous_range_per_cycle(
-    server: SimServer, open_driver: Callable[[DriverSpec, list[Symbol]], ModbusIoDriver]
+    server: SimModbusServer, open_driver: Callable[[DriverSpec, list[Symbol]], ModbusIoDriver]
 ) -> None:
     drv = open_driver(
         spec(server.port),
@@ -339,7 +255,7 @@ def test_one_request_per_contiguous_range_per_cycle(
     for k in range(1, cycles + 1):
         plc.scan()
         target = base + k
-        assert wait_until(lambda: drv.stats().cycles_ok >= target)  # noqa: B023
+        assert wait_until(lambda: drv.stats().cycles_ok >= target, 2.0, 0.002)  # noqa: B023
     requests = server.take_requests()
     assert Counter(requests) == {
         (FC_WRITE_COILS, 0, 5): cycles,
@@ -414,7 +330,7 @@ def test_unanswered_requests_degrade_then_drop_the_connection(
 
 
 def test_server_loss_keeps_last_good_inputs_then_recovers_on_restart(
-    server: SimServer, open_driver: Callable[[DriverSpec, list[Symbol]], ModbusIoDriver]
+    server: SimModbusServer, open_driver: Callable[[DriverSpec, list[Symbol]], ModbusIoDriver]
 ) -> None:
     server.set(FC_DI, 0, [True])
     server.set(FC_IR, 0, [111])
@@ -443,7 +359,7 @@ def test_server_loss_keeps_last_good_inputs_then_recovers_on_restart(
 
 
 def test_close_is_quick_idempotent_and_reopenable(
-    server: SimServer, open_driver: Callable[[DriverSpec, list[Symbol]], ModbusIoDriver]
+    server: SimModbusServer, open_driver: Callable[[DriverSpec, list[Symbol]], ModbusIoDriver]
 ) -> None:
     server.set(FC_IR, 1, [7])
     drv = open_driver(spec(server.port), [sym("w", "%IW0", "ir:1")])

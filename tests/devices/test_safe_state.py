@@ -20,8 +20,9 @@ from softplc.devices.driver import DeviceError, Health, go_safe_all
 from softplc.devices.modbus_io import ModbusIoDriver
 from softplc.program.io_image import load_io_image
 from softplc.runtime.runner import open_drivers
-from tests.devices.remote_io_device import FC_HR, RemoteIoDevice, free_port
-from tests.devices.test_modbus_io import DRIVER, Scanner, sym, wait_until
+from tests.devices.remote_io_device import FC_HR, RemoteIoDevice
+from tests.devices.test_modbus_io import DRIVER, Scanner, sym
+from tests.support import free_port, wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 LAMP = "coil:0"
@@ -104,7 +105,7 @@ def test_go_safe_cuts_a_reconnect_backoff_short(
     assert drv.go_safe(safe_image(plc), 1.0)
     assert not device.coil(0)
     # The I/O thread itself reconnected, long before its backoff would have ended.
-    assert wait_until(lambda: drv.stats().connected, timeout_s=1.0)
+    assert wait_until(lambda: drv.stats().connected, timeout_s=1.0, step_s=0.002)
     assert time.monotonic() - t0 < 2.0
 
 
@@ -212,7 +213,7 @@ def test_heartbeat_arms_the_device_watchdog_and_keeps_it_alive_while_scans_run(
     assert drv.stats().heartbeats >= sent
     # The scans stop (a wedged or killed scan): no more heartbeats, the module trips.
     stopped = time.monotonic()
-    assert wait_until(lambda: not device.coil(0), timeout_s=2.0)
+    assert wait_until(lambda: not device.coil(0), timeout_s=2.0, step_s=0.002)
     assert device.trips == 1 and device.tripped_at is not None
     assert 0.3 - 0.05 <= device.tripped_at - stopped < 0.3 + 0.5  # from the last beat
     # The scans resume: the heartbeat re-arms the module and the lamp comes back.

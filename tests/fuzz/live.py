@@ -15,7 +15,8 @@ from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.loop import LoopConfig
 from softplc.runtime.shm import SnapshotReader, SnapshotWriter
-from tests.api.conftest import PERIOD_NS, ScanThread, eventually
+from tests.api.conftest import PERIOD_NS, ScanThread
+from tests.support import eventually
 
 __all__ = ["LivePlc", "eventually"]
 

@@ -29,15 +29,10 @@ from softplc.hmi.map import (
 from tests.fuzz import budget
 from tests.fuzz.frames import mbap, random_pdu
 from tests.hmi.helpers import connect, recv_adu, request
+from tests.support import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 STATUS_READ = bytes([4]) + (1024).to_bytes(2, "big") + STATUS_WORDS.to_bytes(2, "big")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture

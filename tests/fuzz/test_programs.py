@@ -16,8 +16,9 @@ from softplc.core.lifecycle import Command
 from softplc.core.problems import ProgramError
 from softplc.program.compiler import compile_text
 from tests.fuzz import budget
-from tests.fuzz.live import LivePlc, eventually
+from tests.fuzz.live import LivePlc
 from tests.fuzz.mutate import PROGRAMS, ROOT, mutant
+from tests.support import eventually
 
 LOCATED = re.compile(r"^[^\s:][^:]*:\d+: \S")
 

@@ -13,7 +13,7 @@ import struct
 import subprocess
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager, suppress
 
 import pytest
@@ -24,6 +24,7 @@ from softplc.hmi.admission import Limits
 from softplc.hmi.server import ModbusSlave, run_in_thread
 from softplc.runtime.comm import CommConfig, modbus_limits, modbus_slave
 from tests.hmi.helpers import ImageSource, connect, is_closed_by_peer, request
+from tests.support import wait_until
 
 IDLE_CONNECTIONS = 200
 SLOWLORIS_CONNECTIONS = 20
@@ -32,15 +33,6 @@ VALID_READ = bytes.fromhex("0400000001")
 # An MBAP header announcing the longest ADU: a trickle of one byte per tick never completes.
 SLOW_FRAME = struct.pack(">HHHB", 1, 0, 254, 1) + bytes([16]) + bytes(252)
 COILS_0_7 = [True, False, False, True, False, False, False, False]  # the fixture's %QX0.0..7
-
-
-def wait_until(predicate: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return predicate()
 
 
 def open_from(port: int, peer: str) -> socket.socket:

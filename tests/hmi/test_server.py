@@ -6,12 +6,12 @@ Every network wait is bounded by a socket timeout or a deadline; no test loops f
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import random
 import socket
 import threading
 import time
-from collections.abc import Callable
 
 import pytest
 from pymodbus.client import AsyncModbusTcpClient, ModbusTcpClient
@@ -21,6 +21,7 @@ from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import HmiWrite, Status
 from softplc.hmi.map import STATUS_WORDS, status_registers
 from softplc.hmi.server import ModbusSlave, SlaveThread, run_in_thread
+from tests import support
 from tests.hmi import cases
 from tests.hmi.cases import Case
 from tests.hmi.helpers import (
@@ -35,13 +36,7 @@ from tests.hmi.helpers import (
 VALID_READ = bytes.fromhex("0400000001")  # %IW0, which the fixture sets to 0
 
 
-def wait_until(predicate: Callable[[], bool], timeout_s: float = 3.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return predicate()
+wait_until = functools.partial(support.wait_until, timeout_s=3.0)  # a local server: 3 s
 
 
 def client(slave: SlaveThread) -> ModbusTcpClient:

@@ -14,7 +14,12 @@ from softplc.core.net import CompiledNet
 from softplc.core.problems import ProgramError
 from softplc.core.snapshot import CommandRequest
 from softplc.program.compiler import compile_file, compile_text
-from softplc.runtime.downloads import COMPILE_SWITCH_INTERVAL_S, Decided, DownloadQueue
+from softplc.runtime.downloads import (
+    COMPILE_SWITCH_INTERVAL_S,
+    Decided,
+    DownloadQueue,
+    ScanPace,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 TRANSPORT = ROOT / "programs" / "transport.yaml"
@@ -110,56 +115,90 @@ def test_the_scan_loop_keeps_scanning_while_a_download_compiles(tmp_path: Path) 
         loop.shutdown()
 
 
-def test_a_compile_runs_only_while_the_scan_waits_for_its_slot() -> None:
-    """ScanPace: while the scan thread says it is scanning, the compile thread makes no
-    progress (it parks at its next Python call, without the interpreter lock); it goes on
-    when the scan waits again, and a queue closed while a scan was running frees it."""
-    calls = [0]
-    started = threading.Event()
+def counting_compile(calls: list[int], started: threading.Event, until: int = 200_000):  # type: ignore[no-untyped-def]
+    """A compile made of Python calls (each one a point where the pace may park it)."""
 
     def step() -> None:
         calls[0] += 1
 
-    def busy_compile(request: CommandRequest) -> str:
+    def compile_program(request: CommandRequest) -> str:
         started.set()
-        while calls[0] < 200_000:
+        while calls[0] < until:
             step()
         return "compiled"
 
-    queue = DownloadQueue(busy_compile)
+    return compile_program
+
+
+def parked(calls: list[int]) -> bool:
+    """No progress over 0.1 s, after 0.05 s to reach the next call."""
+    time.sleep(0.05)
+    before = calls[0]
+    time.sleep(0.1)
+    return calls[0] == before
+
+
+def test_a_compile_parks_while_a_scan_runs_and_goes_on_when_it_waits() -> None:
+    calls, started = [0], threading.Event()
+    pace = ScanPace(time.monotonic_ns)
+    queue = DownloadQueue(counting_compile(calls, started), pace=pace)
     queue.put([CommandRequest(1, Command.DOWNLOAD, program_text="-")])
     try:
         assert started.wait(10)
-        queue.pace.scanning()
-        time.sleep(0.05)  # the compile thread reaches its next call and parks there
-        parked = calls[0]
-        time.sleep(0.1)
-        assert calls[0] == parked < 200_000
-        queue.pace.waiting()
-        decided = take_until(queue, 1)
-        assert [d.net for d in decided] == ["compiled"]
+        pace.scanning()
+        assert parked(calls) and calls[0] < 200_000
+        pace.waiting(time.monotonic_ns() + 60_000_000_000)
+        assert [d.net for d in take_until(queue, 1)] == ["compiled"]
         assert sys.gettrace() is None  # the hook is the compile thread's alone
     finally:
         queue.close()
 
 
+def test_a_compile_parks_by_itself_before_the_next_slot() -> None:
+    """The scan thread is asleep until its deadline; the compile must let go of the
+    interpreter `margin` before it, without being told."""
+    calls, started = [0], threading.Event()
+    pace = ScanPace(time.monotonic_ns, margin_ns=20_000_000)
+    queue = DownloadQueue(counting_compile(calls, started, until=10**9), pace=pace)
+    pace.waiting(time.monotonic_ns() + 60_000_000_000)
+    queue.put([CommandRequest(1, Command.DOWNLOAD, program_text="-")])
+    try:
+        assert started.wait(10)
+        slot = time.monotonic_ns() + 400_000_000  # the next slot in 400 ms, margin 20 ms
+        pace.waiting(slot)
+        before = calls[0]
+        while calls[0] == before and time.monotonic_ns() < slot - 30_000_000:
+            time.sleep(0.001)
+        assert calls[0] > before  # it runs before the deadline
+        time.sleep(max(0.0, (slot - time.monotonic_ns()) / 1e9))
+        assert parked(calls)  # parked from 380 ms on, with nobody saying so
+    finally:
+        queue.close()
+
+
+def test_an_open_pace_never_parks() -> None:
+    """A loop on a virtual clock (tests) has an open pace: scanning() stops nothing."""
+    calls, started = [0], threading.Event()
+    queue = DownloadQueue(counting_compile(calls, started))
+    queue.put([CommandRequest(1, Command.DOWNLOAD, program_text="-")])
+    try:
+        assert started.wait(10)
+        queue.pace.scanning()
+        assert [d.net for d in take_until(queue, 1)] == ["compiled"]
+    finally:
+        queue.close()
+
+
 def test_closing_the_queue_releases_a_compile_parked_on_a_scan() -> None:
-    finished = threading.Event()
-    started = threading.Event()
-
-    def tick() -> None:  # a Python call: a parking point
-        time.sleep(0.001)
-
-    def compile_program(request: CommandRequest) -> None:
-        started.set()
-        for _ in range(200):
-            tick()
-        finished.set()
-
-    queue = DownloadQueue(compile_program)
+    calls, started = [0], threading.Event()
+    pace = ScanPace(time.monotonic_ns)
+    queue = DownloadQueue(counting_compile(calls, started), pace=pace)
     queue.put([CommandRequest(1, Command.DOWNLOAD, program_text="-")])
     assert started.wait(10)
-    queue.pace.scanning()
-    assert not finished.wait(0.5)  # parked: 200 ticks take 0.2 s
+    pace.scanning()
+    assert parked(calls)
     queue.close()  # the loop's shutdown: no scan will come again
-    assert finished.wait(10)
+    deadline = time.monotonic() + 10
+    while calls[0] < 200_000 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert calls[0] == 200_000

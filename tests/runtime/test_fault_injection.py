@@ -271,7 +271,7 @@ def test_a_net_too_large_for_the_download_gate_is_not_analysed_and_refused_under
         tmp_path: Path) -> None:
     from softplc.bench.onlinebench import ring_program
     from softplc.program.compiler import compile_text
-    from softplc.runtime.loop import GATE_MAX_TRANSITIONS, AnalysisRefused
+    from softplc.runtime.prepare import GATE_MAX_TRANSITIONS, AnalysisRefused
 
     net = compile_text(ring_program(GATE_MAX_TRANSITIONS + 1, 0),
                        str(REPO / "programs" / "ring.yaml"), REPO)
@@ -279,12 +279,12 @@ def test_a_net_too_large_for_the_download_gate_is_not_analysed_and_refused_under
     for policy in ("warn", "refuse"):
         loop = ScanLoop(LoopConfig(verify=policy), None, None, VirtualClock(0))
         if policy == "warn":
-            analysis = loop._analyse(net)
+            analysis = loop.prep.analyse(net)
             assert analysis is not None and not analysis["blocking"]
             assert "not analysed" in analysis["findings"][0]
         else:
             with pytest.raises(AnalysisRefused, match="not analysed"):
-                loop._analyse(net)
+                loop.prep.analyse(net)
     assert time.monotonic() - began < 30  # bounded: never a state space of 2,001 places
 
 

@@ -18,7 +18,8 @@ from typing import Any
 import pytest
 from pymodbus.client import ModbusTcpClient
 
-from tests.runtime.test_run_process import ROOT, connect, free_port, wait_for
+from tests.runtime.test_run_process import ROOT, connect, wait_for
+from tests.support import free_port
 
 HOLD_COIL = 800  # %MX0.0: coils from `bits` (800) are %MX (docs/modbus.md)
 S1_I_INPUT = 0  # %IX0.0, discrete input 0: a part waits at conveyor 1's input

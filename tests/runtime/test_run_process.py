@@ -3,10 +3,10 @@ HMI writes reaching the program, SIGTERM stopping both with outputs safe."""
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -19,24 +19,13 @@ from pymodbus.exceptions import ModbusException
 
 from softplc.core.lifecycle import PlcState
 from softplc.hmi.map import STATUS_SCAN_COUNT, STATUS_STATE
+from tests.support import eventually, free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def wait_for(predicate, timeout_s: float = 20.0):  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError("condition not met in time")
+# Processes take seconds to start on a loaded machine; a probe may spawn mbpoll: 100 ms steps.
+wait_for = functools.partial(eventually, timeout_s=20.0, step_s=0.1)
 
 
 @pytest.fixture

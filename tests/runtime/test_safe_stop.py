@@ -24,7 +24,8 @@ from pathlib import Path
 import pytest
 
 from softplc.api.client import ApiClient
-from tests.devices.remote_io_device import FC_DI, RemoteIoDevice, free_port
+from tests.devices.remote_io_device import FC_DI, RemoteIoDevice
+from tests.support import eventually, free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 SAFE_WITHIN_S = 1.0
@@ -81,14 +82,6 @@ class Plc:
         return self.device.coil(0)
 
 
-def wait_for(predicate: Callable[[], object], timeout_s: float, step_s: float = 0.1) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        time.sleep(step_s)
-
-
 def seconds_until_safe(plc: Plc, limit_s: float = 5.0) -> float:
     """From now until the lamp's coil reads 0 (polled every 5 ms), at most limit_s."""
     t0 = time.monotonic()
@@ -120,7 +113,8 @@ def start_plc(tmp_path: Path) -> Iterator[Callable[..., Plc]]:
         plc = Plc(proc, device, ApiClient(f"http://127.0.0.1:{api_port}", timeout_s=5,
                                           state_dir=tmp_path / "state"), scan_pid)
         try:
-            wait_for(plc.lamp, timeout_s=40)  # spawning two processes takes seconds when loaded
+            # spawning two processes takes seconds when loaded
+            eventually(plc.lamp, timeout_s=40, step_s=0.1)
         except AssertionError:
             raise AssertionError(f"the lamp never came on: {_why_not(plc)}") from None
         return plc
@@ -192,7 +186,7 @@ def test_every_stop_path_leaves_the_output_safe_within_one_second(
         assert "outputs safe" in out
     if how in ("api_stop", "api_kill", "limit_fault"):
         state = {"api_stop": "STOPPED", "api_kill": "KILLED"}.get(how, "FAULTED")
-        wait_for(lambda: plc.api.status()["state"] == state, timeout_s=10)
+        eventually(lambda: plc.api.status()["state"] == state, timeout_s=10, step_s=0.1)
         time.sleep(0.3)  # the scans go on: the lamp stays off
         assert not plc.lamp()
 
@@ -202,7 +196,7 @@ def test_a_killed_scan_process_is_covered_by_the_device_watchdog(
     plc = start_plc(heartbeat=True)
     time.sleep(2 * DEVICE_TIMEOUT_MS / 1000)  # the heartbeat keeps the module from tripping
     # (on a machine loaded enough to stall the scans for the timeout it trips and re-arms)
-    wait_for(lambda: plc.lamp() and not plc.device.tripped, timeout_s=10, step_s=0.01)
+    eventually(lambda: plc.lamp() and not plc.device.tripped, timeout_s=10, step_s=0.01)
     trips = plc.device.trips
     # The supervisor would restart the scan process warm within ~0.5 s (the lamp back on, as
     # it should be): frozen first, it stands for a host that lost power or hangs, where no

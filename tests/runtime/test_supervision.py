@@ -15,7 +15,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -24,29 +24,9 @@ from pymodbus.client import ModbusTcpClient
 
 from softplc.api.client import ApiClient, ApiError
 from softplc.hmi.map import FLAG_STALE, STATUS_FLAGS, STATUS_WORDS
-from tests.runtime.test_run_process import free_port
+from tests.support import eventually_reachable, free_port
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def eventually(predicate: Callable[[], Any], timeout_s: float = 30.0, what: str = "",
-               show: Callable[[], Any] | None = None) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            value = predicate()
-        except (OSError, ApiError):
-            value = None
-        if value:
-            return value
-        time.sleep(0.05)
-    seen = ""
-    if show is not None:
-        try:
-            seen = f" (last seen: {show()})"
-        except (OSError, ApiError) as exc:
-            seen = f" (last seen: {exc})"
-    raise AssertionError(f"not within {timeout_s} s: {what}{seen}")
 
 
 # These tests are about processes, not cycle timing: a 2-core machine loaded by other jobs can
@@ -71,7 +51,7 @@ class Run:
             start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})})
         self.lines: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
-        banner = eventually(lambda: self.line("supervisor pid"), 60, "the banner")
+        banner = eventually_reachable(lambda: self.line("supervisor pid"), 60, "the banner")
         self.supervisor = int(banner.split("supervisor pid")[1].split(":")[0])
         self.api = ApiClient(f"http://127.0.0.1:{self.api_port}", timeout_s=5)
 
@@ -125,11 +105,11 @@ def test_a_killed_scan_process_restarts_warm_and_sigterm_ends_everything(
         tmp_path: Path, runs: list[Run]) -> None:
     run = Run(ROOT, "programs/transport.yaml", tmp_path / "state", "--plant", "transport")
     runs.append(run)
-    eventually(lambda: run.status()["scan_count"] > 150, 30, "scans")  # snapshots exist
+    eventually_reachable(lambda: run.status()["scan_count"] > 150, 30, "scans")  # snapshots exist
     first = run.scan_pid()
     os.kill(first, signal.SIGKILL)
     killed = time.monotonic()
-    status = eventually(lambda: (s := run.status()).get("restarts") == 1 and
+    status = eventually_reachable(lambda: (s := run.status()).get("restarts") == 1 and
                         s["state"] == "RUNNING" and not s["stale"] and s, 5, "restart",
                         lambda: {k: run.status().get(k) for k in (
                             "state", "restarts", "stale", "fault_reason", "start_reason")})
@@ -140,7 +120,7 @@ def test_a_killed_scan_process_restarts_warm_and_sigterm_ends_everything(
     pgid = run.proc.pid
     began = time.monotonic()
     assert run.stop(signal.SIGTERM, timeout_s=3) == 0
-    eventually(lambda: not group_alive(pgid), 3 - (time.monotonic() - began), "all gone")
+    eventually_reachable(lambda: not group_alive(pgid), 3 - (time.monotonic() - began), "all gone")
     assert any("restarting it warm" in line for line in run.lines)
 
 
@@ -158,7 +138,7 @@ def test_reconfiguration_by_download_runs_drilling_on_its_own_plant(
     # exactly `make run`: transport on --plant transport, then the seed paper's reconfiguration
     run = Run(ROOT, "programs/transport.yaml", tmp_path / "state", "--plant", "transport")
     runs.append(run)
-    eventually(lambda: run.status()["scan_count"] > 20, 30, "scans")
+    eventually_reachable(lambda: run.status()["scan_count"] > 20, 30, "scans")
     reply = run.api.download(ROOT / "programs" / "drilling.yaml", online=True)
     assert reply["ok"] and "drilling" in reply["message"]
     initial = None
@@ -171,7 +151,7 @@ def test_reconfiguration_by_download_runs_drilling_on_its_own_plant(
         initial = initial or status["marking"]
         return status["marking"] != initial
 
-    eventually(drilling_moves, 60, "the drilling net firing on its plant")
+    eventually_reachable(drilling_moves, 60, "the drilling net firing on its plant")
     status = run.status()
     assert status["fault_code"] == 0 and status["health"] == {"plant": "ok"}
     assert run.scan_pid() and run.proc.poll() is None
@@ -190,7 +170,7 @@ def test_a_download_whose_devices_cannot_open_is_refused_untouched(
     assert bad != program
     run = Run(tmp_path, "programs/transport.yaml", tmp_path / "state")
     runs.append(run)
-    before = eventually(lambda: (s := run.status())["scan_count"] > 20 and s, 30, "scans")
+    before = eventually_reachable(lambda: (s := run.status())["scan_count"] > 20 and s, 30, "scans")
     with pytest.raises(ApiError) as refused:
         run.api.download_text(bad, online=True, name="transport.yaml")
     assert refused.value.status == 422 or refused.value.status == 409
@@ -200,7 +180,8 @@ def test_a_download_whose_devices_cannot_open_is_refused_untouched(
     after = run.status()
     assert (after["program"], after["program_hash"], after["state"]) == (
         before["program"], before["program_hash"], "RUNNING")
-    eventually(lambda: run.status()["scan_count"] > after["scan_count"], 10, "still scanning")
+    eventually_reachable(lambda: run.status()["scan_count"] > after["scan_count"], 10,
+                         "still scanning")
 
 
 def status_flags(port: int) -> int:
@@ -217,11 +198,11 @@ def test_a_frozen_scan_is_stale_takes_no_command_and_counts_the_stall(
         tmp_path: Path, runs: list[Run]) -> None:
     run = Run(ROOT, "programs/transport.yaml", tmp_path / "state", *RELAXED)
     runs.append(run)
-    eventually(lambda: run.status()["scan_count"] > 20, 30, "scans")
+    eventually_reachable(lambda: run.status()["scan_count"] > 20, 30, "scans")
     scan = run.scan_pid()
     os.kill(scan, signal.SIGSTOP)
     try:
-        eventually(lambda: run.status()["stale"], 3, "stale status")
+        eventually_reachable(lambda: run.status()["stale"], 3, "stale status")
         assert status_flags(run.modbus) & FLAG_STALE
         asked = time.monotonic()
         with pytest.raises(ApiError) as refused:
@@ -231,7 +212,7 @@ def test_a_frozen_scan_is_stale_takes_no_command_and_counts_the_stall(
         time.sleep(1.0)
     finally:
         os.kill(scan, signal.SIGCONT)
-    status = eventually(lambda: (s := run.status())["timing"].get("stalls", 0) >= 1
+    status = eventually_reachable(lambda: (s := run.status())["timing"].get("stalls", 0) >= 1
                         and not s["stale"] and s, 10, "the stall counted")
     assert status["timing"]["longest_gap_us"] > 1_000_000
     time.sleep(0.5)
@@ -245,14 +226,15 @@ def test_a_scan_process_that_keeps_dying_makes_the_supervisor_give_up(
     run = Run(ROOT, "programs/transport.yaml", tmp_path / "state")
     runs.append(run)
     for restart in range(1, 6):
-        pid = eventually(lambda restart=restart: (s := run.status()).get("restarts", 0)
+        pid = eventually_reachable(lambda restart=restart: (s := run.status()).get("restarts", 0)
                          == restart - 1 and not s["stale"] and s["scan_pid"],
                          20, f"restart {restart - 1}")
         os.kill(pid, signal.SIGKILL)
-        eventually(lambda restart=restart: run.line(f"restart {restart},")
+        eventually_reachable(lambda restart=restart: run.line(f"restart {restart},")
                    or run.line(f"restart {restart} "),
                    20, f"restart {restart}")
-    pid = eventually(lambda: (s := run.status()).get("restarts") == 5 and s["scan_pid"], 20)
+    pid = eventually_reachable(
+        lambda: (s := run.status()).get("restarts") == 5 and s["scan_pid"], 20)
     os.kill(pid, signal.SIGKILL)
     assert run.proc.wait(10) == 3
     assert run.line("giving up")
@@ -266,7 +248,7 @@ def test_a_killed_process_group_leaves_nothing_behind_after_the_next_start(
         run = Run(ROOT, "programs/transport.yaml", tmp_path / f"state{k}")
         runs.append(run)
         manifest = shm / f"softplc_{run.supervisor}_sems"
-        names = eventually(
+        names = eventually_reachable(
             lambda manifest=manifest: manifest.exists() and manifest.read_text().split(), 10)
         leftovers += [shm / f"sem.{n.lstrip('/')}" for n in names]
         leftovers += list(shm.glob(f"softplc_{run.supervisor}_*"))
@@ -286,7 +268,7 @@ def test_verify_refuse_refuses_a_net_with_findings_and_keeps_the_running_one(
         shutil.copy(ROOT / "tests" / "analysis" / "programs" / name, tmp_path / "programs")
     run = Run(tmp_path, "programs/transport.yaml", tmp_path / "state", "--verify", "refuse")
     runs.append(run)
-    before = eventually(lambda: (s := run.status())["scan_count"] > 20 and s, 30, "scans")
+    before = eventually_reachable(lambda: (s := run.status())["scan_count"] > 20 and s, 30, "scans")
     assert "bounded" in before["analysis"]["summary"] and not before["analysis"]["blocking"]
     for name, finding in (("deadlock.yaml", "deadlock"), ("unbounded.yaml", "unbounded"),
                           ("conflict.yaml", "driven to different values")):
@@ -328,14 +310,14 @@ def test_the_last_accepted_program_boots_after_a_stop(tmp_path: Path, runs: list
     state = tmp_path / "state"
     first = Run(ROOT, "programs/transport.yaml", state)
     runs.append(first)
-    eventually(lambda: first.status()["scan_count"] > 20, 30, "scans")
+    eventually_reachable(lambda: first.status()["scan_count"] > 20, 30, "scans")
     assert first.api.download(ROOT / "programs" / "drilling.yaml", online=True)["ok"]
-    eventually(lambda: first.status()["program"] == "drilling", 30, "drilling running")
+    eventually_reachable(lambda: first.status()["program"] == "drilling", 30, "drilling running")
     time.sleep(1.5)  # a retain snapshot of drilling
     assert first.stop(signal.SIGINT) == 0
     second = Run(ROOT, "", state)
     runs.append(second)
-    status = eventually(lambda: (s := second.status())["program"] == "drilling" and s, 30,
+    status = eventually_reachable(lambda: (s := second.status())["program"] == "drilling" and s, 30,
                         "the boot program")
     assert status["state"] == "RUNNING" and status["start_mode"] == "warm"
     assert "boot program drilling.yaml" in status["program_source"]

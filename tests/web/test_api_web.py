@@ -15,8 +15,9 @@ import pytest
 from softplc.api.client import ApiClient, ApiError
 from softplc.api.web import LIVE_HZ
 from softplc.cli import main
-from tests.api.conftest import Plc, ScanThread, ServerThread, eventually, make_server
+from tests.api.conftest import Plc, ScanThread, ServerThread, make_server
 from tests.api.helpers import ROOT, TRANSPORT, call
+from tests.support import eventually
 
 DRILLING = ROOT / "programs" / "drilling.yaml"
 

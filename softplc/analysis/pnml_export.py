@@ -1,0 +1,136 @@
+"""PNML (ISO/IEC 15909-2, `ptnet` type) export.
+
+Owns: writing a CompiledNet (or a bare PtNet) as PNML: the P/T skeleton any tool opens
+(places, transitions, weighted arcs, initial markings, names) plus softplc's own data in
+`toolspecific tool="softplc"` elements (guards, actions, timing, priorities, outputs,
+capacities, coloured tokens, test and inhibitor arcs, the io image); the namespaces and the
+tool name that pnml.py reads back.
+Does not know: reading PNML, exploration, the CLI.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+from xml.sax.saxutils import escape, quoteattr
+
+from softplc.analysis.models import PtNet
+from softplc.core.net import ActionKind, CompiledNet
+
+PNML_NS = "http://www.pnml.org/version-2009/grammar/pnml"
+PTNET = "http://www.pnml.org/version-2009/grammar/ptnet"
+TOOL = "softplc"
+
+
+def _tool(body: str, indent: str) -> str:
+    return f'{indent}<toolspecific tool="{TOOL}" version="1">{body}</toolspecific>\n'
+
+
+def _named(kind: str, ident: str, name: str, inner: str, indent: str) -> str:
+    return (f'{indent}<{kind} id="{ident}"><name><text>{escape(name)}</text></name>\n'
+            f"{inner}{indent}</{kind}>\n")
+
+
+def _json_tag(tag: str, value: Any) -> str:
+    return f"<{tag}>{escape(json.dumps(value, sort_keys=True))}</{tag}>"
+
+
+def _action_text(kind: ActionKind, target: str, value_text: str | None) -> str:
+    if kind is ActionKind.WRITE:
+        return f"{target} = {value_text}"
+    return f"{kind.value} {target}"
+
+
+def export_compiled(net: CompiledNet, io_image: str | None = None) -> str:
+    """PNML text of `net`. `io_image`: the symbols file as the importer should find it
+    (relative to the PNML file); default: the path the program gave, made relative."""
+    io_ref = io_image if io_image is not None else net.io.path
+    head = _json_tag("program", {"name": net.name, "io_image": io_ref,
+                                 "events": sorted(net.emits)})
+    out = [f'<?xml version="1.0" encoding="UTF-8"?>\n<pnml xmlns="{PNML_NS}">\n',
+           f'  <net id="{_id(net.name)}" type="{PTNET}">\n',
+           f"    <name><text>{escape(net.name)}</text></name>\n", _tool(head, "    "),
+           '    <page id="page0">\n']
+    ind = "      "
+    for p, name in enumerate(net.place_names):
+        extra: dict[str, Any] = {}
+        if net.capacity[p] >= 0:
+            extra["capacity"] = int(net.capacity[p])
+        if net.place_outputs.get(p):
+            extra["outputs"] = [[s, v] for s, v in net.place_outputs[p]]
+        if net.coloured[p]:
+            extra["records"] = [dict(r) for r in net.initial_tokens.get(p, ())]
+        inner = f"{ind}  <initialMarking><text>{int(net.initial[p])}</text></initialMarking>\n"
+        if extra:
+            inner += _tool(_json_tag("place", extra), ind + "  ")
+        out.append(_named("place", f"p{p}", name, inner, ind))
+    for t in net.transitions:
+        data: dict[str, Any] = {"priority": t.priority}
+        if t.guard is not None:
+            data["when"] = t.guard.text
+        if t.actions:
+            data["do"] = [_action_text(a.kind, a.target, a.value.text if a.value else None)
+                          for a in t.actions]
+        for key, ns in (("delay", t.delay_ns), ("duration", t.duration_ns)):
+            if ns:
+                data[key] = f"{ns}ns"
+        if t.busy_outputs:
+            data["outputs"] = [[s, v] for s, v in t.busy_outputs]
+        if t.test:
+            data["read"] = [[net.place_names[p], w] for p, w in t.test]
+        if t.inhibit:
+            data["inhibit"] = [[net.place_names[p], w] for p, w in t.inhibit]
+        out.append(_named("transition", f"t{t.index}", t.name,
+                          _tool(_json_tag("transition", data), ind + "  "), ind))
+    n = 0
+    for t in net.transitions:
+        for a in t.pre:
+            tool = _tool(_json_tag("arc", {"var": a.var}), ind + "  ") if a.var else ""
+            out.append(_arc(f"a{n}", f"p{a.place}", f"t{t.index}", a.weight, tool, ind))
+            n += 1
+        for o in t.post:
+            spec: dict[str, Any] = {}
+            if o.var is not None:
+                spec["token"] = o.var
+            elif o.fields is not None:
+                spec["token"] = {k: c.text for k, c in o.fields.items()}
+            tool = _tool(_json_tag("arc", spec), ind + "  ") if spec else ""
+            out.append(_arc(f"a{n}", f"t{t.index}", f"p{o.place}", o.weight, tool, ind))
+            n += 1
+    out.append("    </page>\n  </net>\n</pnml>\n")
+    return "".join(out)
+
+
+def export_pt(net: PtNet) -> str:
+    """PNML text of a bare P/T net (the benchmark models)."""
+    ids = {p: f"p{i}" for i, (p, _) in enumerate(net.places)}
+    out = [f'<?xml version="1.0" encoding="UTF-8"?>\n<pnml xmlns="{PNML_NS}">\n',
+           f'  <net id="{_id(net.name)}" type="{PTNET}">\n',
+           f"    <name><text>{escape(net.name)}</text></name>\n", '    <page id="page0">\n']
+    ind = "      "
+    for p, k in net.places:
+        out.append(_named("place", ids[p], p, f"{ind}  <initialMarking><text>{k}</text>"
+                          "</initialMarking>\n", ind))
+    n = 0
+    for i, (t, pre, post) in enumerate(net.transitions):
+        out.append(_named("transition", f"t{i}", t, "", ind))
+        for p, w in pre.items():
+            out.append(_arc(f"a{n}", ids[p], f"t{i}", w, "", ind))
+            n += 1
+        for p, w in post.items():
+            out.append(_arc(f"a{n}", f"t{i}", ids[p], w, "", ind))
+            n += 1
+    out.append("    </page>\n  </net>\n</pnml>\n")
+    return "".join(out)
+
+
+def _arc(ident: str, source: str, target: str, weight: int, tool: str, ind: str) -> str:
+    inscription = (f"{ind}  <inscription><text>{weight}</text></inscription>\n"
+                   if weight != 1 else "")
+    return (f"{ind}<arc id={quoteattr(ident)} source={quoteattr(source)} "
+            f"target={quoteattr(target)}>\n{inscription}{tool}{ind}</arc>\n")
+
+
+def _id(name: str) -> str:
+    clean = "".join(c if c.isalnum() or c in "_-." else "_" for c in name)
+    return clean if clean[:1].isalpha() else "n" + clean

@@ -1,0 +1,41 @@
+"""The scan process's configuration: what `softplc run` and the benchmarks hand the loop.
+
+Owns: LoopConfig, a frozen value (it crosses into the scan process by pickling).
+Does not know: how any of it is used (runtime/loop.py, runtime/prepare.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from softplc.core.image import ImageSizes
+from softplc.runtime.realtime import NORMAL, Realtime
+
+
+@dataclass(frozen=True, slots=True)
+class LoopConfig:
+    program: str | None = None  # compiled and downloaded on the first scan
+    start: bool = False
+    period_ns: int = 10_000_000
+    plant: str | None = None  # overrides the plant of a sim driver
+    seed: int = 0
+    trace: str | None = None
+    watchdog: float = 10.0  # fault when one scan runs longer than period x this
+    root: str | None = None  # downloads may only reference files under this directory
+    programs_dir: str | None = None  # a plain-text download's home (None: root/programs)
+    sizes: ImageSizes = field(default_factory=ImageSizes)
+    max_scans: int | None = None  # stop after this many (tests, benchmarks)
+    state_dir: str | None = None  # retain snapshots live here; None: no retain, always cold
+    retain_interval_ns: int = 1_000_000_000  # 0: only on stop
+    warm_start: str = "run"  # a warm restart of a RUNNING snapshot: "run" resumes, "stop" waits
+    realtime: Realtime = NORMAL  # SCHED_FIFO priority and CPU of the scan process
+    on_stall: str = "fault"  # a stall long enough to fault (below): "fault" or "continue"
+    # A cycle that starts period x watchdog late is a stall: counted, an event. It faults (with
+    # on_stall "fault") once it is also this long: a general-purpose OS delays a sleeping
+    # process by tens of ms under load, which lateness and overruns already show; a pause of
+    # half a second or more (SIGSTOP, VM pause, swap storm) is no hiccup.
+    stall_fault_ns: int = 500_000_000
+    restarts: int = 0  # how often the supervisor restarted the scan process before this one
+    restart_reason: str = ""  # why it restarted it last
+    boot: bool = True  # no program given: run the boot program of state_dir, if any
+    verify: str = "warn"  # analysis gate on downloads: "refuse", "warn" or "off"

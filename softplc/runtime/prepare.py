@@ -1,0 +1,247 @@
+"""Downloads prepared off the scan: compiled, analysed, their engine and carry plan built
+and their devices opened on the compile thread (runtime/downloads.py), so that the scan only
+swaps; and the dry run, which says what a download would do and applies nothing.
+
+Owns: where a plain-text download resolves its files (the programs directory) and where a
+bundle is unpacked; the analysis gate (docs/analysis.md) and its size bound; refusal texts
+with paths as the sender knows them.
+Does not know: the scan loop, the channel, the clock.
+"""
+
+from __future__ import annotations
+
+import gc
+import os
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from softplc.core import online
+from softplc.core.firing import Engine
+from softplc.core.image import ImageSizes
+from softplc.core.lifecycle import Command, CommandRejected, PlcState, next_state
+from softplc.core.net import CompiledNet, NetState
+from softplc.core.problems import Problem, ProgramError
+from softplc.core.scan import Plc
+from softplc.core.snapshot import CommandReply, CommandRequest
+from softplc.devices.driver import Driver
+from softplc.program import bundle as bundles
+from softplc.program.compiler import compile_file, compile_text
+from softplc.runtime.config import LoopConfig
+from softplc.runtime.runner import open_drivers
+
+GATE_MAX_TRANSITIONS = 2_000  # larger nets are not analysed on download (see _analyse)
+
+
+class AnalysisRefused(Exception):
+    """A download the analysis gate refuses (--verify refuse): every blocking finding."""
+
+    def __init__(self, findings: tuple[str, ...]) -> None:
+        super().__init__("\n".join(findings))
+        self.findings = findings
+
+
+@dataclass(slots=True)
+class Prepared:
+    """A download compiled and its devices opened off the scan: the scan only swaps. `drivers`
+    is None when the program's io image declares the drivers already running."""
+
+    net: CompiledNet
+    request: CommandRequest
+    drivers: list[Driver] | None = None
+    engine: Engine | None = None  # the engine's tables for `net`
+    plan: online.CarryPlan | None = None  # the marking's carry-over from the running net
+    analysis: dict[str, Any] | None = None  # the gate's summary and findings
+
+    def discard(self) -> None:
+        for driver in self.drivers or ():
+            driver.close()
+        self.drivers = None
+
+
+class Preparer:
+    """Prepares downloads for one scan loop. `running` gives the net the PLC runs now and
+    `running_specs` the driver specs open now (both read on the compile thread: a stale
+    answer only costs a carry plan rebuilt on the scan, or devices opened for nothing)."""
+
+    def __init__(self, config: LoopConfig, running: Callable[[], CompiledNet | None],
+                 running_specs: Callable[[], tuple[object, ...]]) -> None:
+        self.config = config
+        self._running = running
+        self._running_specs = running_specs
+        self.bundle_roots: set[str] = set()  # unpacked bundles, stripped from messages
+
+    def relative(self, message: str) -> str:
+        """Paths in a message as the sender knows them: relative to the programs' root, never
+        the server's absolute paths."""
+        root = Path(self.config.root).resolve() if self.config.root else Path.cwd()
+        for directory in self.bundle_roots:  # a bundle's files: named as in the bundle
+            message = message.replace(f"{directory}/", "")
+        return message.replace(f"{root}/", "")
+
+    def compile(self, req: CommandRequest) -> CompiledNet:
+        if req.bundle is not None:
+            return self.compile_bundle(req.bundle)
+        root = Path(self.config.root) if self.config.root else None
+        name = req.program_path or "downloaded.yaml"
+        if req.program_text is None:
+            return compile_file(name, root)
+        try:
+            return compile_text(req.program_text, self.download_name(name), root)
+        except ProgramError as exc:
+            if not any("cannot read" in p.message for p in exc.problems):
+                raise
+            hint = Problem(self.download_name(name), 0, "", (
+                "a program sent as plain text resolves io_image: and subnets against the "
+                f"server's programs directory {self.programs_dir()} (softplc run "
+                "--programs-dir); send a bundle instead (softplc download builds one)"))
+            raise ProgramError([*exc.problems, hint]) from None
+
+    def programs_dir(self) -> Path:
+        if self.config.programs_dir:
+            return Path(self.config.programs_dir).resolve()
+        root = Path(self.config.root) if self.config.root else Path.cwd()
+        return (root / "programs").resolve()
+
+    def download_name(self, name: str) -> str:
+        return str(self.programs_dir() / Path(name).name) if not Path(name).is_absolute() \
+            else name
+
+    def _bundle_dir(self, bundle: bundles.Bundle) -> Path:
+        """Where a bundle is unpacked: the state dir (it is the boot program's home), else a
+        directory of this process's temporary files."""
+        base = Path(self.config.state_dir) / "bundles" if self.config.state_dir else \
+            Path(tempfile.gettempdir()) / f"softplc-bundles-{os.getpid()}"
+        return base / bundle.digest[:16]
+
+    def compile_bundle(self, blob: bytes) -> CompiledNet:
+        """Unpack (off the scan) and compile with the bundle's folder as the root: its files
+        may reference one another, nothing outside it."""
+        try:
+            bundle = bundles.unpack(blob)
+        except bundles.BundleError as exc:
+            raise ProgramError([Problem("bundle", 0, "", str(exc))]) from None
+        directory = self._bundle_dir(bundle)
+        program = bundles.extract(bundle, directory)
+        self.bundle_roots.add(str(directory.resolve()))
+        return compile_file(program, directory.resolve())
+
+    def prepare(self, req: CommandRequest) -> Prepared:
+        """On the compile thread: compile, then open the devices the new io image declares if
+        they are not the running ones, so that a program whose devices cannot be opened is
+        refused before anything changes (the reconfiguration of the seed paper, checked).
+
+        The cyclic collector is off meanwhile: a compile allocates enough to trigger full
+        collections, each holding the GIL for tens of ms over the whole heap (the scan thread
+        then misses its slots); what the compile built is frozen at the end instead."""
+        gc.disable()
+        try:
+            return self._prepare_net(req)
+        finally:
+            gc.freeze()
+            gc.enable()
+
+    def _prepare_net(self, req: CommandRequest) -> Prepared:
+        net = self.compile(req)
+        analysis = self.analyse(net)
+        specs = tuple(net.io.drivers.values())
+        # Everything the swap needs, built here: the engine's tables and the carry plan
+        # against the net running now (the scan checks it is still that net).
+        running = self._running()
+        engine = Engine(net, NetState.initial(net))
+        engine.prime()  # the swap scan then re-checks only what the carried marking changes
+        prepared = Prepared(net, req, None, engine,
+                            online.plan(running, net) if running is not None
+                            and (running.name == net.name or req.dry_run) else None, analysis)
+        if specs != self._running_specs() and not req.dry_run:  # a dry run opens nothing
+            prepared.drivers = open_drivers(net.io, self.config.seed, None)
+        return prepared
+
+    def analyse(self, net: CompiledNet, gate: bool = True) -> dict[str, Any] | None:
+        """The analysis gate (docs/analysis.md), off the scan. Refuses by raising
+        AnalysisRefused under --verify refuse (when `gate`); otherwise the findings go along."""
+        if self.config.verify == "off":
+            return None
+        if len(net.transitions) > GATE_MAX_TRANSITIONS:
+            # Exploring a state space per download must stay a matter of seconds: beyond this
+            # size it is `softplc analyze`'s job, offline. Under refuse, what was not verified
+            # is not accepted.
+            why = (f"{self.relative(net.source)}:1: not analysed: {len(net.transitions)} "
+                   f"transitions exceed the download gate's {GATE_MAX_TRANSITIONS} (run "
+                   "`softplc analyze` on it offline)")
+            if gate and self.config.verify == "refuse":
+                raise AnalysisRefused((why,))
+            return {"summary": "analysis skipped (net too large for the download gate)",
+                    "blocking": False, "findings": [why], "policy": self.config.verify}
+        from softplc.analysis.gate import verify
+
+        verdict = verify(net)
+        if gate and verdict.blocking and self.config.verify == "refuse":
+            raise AnalysisRefused(tuple(self.relative(f) for f in verdict.findings))
+        return {"summary": verdict.summary, "blocking": verdict.blocking,
+                "findings": [self.relative(f) for f in verdict.findings],
+                "policy": self.config.verify}
+
+
+def dry_run(plc: Plc, prepared: Prepared, sizes: ImageSizes) -> CommandReply:
+    """What the download would do now, against the running state; nothing applied."""
+    net, req = prepared.net, prepared.request
+    old, state = plc.net, plc.state
+    if old is None or plc.engine is None:
+        detail: dict[str, Any] = {
+            "from": None, "to": net.name, "replacement": False, "kept": {}, "dropped": {},
+            "new": plc_marking(net), "records": {}, "outputs": {
+                "released": [], "taken": sorted(online.driven(net))}}
+    else:
+        carry_plan = prepared.plan if prepared.plan is not None \
+            and prepared.plan.old is old else online.plan(old, net)
+        detail = online.describe(carry_plan, plc.engine.state)
+    detail["verdict"] = _verdict(plc, prepared, detail, sizes)
+    detail["accepted"] = not detail["verdict"].startswith(("refused", "online change "
+                                                           "refused"))
+    detail["state"] = state.name
+    prepared.discard()
+    return CommandReply(req.id, True, f"dry run: {detail['verdict']} (nothing applied)",
+                        state, detail=detail)
+
+
+def _verdict(plc: Plc, prepared: Prepared, detail: dict[str, Any], sizes: ImageSizes) -> str:
+    """The download's fate in the current state, by the rules of core/scan.py."""
+    net, req = prepared.net, prepared.request
+    if net.io.sizes != sizes:
+        return "refused: the program's image sizes differ from the runtime's"
+    if plc.state is not PlcState.RUNNING:
+        try:
+            next_state(plc.state, Command.DOWNLOAD)
+        except CommandRejected as exc:
+            return f"refused: {exc}"
+        return f"accepted: loads from its initial marking ({plc.state.name})"
+    old = plc.net
+    assert old is not None
+    if not req.online:
+        return "refused: download while RUNNING needs online change (--online)"
+    if net.name == old.name:
+        return str(detail["verdict"])
+    same = tuple(old.io.drivers.values()) == tuple(net.io.drivers.values())
+    if same and not req.replace:
+        return (f"refused: {net.name} is another program than the running {old.name} on "
+                "the same devices; it needs --replace (it starts from its initial marking)")
+    return (f"accepted: replacement of {old.name} by {net.name} from its initial marking"
+            + ("" if same else " (reconfiguration: new devices)"))
+
+
+def plc_marking(net: CompiledNet) -> dict[str, int]:
+    """A net's initial marking by place name (marked places only)."""
+    return {name: int(n) for name, n in zip(net.place_names, net.initial.tolist(), strict=True)
+            if n}
+
+
+def describe_error(error: BaseException) -> str:
+    """A refused download's reason in one line: a device, or an internal compiler error."""
+    from softplc.devices.driver import DeviceError
+
+    if isinstance(error, DeviceError | ValueError | OSError):
+        return f"its devices cannot be opened: {error}"
+    return f"internal compiler error ({type(error).__name__}: {error})"
