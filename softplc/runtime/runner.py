@@ -89,6 +89,7 @@ class ScanRunner:
         self._traced_diag = 0
         self._traced_net: CompiledNet | None = None  # the net whose outputs _traced_out holds
         self._last_inputs: ProcessImage | None = None
+        self._last_in: bytes | None = None  # _last_inputs' input areas, as bytes
         self._digest = ""
         self.fired_counts: dict[str, int] = {}
         self._noted: Observed | None = None  # judged between scans; traced with the next one
@@ -104,7 +105,7 @@ class ScanRunner:
         self._steady = NOTHING_OBSERVED  # other devices: their first answers are judged anew
         self.devices.forget()
         self.inputs = ProcessImage(self.plc.image.sizes)
-        self._last_inputs = None
+        self._last_inputs = self._last_in = None
 
     @property
     def devices(self) -> DeviceMonitor:
@@ -155,12 +156,6 @@ class ScanRunner:
             self.fired_counts[name] = self.fired_counts.get(name, 0) + 1
         if self.trace is not None:
             self._trace(self.trace, now_ns, commands, hmi, result, observed)
-        if self.trace is None:
-            return result  # only the trace's input changes compare with the last inputs
-        if self._last_inputs is None:
-            self._last_inputs = self.inputs.copy()
-        else:
-            self.inputs.copy_into(self._last_inputs)
         return result
 
     def _write(self, outputs: ProcessImage, now_ns: int) -> None:
@@ -257,10 +252,17 @@ class ScanRunner:
         trace.record(record, None, extra)
 
     def _input_changes(self) -> dict[str, dict[str, int]]:
-        last = self._last_inputs
-        if last is not None and self.inputs.inputs_bytes() == last.inputs_bytes():
-            return {}  # the steady scan: one comparison instead of one per input area
-        return input_changes(self.inputs, last)
+        """The inputs that differ from the last traced scan's, which this scan's become."""
+        now = self.inputs.inputs_bytes()
+        if now == self._last_in:
+            return {}  # the steady scan: one comparison, nothing copied
+        changes = input_changes(self.inputs, self._last_inputs)
+        if self._last_inputs is None:
+            self._last_inputs = self.inputs.copy()
+        else:
+            self.inputs.copy_into(self._last_inputs)
+        self._last_in = now
+        return changes
 
     def _output_digest(self, result: ScanResult) -> str:
         if result.outputs_changed or not self._digest:
