@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -28,6 +29,9 @@ from softplc.core.online import CarryPlan
 from softplc.core.problems import FaultCode
 from softplc.core.snapshot import HmiWrite
 from softplc.core.symbols import Direction, FaultPolicy
+
+if TYPE_CHECKING:
+    from softplc.core.scan import ScanResult
 
 # Kept for readers of older code and tests: the codes are FaultCode's.
 FAULT_NONE, FAULT_WATCHDOG, FAULT_DEVICE = FaultCode.NONE, FaultCode.WATCHDOG, FaultCode.DEVICE
@@ -102,6 +106,9 @@ class Plc:
     # The device answers judged last with every device OK (core/judge.py: the steady scan), if so.
     steady_answers: Mapping[str, bool] | None = None
     context: ScanContext | None = None  # the guards' view of the image, kept between scans
+    # The result of a scan in which nothing happened, shared by such scans (ScanResult is
+    # immutable; its empty marking_changes is never written to).
+    quiet_result: ScanResult | None = None
 
     @classmethod
     def empty(cls, image: ProcessImage | None = None) -> Plc:

@@ -177,8 +177,13 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
                            or not _same_outputs(plc.image, plc.prev))
     plc.image.copy_into(plc.prev)
     plc.scan_count += 1
-    return ScanResult(plc.image, occurred, fired, completed, changes, tuple(replies),
-                      outputs_changed)
+    if occurred or fired or completed or changes or replies or outputs_changed:
+        return ScanResult(plc.image, occurred, fired, completed, changes, tuple(replies),
+                          outputs_changed)
+    quiet = plc.quiet_result  # a scan in which nothing happened: most are such
+    if quiet is None or quiet.outputs is not plc.image:
+        quiet = plc.quiet_result = ScanResult(plc.image, (), (), (), {}, (), False)
+    return quiet
 
 
 def _same_outputs(a: ProcessImage, b: ProcessImage) -> bool:
@@ -186,4 +191,3 @@ def _same_outputs(a: ProcessImage, b: ProcessImage) -> bool:
 
 
 _NO_EVENTS: frozenset[str] = frozenset()
-
