@@ -151,7 +151,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from softplc.runtime.supervisor import run
+    from softplc.runtime.runcmd import run
 
     return run(args)
 

@@ -23,9 +23,9 @@ from typing import TYPE_CHECKING, Any, Final
 from aiohttp import web
 
 from softplc.api.openapi import API_PREFIX
+from softplc.api.problems import ApiProblem, json_body
 from softplc.core.lifecycle import Command
-from softplc.core.snapshot import CommandReply
-from softplc.runtime.shm import SnapshotUnavailable
+from softplc.core.snapshot import CommandReply, SnapshotUnavailable
 
 if TYPE_CHECKING:
     from softplc.api.server import ApiServer
@@ -121,16 +121,16 @@ class _LiveHub:
             await asyncio.sleep(max(interval - (time.monotonic() - started), 0.005))
 
     async def _frame(self) -> dict[str, Any] | None:
-        document = await self._api._board_document()
+        document = await self._api.board_document()
         status = None
         with contextlib.suppress(SnapshotUnavailable):
-            status = self._api._snapshots.latest().status
+            status = self._api.snapshots.latest().status
         key = (document.get("scan_count"), None if status is None else
                (status.scan_count, status.state, status.forced))
         if key == self._last_key:
             return None  # nothing new: no frame (a stopped PLC costs nothing)
         self._last_key = key
-        return live_frame(document, status, self._api._image()[1], self._new_events(document))
+        return live_frame(document, status, self._api.image()[1], self._new_events(document))
 
     def _new_events(self, document: dict[str, Any]) -> list[dict[str, Any]]:
         events = [e for e in document.get("events") or []
@@ -193,7 +193,7 @@ class _Routes:
             "X-Content-Type-Options": "nosniff", "Referrer-Policy": "no-referrer"})
 
     async def net(self, request: web.Request) -> web.Response:
-        document = await self._api._board_document()
+        document = await self._api.board_document()
         net = document.get("net")
         if not isinstance(net, dict):
             return _problem(404, "no program loaded: no net to draw", state=document.get("state"))
@@ -227,22 +227,22 @@ class _Routes:
         return response
 
     async def forces(self, request: web.Request) -> web.Response:
-        document = await self._api._board_document()
+        document = await self._api.board_document()
         return web.json_response({"forced": document.get("forced") or {}})
 
     async def force(self, request: web.Request) -> web.Response:
         name = request.match_info["name"]
-        value = _force_value(name, await _body(request))
-        return await self._reply(await self._api._command(Command.FORCE, symbol=name,
+        value = _force_value(name, await json_body(request))
+        return await self._reply(await self._api.command(Command.FORCE, symbol=name,
                                                           value=value))
 
     async def unforce(self, request: web.Request) -> web.Response:
         name = request.match_info.get("name")
-        return await self._reply(await self._api._command(Command.UNFORCE, symbol=name))
+        return await self._reply(await self._api.command(Command.UNFORCE, symbol=name))
 
     async def _reply(self, reply: Any) -> web.Response:
         if not isinstance(reply, CommandReply):  # pending: the command contract's 202
-            return self._api._answer(reply)
+            return self._api.answer(reply)
         if not reply.ok:
             status = 422 if " refused: " in reply.message else 409
             return _problem(status, reply.message, state=reply.state.name)
@@ -250,16 +250,10 @@ class _Routes:
                                   "state": reply.state.name})
 
 
-async def _body(request: web.Request) -> Any:
-    from softplc.api.server import _json_body  # server.py imports this module
-
-    return await _json_body(request)
 
 
 def _force_value(name: str, body: Any) -> int:
     """true/false or an integer; the scan checks it against the symbol's type."""
-    from softplc.api.server import ApiProblem
-
     if not isinstance(body, dict) or "value" not in body:
         raise ApiProblem(422, 'the body must be a JSON object {"value": n}')
     value = body["value"]

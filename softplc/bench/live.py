@@ -34,12 +34,14 @@ from softplc.runtime.channel import Channel
 from softplc.runtime.clock import MonotonicClock, Schedule
 from softplc.runtime.comm import CommConfig
 from softplc.runtime.config import LoopConfig
-from softplc.runtime.loop import ScanLoop, scan_process_main
+from softplc.runtime.leftovers import SHM_PREFIX
+from softplc.runtime.loop import ScanLoop
 from softplc.runtime.procs import die_with_parent
 from softplc.runtime.realtime import NORMAL, Realtime, apply
+from softplc.runtime.scanproc import scan_process_main
 from softplc.runtime.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
-from softplc.runtime.supervisor import SHM_PREFIX, Supervisor
+from softplc.runtime.supervisor import Supervisor
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout: programs/ and io_images/
 TRANSPORT = ROOT / "programs" / "transport.yaml"

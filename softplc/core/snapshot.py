@@ -1,7 +1,12 @@
 """Values that cross the scan boundary: the published snapshot and journaled HMI writes.
 
-Owns: Status (what the Modbus status block and `softplc status` show), Snapshot, HmiWrite.
-Does not know: shared memory, sockets, Modbus function codes.
+Owns: Status (what the Modbus status block and `softplc status` show), Snapshot, HmiWrite,
+commands and their replies, and the contract between the scan process and the services that
+read and command it (the Modbus slave, the HTTP API, OPC UA): SnapshotSource and the
+exceptions its implementations and the command channel raise (SnapshotUnavailable,
+ChannelFull, NotQueued, NoReply), so that both sides import them from here.
+Does not know: shared memory, pipes, sockets, Modbus function codes, the clock (an age is
+computed from a `now_ns` the caller read).
 """
 
 from __future__ import annotations
@@ -87,4 +92,33 @@ class CommandReply:
 class SnapshotSource(Protocol):
     """Where the communication process reads the last published scan from."""
 
-    def latest(self) -> Snapshot: ...
+    def latest(self) -> Snapshot:
+        """The last complete publish; SnapshotUnavailable when none can be read now."""
+        ...
+
+
+def age_ns(snapshot: Snapshot, now_ns: int) -> int:
+    """Nanoseconds from the publish of `snapshot` to `now_ns` (CLOCK_MONOTONIC, the same for
+    every process of the machine); -1 when it was never published."""
+    published = snapshot.status.published_ns
+    return now_ns - published if published else -1
+
+
+class SnapshotUnavailable(RuntimeError):
+    """No consistent snapshot could be read: the writer stayed mid-publish (stuck or dead)."""
+
+
+class ChannelFull(Exception):
+    """A command or HMI write was refused at once because the scan process has not drained its
+    queue (the scan is overloaded or not running), or no reply lane is free. Nothing of it is
+    applied. The HTTP API answers 503; the Modbus slave answers 04 (its write sink raised)."""
+
+
+class NotQueued(TimeoutError):
+    """A command that could not be put in the queue in time: the scan process will never see
+    it whole, so it is never applied."""
+
+
+class NoReply(TimeoutError):
+    """A command queued whose reply did not come in time: it may still be decided later (but
+    never applied after its deadline, if it has one)."""

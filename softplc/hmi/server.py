@@ -2,7 +2,7 @@
 
 Owns: listening, applying the connection rule of admission.py (evict the idle-longest or
 refuse), the idle timeout, flow control, and moving bytes between sockets and the pure
-Responder (frames.py); a thread helper for tests and the CLI.
+Responder (frames.py).
 Does not know: the register map (map.py), Modbus semantics (frames.py), the admission rule
 itself, how snapshots are published or journaled writes applied.
 
@@ -15,12 +15,11 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import replace
 from types import TracebackType
-from typing import Any, cast
+from typing import cast
 
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
@@ -344,58 +343,3 @@ class ModbusSlave:
         tb: TracebackType | None,
     ) -> None:
         await self.stop()
-
-
-class SlaveThread:
-    """A ModbusSlave served by its own asyncio loop in a daemon thread."""
-
-    def __init__(self, slave: ModbusSlave, start_timeout_s: float = 5.0) -> None:
-        self.slave = slave
-        self._ready = threading.Event()
-        self._failure: BaseException | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._stop_event: asyncio.Event | None = None
-        self._thread = threading.Thread(target=asyncio.run, args=(self._main(),), daemon=True)
-        self._thread.name = "modbus-slave"
-        self._thread.start()
-        if not self._ready.wait(start_timeout_s):
-            raise TimeoutError(f"Modbus slave did not start within {start_timeout_s} s")
-        if self._failure is not None:
-            self._thread.join()
-            raise self._failure
-
-    @property
-    def port(self) -> int:
-        return self.slave.bound_port
-
-    def stop(self, timeout_s: float = 5.0) -> None:
-        loop, stop_event = self._loop, self._stop_event
-        if loop is not None and stop_event is not None and self._thread.is_alive():
-            loop.call_soon_threadsafe(stop_event.set)
-        self._thread.join(timeout_s)
-
-    def __enter__(self) -> SlaveThread:
-        return self
-
-    def __exit__(self, *exc_info: Any) -> None:
-        self.stop()
-
-    async def _main(self) -> None:
-        try:
-            await self.slave.start()
-        except BaseException as exc:
-            self._failure = exc
-            self._ready.set()
-            return
-        self._loop = asyncio.get_running_loop()
-        self._stop_event = asyncio.Event()
-        self._ready.set()
-        try:
-            await self._stop_event.wait()
-        finally:
-            await self.slave.stop()
-
-
-def run_in_thread(slave: ModbusSlave, start_timeout_s: float = 5.0) -> SlaveThread:
-    """Start `slave` in a thread; returns once it listens (`.port`), stop with `.stop()`."""
-    return SlaveThread(slave, start_timeout_s)

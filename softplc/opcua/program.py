@@ -21,9 +21,8 @@ from typing import Final, Protocol
 from asyncua import ua
 
 from softplc.core.lifecycle import Command
-from softplc.core.snapshot import CommandReply, CommandRequest, HmiWrite
+from softplc.core.snapshot import ChannelFull, CommandReply, CommandRequest, HmiWrite
 from softplc.opcua.ids import numeric_id, status_code
-from softplc.runtime.channel import ChannelFull
 
 COMMAND_TIMEOUT_S: Final = 8.0  # as the HTTP API: below a client's usual 10 s
 DOWNLOAD_TIMEOUT_S: Final = 60.0  # a download compiles off the scan; a big net takes seconds

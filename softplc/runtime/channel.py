@@ -1,7 +1,8 @@
 """Commands and HMI writes to the scan process, and command replies back to their callers.
 
 Owns: Channel (scan side: drain, reply; client side: send_command, send_hmi_write), the
-framing of messages into pipe-atomic frames, reply lanes, ChannelFull.
+framing of messages into pipe-atomic frames, reply lanes. Its exceptions (ChannelFull,
+NotQueued, NoReply) are in core/snapshot.py, where its callers import them too.
 Does not know: what a command does, the scan loop, Modbus, HTTP.
 
 Create the Channel before starting processes and pass it to them (spawn or fork; create it
@@ -41,7 +42,14 @@ from multiprocessing.context import BaseContext
 from typing import Any, Final
 
 from softplc.core.image import Address
-from softplc.core.snapshot import CommandReply, CommandRequest, HmiWrite
+from softplc.core.snapshot import (
+    ChannelFull,
+    CommandReply,
+    CommandRequest,
+    HmiWrite,
+    NoReply,
+    NotQueued,
+)
 from softplc.runtime.clock import MonotonicClock
 
 FRAME_BYTES: Final = select.PIPE_BUF - 4  # Connection.send_bytes adds a 4-byte length
@@ -50,21 +58,6 @@ _MAX_PARTIAL: Final = 64  # half-received commands kept (their clients died or g
 _MAX_BACKLOG: Final = 1024  # reply frames kept for a lane whose reader is not reading
 _MAX_ABANDONED: Final = 1024  # commands whose caller gave up, kept for a late reply
 _CLOCK: Final = MonotonicClock()
-
-
-class NotQueued(TimeoutError):
-    """A command that could not be put in the queue in time: the scan process will never see
-    it whole, so it is never applied."""
-
-
-class NoReply(TimeoutError):
-    """A command queued whose reply did not come in time: it may still be decided later (but
-    never applied after its deadline, if it has one)."""
-
-
-class ChannelFull(Exception):
-    """A frame was refused because the scan process has not drained its queue: the scan is
-    overloaded or not running. A Modbus slave answers 06 (server device busy)."""
 
 
 @dataclass(slots=True)

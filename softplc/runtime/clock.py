@@ -1,16 +1,17 @@
-"""Time for the runtime: the real monotonic clock, a virtual clock, and duration parsing.
+"""Time for the runtime: the real monotonic clock and a virtual clock.
 
-Owns: the Clock protocol, MonotonicClock (the only place in softplc that reads the real
-clock), VirtualClock (jumps to each deadline; simulation and tests), Schedule (absolute
-deadlines, skipped slots), parse_duration_ns.
+Owns: the Clock protocol, MonotonicClock (the real clock of the scan: the scan time `now_ns`
+handed to the core is read here, or from a VirtualClock), VirtualClock (jumps to each
+deadline; simulation and tests), Schedule (absolute deadlines, skipped slots). Durations
+written as text: core/units.py, the one parser. Other code reads time.monotonic directly for what never reaches the scan's
+semantics: timeouts and deadlines of commands and connections, the age of a snapshot, I/O
+threads' backoff, benchmarks.
 Does not know: scans, programs, processes.
 """
 
 from __future__ import annotations
 
-import re
 import time
-from decimal import Decimal, InvalidOperation
 from typing import Protocol
 
 
@@ -105,39 +106,3 @@ class VirtualClock:
             raise ValueError(f"a virtual clock cannot go back ({delta_ns} ns)")
         self._now_ns += delta_ns
         return self._now_ns
-
-
-_UNIT_NS: dict[str, int] = {
-    "ns": 1,
-    "us": 1_000,
-    "µs": 1_000,  # micro sign U+00B5
-    "μs": 1_000,  # Greek mu U+03BC
-    "ms": 1_000_000,
-    "s": 1_000_000_000,
-    "min": 60_000_000_000,
-    "h": 3_600_000_000_000,
-}
-_DURATION = re.compile(r"(\d+(?:\.\d*)?|\.\d+)\s*([a-zµμ]+)")
-
-
-def parse_duration_ns(text: str) -> int:
-    """`"10ms"`, `"500us"`, `"2.5s"`, `"1min"` -> nanoseconds (exact decimal arithmetic).
-
-    Units: ns, us (or µs), ms, s, min, h. A duration is non-negative and a whole number of
-    nanoseconds; anything else raises ValueError naming the text and the accepted units.
-    """
-    units = ", ".join(_UNIT_NS)
-    m = _DURATION.fullmatch(text.strip().lower())
-    if m is None:
-        raise ValueError(f"bad duration {text!r}: expected a number and a unit ({units})")
-    number, unit = m.groups()
-    scale = _UNIT_NS.get(unit)
-    if scale is None:
-        raise ValueError(f"bad duration {text!r}: unknown unit {unit!r} (use one of {units})")
-    try:
-        value = Decimal(number) * scale
-    except InvalidOperation:  # pragma: no cover - the regex admits only decimal numbers
-        raise ValueError(f"bad duration {text!r}: {number!r} is not a number") from None
-    if value != value.to_integral_value():
-        raise ValueError(f"bad duration {text!r}: not a whole number of nanoseconds")
-    return int(value)

@@ -12,7 +12,7 @@ import dataclasses
 import time
 from typing import Final
 
-from softplc.core.snapshot import Snapshot, SnapshotSource
+from softplc.core.snapshot import Snapshot, SnapshotSource, age_ns
 
 STALE_PERIODS: Final = 5
 STALE_MIN_NS: Final = 200_000_000  # below this, a busy 2-core machine's jitter would flag
@@ -38,5 +38,4 @@ class FreshSource:
     @staticmethod
     def age_ns(snapshot: Snapshot) -> int:
         """Nanoseconds since the scan process published `snapshot` (machine-wide clock)."""
-        published = snapshot.status.published_ns
-        return time.monotonic_ns() - published if published else -1
+        return age_ns(snapshot, time.monotonic_ns())

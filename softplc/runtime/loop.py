@@ -3,26 +3,21 @@
 Owns: absolute deadlines on the monotonic clock, skipped slots counted as overruns, the
 cycle supervision (a whole scan longer than period x watchdog, or a cycle that starts that
 late: a stall), measured here and judged by the pure scan; commands and HMI writes drained
-at the scan boundary, expired commands refused unapplied; downloads compiled and their
-devices opened off the scan (downloads.py's thread), so the scan only swaps; the boot
-program; the snapshot published after every scan; retain captures at scan boundaries; the
-cold or warm start; safe outputs, confirmed by the devices, on every way out.
+at the scan boundary, expired commands refused unapplied; prepared downloads handed to the
+scan (prepared off it: prepare.py, on downloads.py's thread, which runs between scans), so
+the scan only swaps; the snapshot published after every scan; retain captures at scan
+boundaries; the cold or warm start; safe outputs, confirmed by the devices, on every way out.
+The boot program: bootkeeper.py; the process around the loop: scanproc.py.
 Does not know: Modbus, HTTP (the communication process), terminals (the CLI).
 """
 
 from __future__ import annotations
 
-import contextlib
-import gc
 import os
-import signal
 import sys
-import threading
 import time
 from collections import deque
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 from typing import Any
 
 from softplc.core.firing import Engine
@@ -31,10 +26,9 @@ from softplc.core.net import CompiledNet, NetState
 from softplc.core.problems import FaultCode, ProgramError
 from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
-from softplc.program import bundle as bundles
-from softplc.program.compiler import compile_file, compile_text
-from softplc.runtime import boot, netview
+from softplc.runtime import netview
 from softplc.runtime.board import StatusBoard
+from softplc.runtime.bootkeeper import BootKeeper
 from softplc.runtime.channel import Channel
 from softplc.runtime.clock import Clock, MonotonicClock, Schedule
 from softplc.runtime.config import LoopConfig as LoopConfig  # importable from here too
@@ -47,20 +41,18 @@ from softplc.runtime.prepare import (
     dry_run,
 )
 from softplc.runtime.procs import Flag as Event
-from softplc.runtime.realtime import apply
 from softplc.runtime.retain import (
     ContinuedClock,
     Loaded,
     RetainStore,
     RetainWriter,
     StartDecision,
-    StateDirBusy,
     capture,
     decide,
     load_plant,
     restore,
 )
-from softplc.runtime.runner import ScanRunner, open_drivers, plant_conflict
+from softplc.runtime.runner import ScanRunner, open_drivers
 from softplc.runtime.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
 from softplc.runtime.trace import TraceWriter
@@ -85,7 +77,6 @@ class ScanLoop:
         self.event_seq = 0
         self.start_mode = "cold"
         self.start_reason = "retain off (no state directory)"
-        self.program_source = config.program or "none"
         self.realtime = "normal scheduling"  # what scan_process_main obtained
         self.clock: Clock = clock or MonotonicClock()
         self.stats = TimingStats()
@@ -99,14 +90,13 @@ class ScanLoop:
         self.prep = Preparer(config, lambda: self.runner.plc.net, lambda: self._driver_specs)
         self.downloads = DownloadQueue(self.prep.prepare, pace=self._pace())
         self._driver_specs: tuple[object, ...] = ()
-        self._boot_writer: ThreadPoolExecutor | None = None
         self.retain: RetainWriter | None = None
         self._retained_ns = 0
         self._prepared: dict[int, Prepared] = {}  # downloads handed to the scan, by request id
-        self.boot_problem = ""  # why the boot program could not be kept, if it could not
         self._diag_engine: Engine | None = None  # diagnostics put on the event stream
         self._diag_seen = 0
-        net, self._boot = self._program()
+        self.boot = BootKeeper(config, self.prep)
+        net, _ = self.boot.program()
         # The program the PLC starts with is analysed too, never refused: the person at the
         # console chose it. Its findings are in status.
         self.analysis = self.prep.analyse(net, gate=False) if net is not None else None
@@ -129,41 +119,6 @@ class ScanLoop:
         if isinstance(self.clock, MonotonicClock):
             return ScanPace(time.monotonic_ns, self.clock.spin_ns + PACE_MARGIN_NS)
         return ScanPace()
-
-    def _program(self) -> tuple[CompiledNet | None, boot.BootProgram | None]:
-        """The program to run: the command line's, else the boot program of the state dir.
-        The command line's is compiled by the CLI first, which reports its errors."""
-        config = self.config
-        if config.program:
-            if config.plant and (why := plant_conflict(compile_file(config.program).io,
-                                                       config.plant)):
-                raise ValueError(why)
-            net = compile_file(config.program)
-            program = boot.from_file(config.program, net.program_hash)
-            if config.state_dir is not None:  # the program the PLC runs is its boot program
-                self._save_boot(program, unless_same=True)
-            return net, program
-        if config.state_dir is None or not config.boot:
-            return None, None
-        try:
-            loaded = boot.load(config.state_dir)
-        except boot.BootUnreadable as exc:
-            self.program_source = f"none ({exc})"
-            return None, None
-        if loaded is None:
-            return None, None
-        program = loaded
-        try:
-            if program.bundle is not None:
-                net = self.prep.compile_bundle(program.bundle)  # unpacked anew if removed
-            else:
-                net = compile_text(program.text, program.filename,
-                                   Path(program.root) if program.root else None)
-        except (ProgramError, bundles.BundleError, OSError) as exc:
-            self.program_source = f"none ({program.describe()} no longer compiles: {exc})"
-            return None, None
-        self.program_source = program.describe()
-        return net, program
 
     # -- retain -----------------------------------------------------------------------------
 
@@ -277,7 +232,7 @@ class ScanLoop:
                 prepared.discard()
         if accepted is not None:
             self._swap_drivers(accepted)
-            self._keep_boot(accepted.request, accepted.net)
+            self.boot.keep(accepted.request, accepted.net)
             self.analysis = accepted.analysis
             if accepted.analysis and accepted.analysis["findings"]:
                 replies = [CommandReply(r.id, r.ok, f"{r.message}; {accepted.analysis['summary']}"
@@ -303,40 +258,6 @@ class ScanLoop:
         if drivers is None:  # the command line's program, or a race with another download
             drivers = open_drivers(net.io, self.config.seed, self.config.plant)
         self.runner.set_drivers(drivers)
-
-    def _keep_boot(self, req: CommandRequest, net: CompiledNet) -> None:
-        """The accepted download becomes the boot program (written off the scan)."""
-        if self.config.state_dir is None:
-            return
-        if req.bundle is not None:
-            # Its text and folder are in the bundle, unpacked again when it boots.
-            program = boot.BootProgram(net.source, "", None, req.bundle, net.program_hash)
-        elif req.program_text is not None:
-            name = self.prep.download_name(req.program_path or "downloaded.yaml")
-            program = boot.BootProgram(name, req.program_text, self.config.root, None,
-                                       net.program_hash)
-        else:
-            return
-        if self._boot_writer is None:
-            self._boot_writer = ThreadPoolExecutor(1, thread_name_prefix="boot")
-        self._boot_writer.submit(self._save_boot, program)
-        self.program_source = program.describe()
-
-    def _save_boot(self, program: boot.BootProgram, unless_same: bool = False) -> None:
-        """Keep `program` as the boot program. A full or read-only disk never stops the PLC:
-        the failure is shown in status (`boot_problem`) and the previous boot program stays."""
-        assert self.config.state_dir is not None
-        try:
-            if unless_same:
-                with contextlib.suppress(boot.BootUnreadable):
-                    kept = boot.load(self.config.state_dir)
-                    if kept is not None and kept.program_hash == program.program_hash:
-                        return  # a restart of the same program: nothing to write
-            boot.save(self.config.state_dir, program)
-            self.boot_problem = ""
-        except OSError as exc:
-            self.boot_problem = (f"{program.describe()} not saved in {self.config.state_dir}: "
-                                 f"{exc.strerror or exc}")
 
     # -- the loop ---------------------------------------------------------------------------
 
@@ -405,14 +326,14 @@ class ScanLoop:
             "fault_name": plc.fault_code.name.lower(),
             "fault_reason": plc.fault_reason, "devices": self.runner.device_report(),
             "start_mode": self.start_mode,
-            "start_reason": self.start_reason, "program_source": self.program_source,
+            "start_reason": self.start_reason, "program_source": self.boot.source,
             "realtime": self.realtime,
             "restarts": self.config.restarts, "restart_reason": self.config.restart_reason,
             "scan_pid": os.getpid(),
             "on_stall": self.config.on_stall, "watchdog_ms": self.budget_ns / 1e6,
             "stall_fault_ms": max(self.config.stall_fault_ns, self.budget_ns) / 1e6,
             "internal_errors": self.internal_errors, "analysis": self.analysis,
-            "boot_problem": self.boot_problem,
+            "boot_problem": self.boot.problem,
             "retain": self.retain.info() if self.retain else None,
             "health": {name: h.value for name, h in self.runner.health().items()},
             "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
@@ -530,8 +451,7 @@ class ScanLoop:
         self.downloads.close()
         for prepared in self._prepared.values():
             prepared.discard()
-        if self._boot_writer is not None:
-            self._boot_writer.shutdown(wait=True)
+        self.boot.close()
         if self.retain is not None:
             # Bounded: SIGTERM must end everything within the supervisor's STOP_S.
             outcome = self.retain.stop(final, timeout_s=1.0)
@@ -547,49 +467,3 @@ def _records(net: CompiledNet | None, state: NetState | None) -> dict[str, list[
         return {}
     return {net.place_names[p]: [dict(t) for t in records[:20]]
             for p, records in sorted(state.tokens.items()) if records}
-
-
-def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board_name: str,
-                      ready: Event, stop: Event) -> None:
-    """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`.
-    Exit codes: 0 stopped, 3 state directory busy, 4 cannot start (program, devices)."""
-    from softplc.runtime.procs import die_with_parent, once, supervisor_pid
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, once(stop.set))
-    die_with_parent()
-    parent = supervisor_pid()
-
-    def watch_parent() -> None:
-        while not stop.wait(0.5):
-            if os.getppid() != parent:
-                stop.set()  # the supervisor is gone: go safe and end
-
-    threading.Thread(target=watch_parent, name="watch-parent", daemon=True).start()
-    realtime = apply(config.realtime)  # after the watcher: it keeps normal scheduling
-    writer, own_segment = SnapshotWriter.open_or_create(config.sizes, shm_name)
-    board, own_board = StatusBoard.open_or_create(board_name)
-    try:
-        try:
-            loop = ScanLoop(config, channel, writer, board=board)
-            loop.realtime = realtime
-        except StateDirBusy as exc:
-            print(f"softplc: {exc}", file=sys.stderr)
-            raise SystemExit(3) from None
-        except (ProgramError, ValueError, OSError) as exc:
-            print(f"softplc: cannot start the scan: {exc}", file=sys.stderr)
-            raise SystemExit(4) from None
-        writer.publish(loop.runner.plc.image, loop.status())
-        board.publish(loop.document())
-        gc.collect()  # before the first scan, not during one; then keep what start-up built
-        gc.freeze()  # out of every later collection (real-time practice, see Preparer.prepare)
-        ready.set()
-        loop.run(stop)
-    finally:
-        writer.close()
-        if own_segment:
-            writer.unlink()
-        if own_board:
-            board.close()
-        else:
-            board.detach()

@@ -1,13 +1,12 @@
 """Retain and warm restart: the PLC's state in files that survive a crash or a power loss.
 
-Owns: what is retained (marking, coloured tokens, timers, the image's outputs and %M memory,
-the lifecycle state, scan count and scan clock, program name and hash; a sim plant's state,
-labelled simulation-only), restoring it, the start decision, and the writer thread, which
-cannot die: any failure (a full disk, a value that is not JSON, a bug) is counted by stage in
-`info()` and the next capture is tried at the next interval; a clean stop writes its final
-snapshot synchronously and says whether it did (`RetainWriter.stop`).
-The files themselves (format, checked write, read-back, keeping two valid snapshots, the lock)
-are runtime/retain_store.py; its names are re-exported here.
+Owns: the start decision (cold or warm, and why), the continued scan clock, and the writer
+thread, which cannot die: any failure (a full disk, a value that is not JSON, a bug) is
+counted by stage in `info()` and the next capture is tried at the next interval; a clean stop
+writes its final snapshot synchronously and says whether it did (`RetainWriter.stop`).
+What is retained, capturing, encoding and restoring it are runtime/retain_codec.py; the files
+themselves (format, checked write, read-back, keeping two valid snapshots, the lock) are
+runtime/retain_store.py; the names of both are re-exported here.
 Does not know: scan timing, Modbus, HTTP, other processes than the one holding the lock.
 
 Time across a restart: every timer (enabling delays, three-phase firings, the stop instant)
@@ -20,25 +19,22 @@ crash (at most one retain interval) is lost and runs again.
 
 from __future__ import annotations
 
-import base64
-import io
-import pickle
 import threading
 import time
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
-from softplc.core.events import EventMemory
-from softplc.core.image import AREAS, ProcessImage
-from softplc.core.lifecycle import PlcState
-from softplc.core.net import Busy, CompiledNet, NetState, Token
-from softplc.core.problems import FaultCode
-from softplc.core.scan import Plc
-from softplc.core.values import record_problems, value_problem
+from softplc.core.net import CompiledNet
 from softplc.runtime.clock import Clock
 from softplc.runtime.realtime import background_thread
+from softplc.runtime.retain_codec import (
+    Capture,
+    RetainValueError,
+    capture,
+    encode,
+    load_plant,
+    restore,
+)
 from softplc.runtime.retain_store import (
     FORMAT,
     KEEP,
@@ -59,165 +55,10 @@ from softplc.runtime.retain_store import (
 )
 
 __all__ = ["FORMAT", "KEEP", "LOCK_FILE", "PREFIX", "SUFFIX", "Capture", "ContinuedClock",
-           "FileOps", "FinalWrite", "Loaded", "RetainStore", "RetainWriter", "SnapshotInvalid",
-           "Stage", "StartDecision", "StateDirBusy", "WriteFailed", "capture", "check_state_dir",
-           "decide", "encode", "from_bytes", "load_plant", "lock_state_dir", "restore",
-           "to_bytes"]
-
-
-class RetainValueError(ValueError):
-    """A token in the PLC's state holds a value the runtime cannot carry (core/values.py)."""
-
-
-# -- capture (scan thread) and encoding (writer thread) ---------------------------------------
-
-@dataclass(frozen=True, slots=True)
-class Capture:
-    """Copies taken at a scan boundary: consistent, cheap to take, encoded later."""
-
-    net: CompiledNet
-    state: PlcState
-    fault_code: int
-    scan_count: int
-    now_ns: int
-    net_state: NetState
-    image: ProcessImage
-    held: tuple[np.ndarray, np.ndarray] | None
-    stopped_at_ns: int | None
-    events_last: dict[str, int]
-    events_armed: dict[str, bool]
-    field: dict[str, bytes]  # driver name -> pickled sim plant (simulation only)
-    forces: tuple[tuple[str, int, int | None], ...] = ()  # (symbol, value, program's value)
-    fault_reason: str = ""
-
-
-def capture(plc: Plc, now_ns: int, plants: dict[str, object]) -> Capture | None:
-    """The PLC after the scan at `now_ns`; None when there is no program to retain."""
-    if plc.net is None or plc.engine is None:
-        return None
-    held = None if plc.held is None else (plc.held[0].copy(), plc.held[1].copy())
-    return Capture(plc.net, plc.state, plc.fault_code, plc.scan_count, now_ns,
-                   plc.engine.state.copy(), plc.image.copy(), held, plc.stopped_at_ns,
-                   dict(plc.events.last), dict(plc.events.armed),
-                   {name: pickle.dumps(plant) for name, plant in plants.items()},
-                   tuple(plc.forces.triples()), plc.fault_reason)
-
-
-def encode(cap: Capture, seq: int, wall_ns: int) -> dict[str, Any]:
-    net, st = cap.net, cap.net_state
-    places, transitions = net.place_names, net.transitions
-    return {
-        "seq": seq, "written_unix_ns": wall_ns,
-        "program": net.name, "program_hash": net.program_hash,
-        "state": cap.state.name, "fault_code": int(cap.fault_code),
-        "fault_reason": cap.fault_reason,
-        "scan_count": cap.scan_count, "now_ns": cap.now_ns, "stopped_at_ns": cap.stopped_at_ns,
-        "marking": {places[p]: int(n) for p, n in enumerate(st.marking)},
-        "tokens": {places[p]: [_record(places[p], i, t) for i, t in enumerate(toks)]
-                   for p, toks in st.tokens.items()},
-        "enabled_since_ns": {transitions[t].name: ns for t, ns in st.enabled_since.items()},
-        "busy": {transitions[t].name: {"end_ns": b.end_ns, "produce": [
-            [places[p], n, None if r is None else _record(places[p], 0, r)]
-            for p, n, r in b.produce]}
-            for t, b in st.busy.items()},
-        "image": {area: _pack(getattr(cap.image, area)) for area in AREAS},
-        "held": None if cap.held is None else [_pack(a) for a in cap.held],
-        "events": {"last": cap.events_last, "armed": cap.events_armed},
-        "field_simulation_only": {name: base64.b64encode(blob).decode()
-                                  for name, blob in cap.field.items()},
-        "forces": [list(f) for f in cap.forces],  # kept across a warm restart
-    }
-
-
-def _record(place: str, index: int, token: Any) -> dict[str, Any]:
-    """A token as JSON can hold it, or RetainValueError naming it: never a TypeError from deep
-    inside json (that once killed the writer thread for good)."""
-    record = dict(token)
-    for name, value in record.items():
-        problem = value_problem(value)
-        if problem is not None or not isinstance(name, str):
-            raise RetainValueError(f"place {place}: token {index} field {name!r}: "
-                                   f"{problem or 'field name is not text'}")
-    return record
-
-
-def _pack(values: np.ndarray) -> str:
-    """An image area as base64 of its little-endian bytes: 5 k values in microseconds."""
-    return base64.b64encode(values.astype(values.dtype.newbyteorder("<")).tobytes()).decode()
-
-
-def _unpack(text: str, like: np.ndarray) -> np.ndarray:
-    values = np.frombuffer(base64.b64decode(text), dtype=like.dtype.newbyteorder("<"))
-    if values.shape != like.shape:
-        raise SnapshotInvalid(f"image area of {values.size} values instead of {like.size}")
-    return values.astype(like.dtype)
-
-
-# -- restore ------------------------------------------------------------------------------
-
-def restore(plc: Plc, payload: dict[str, Any], resume: bool) -> PlcState:
-    """Put a snapshot into `plc`, which already holds the same program (downloaded, STOPPED).
-    A snapshot taken while RUNNING resumes only if `resume`; otherwise it waits STOPPED with
-    its timers frozen at the snapshot instant (`softplc resume` continues it)."""
-    net, engine = plc.net, plc.engine
-    assert net is not None and engine is not None and net.program_hash == payload["program_hash"]
-    places, names = net.place_index, {t.name: t.index for t in net.transitions}
-    state = NetState.initial(net)
-    state.marking[:] = 0
-    for name, count in payload["marking"].items():
-        state.marking[places[name]] = count
-    state.tokens = {places[name]: _tokens(name, toks) for name, toks in payload["tokens"].items()}
-    state.enabled_since = {names[t]: ns for t, ns in payload["enabled_since_ns"].items()}
-    state.busy = {names[t]: Busy(b["end_ns"], tuple((places[p], n, r) for p, n, r in b["produce"]))
-                  for t, b in payload["busy"].items()}
-    engine.state = state
-    engine.invalidate()  # enabledness is recomputed from the restored marking
-    for area in AREAS:
-        target = getattr(plc.image, area)
-        target[:] = _unpack(payload["image"][area], target)
-    plc.image.copy_into(plc.prev)
-    plc.events = EventMemory(dict(payload["events"]["last"]), dict(payload["events"]["armed"]))
-    plc.scan_count = payload["scan_count"]
-    plc.fault_code = FaultCode(payload["fault_code"])
-    plc.fault_reason = str(payload.get("fault_reason", ""))
-    plc.forces.restore(net.io.symbols, [(str(n), int(v), s) for n, v, s in
-                                        payload.get("forces", [])])
-    was = PlcState[payload["state"]]
-    held = payload["held"]
-    plc.held = None if held is None else (_unpack(held[0], plc.image.qx),
-                                          _unpack(held[1], plc.image.qw))
-    plc.stopped_at_ns = payload["stopped_at_ns"]
-    plc.state = was
-    if was is PlcState.RUNNING and not resume:
-        plc.state = PlcState.STOPPED
-        plc.stopped_at_ns = payload["now_ns"]
-        plc.held = (plc.image.qx.copy(), plc.image.qw.copy())
-    return plc.state
-
-
-def _tokens(place: str, records: list[Any]) -> list[Token]:
-    """Restored records carry only token values (a file is data from outside)."""
-    for i, record in enumerate(records):
-        for _, problem in record_problems(record):
-            raise SnapshotInvalid(f"place {place}: token {i}: {problem}")
-    return [dict(r) for r in records]
-
-
-class _PlantUnpickler(pickle.Unpickler):
-    """Only plant models and what they are made of: a state file is data, not code."""
-
-    ALLOWED: frozenset[tuple[str, str]] = frozenset({
-        ("random", "Random"), ("builtins", "set"), ("builtins", "frozenset"),
-        ("copyreg", "_reconstructor"), ("builtins", "object")})
-
-    def find_class(self, module: str, name: str) -> Any:
-        if module.startswith("softplc.devices.plants.") or (module, name) in self.ALLOWED:
-            return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"{module}.{name} is not a plant model")
-
-
-def load_plant(blob: str) -> object:
-    return _PlantUnpickler(io.BytesIO(base64.b64decode(blob))).load()
+           "FileOps", "FinalWrite", "Loaded", "RetainStore", "RetainValueError", "RetainWriter",
+           "SnapshotInvalid", "Stage", "StartDecision", "StateDirBusy", "WriteFailed", "capture",
+           "check_state_dir", "decide", "encode", "from_bytes", "load_plant", "lock_state_dir",
+           "restore", "to_bytes"]
 
 
 class ContinuedClock:

@@ -48,7 +48,7 @@ import numpy.typing as npt
 
 from softplc.core.image import ImageSizes, ProcessImage
 from softplc.core.lifecycle import PlcState
-from softplc.core.snapshot import Snapshot, Status
+from softplc.core.snapshot import Snapshot, SnapshotUnavailable, Status
 from softplc.runtime.shmcopy import SlotCopies
 
 MAGIC: Final = b"SPLCSNAP"
@@ -65,10 +65,6 @@ _STATES: Final = {int(s): s for s in PlcState}  # 20x faster than PlcState(value
 
 class SnapshotLayoutError(ValueError):
     """The segment is not a softplc snapshot of the expected version and image sizes."""
-
-
-class SnapshotUnavailable(RuntimeError):
-    """No consistent snapshot could be read: the writer stayed mid-publish (stuck or dead)."""
 
 
 def _payload_bytes(sizes: ImageSizes) -> int:

@@ -1,17 +1,13 @@
-"""`softplc run`: start the scan process and the communication process, watch them, heal
-them, show a live status line, and stop both on Ctrl-C or SIGTERM with outputs driven safe.
+"""The processes of `softplc run`: start the scan process and the communication process,
+watch them, heal them, and stop both with outputs driven safe.
 
 Owns: process start order; the shared-memory segments (they outlive a scan process, so the
 communication side keeps serving across a restart); restarting a dead scan process warm from
 the newest retain snapshot and the boot program, with backoff, at most SCAN_RESTARTS times in
-RESTART_WINDOW_S, then giving up with an exit code; restarting a dead communication process
-within the same kind of budget; stopping everything within STOP_S on SIGTERM/SIGINT in every
-state; removing what killed runs left in /dev/shm; the banner and the live status line.
-Does not know: what a scan does, what a snapshot holds.
-
-Exit codes (docs/operations.md): 0 stopped on request (SIGTERM, SIGINT, --duration); 1 could
-not start (program, port, state directory); 2 bad command line; 3 gave up: the scan process
-died more than SCAN_RESTARTS times within RESTART_WINDOW_S.
+RESTART_WINDOW_S, then giving up (GaveUp); restarting a dead communication process within the
+same kind of budget; stopping everything within STOP_S in every state.
+Does not know: what a scan does, what a snapshot holds, the console and exit codes
+(runcmd.py), what killed runs leave in /dev/shm (leftovers.py).
 """
 
 from __future__ import annotations
@@ -19,13 +15,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import gc
 import multiprocessing as mp
-import multiprocessing.synchronize as mp_sync
 import os
-import signal
-import socket
-import sys
 import time
 from collections import deque
 from collections.abc import Callable
@@ -33,69 +24,26 @@ from pathlib import Path
 from typing import Any, Final
 
 from softplc.core.image import ImageSizes
-from softplc.core.problems import ProgramError
-from softplc.program.compiler import compile_file
 from softplc.runtime.board import StatusBoard
-from softplc.runtime.channel import Channel, pid_alive
+from softplc.runtime.channel import Channel
 from softplc.runtime.comm import CommConfig, comm_process_main, modbus_limits
 from softplc.runtime.config import LoopConfig
-from softplc.runtime.loop import scan_process_main
+from softplc.runtime.leftovers import SHM_PREFIX, record_semaphores
 from softplc.runtime.procs import ReadySignal, StopFlag
 from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
-from softplc.runtime.retain import StateDirBusy, check_state_dir
-from softplc.runtime.runner import plant_conflict
-from softplc.runtime.sdnotify import Notifier
+from softplc.runtime.scanproc import scan_process_main
 from softplc.runtime.shm import SnapshotWriter
 
-SHM_PREFIX: Final = "softplc_"
 SCAN_RESTARTS: Final = 5  # scan process restarts allowed within RESTART_WINDOW_S
 COMM_RESTARTS: Final = 5  # communication process restarts allowed within RESTART_WINDOW_S
 RESTART_WINDOW_S: Final = 60.0
 BACKOFF_S: Final = (0.0, 0.5, 1.0, 2.0, 4.0)  # by restarts within BACKOFF_WINDOW_S
 BACKOFF_WINDOW_S: Final = 10.0  # a scan process that ran this long restarts without delay
 STOP_S: Final = 2.0  # SIGTERM/SIGINT: every process gone within this (then SIGKILL)
-EXIT_OK, EXIT_START, EXIT_USAGE, EXIT_GAVE_UP = 0, 1, 2, 3
 
 
 class GaveUp(RuntimeError):
     """The scan process died too often: the supervisor stops instead of looping."""
-
-
-def _remove_stale_segments() -> None:
-    """Segments and named semaphores of runs that were killed (their pid is gone) are removed
-    before we start: a kill -9 of the whole process group leaves both behind."""
-    shm_dir = Path("/dev/shm")
-    if not shm_dir.is_dir():
-        return
-    for entry in shm_dir.glob(SHM_PREFIX + "*"):
-        parts = entry.name.split("_")
-        if len(parts) < 2 or not parts[1].isdigit() or pid_alive(int(parts[1])):
-            continue
-        if entry.name.endswith("_sems"):
-            for name in entry.read_text(encoding="utf-8", errors="replace").split():
-                with contextlib.suppress(OSError):
-                    (shm_dir / f"sem.{name.lstrip('/')}").unlink()
-        entry.unlink(missing_ok=True)
-
-
-def _record_semaphores(tag: str) -> None:
-    """List this process's named semaphores (multiprocessing's Events, locks) where the next
-    start finds them if this run is killed before its resource tracker can unlink them."""
-    locks = [getattr(o, "_semlock", None) for o in gc.get_objects()
-             if isinstance(o, mp_sync.SemLock)]
-    names = sorted({str(lock.name) for lock in locks  # no name: unlinked at creation
-                    if lock is not None and getattr(lock, "name", None)})
-    with contextlib.suppress(OSError):
-        Path(f"/dev/shm/{tag}_sems").write_text("\n".join(names), encoding="utf-8")
-
-
-def status_line(doc: dict[str, Any]) -> str:
-    timing = doc.get("timing", {})
-    marked = ",".join(sorted(doc.get("marking", {}))) or "-"
-    return (f"{doc.get('state', '?'):8} scans={doc.get('scan_count', 0):<8} "
-            f"period={doc.get('period_us', 0) / 1000:g}ms "
-            f"p99_late={timing.get('p99_lateness_us', 0):.0f}us "
-            f"overruns={timing.get('overruns', 0)} marked={marked}")
 
 
 class Supervisor:
@@ -154,7 +102,7 @@ class Supervisor:
         self.board = StatusBoard.create(self.board_name)
         self.start_scan(self.loop_config, timeout_s)
         self.start_comm(timeout_s)
-        _record_semaphores(self.tag)
+        record_semaphores(self.tag)
 
     def start_scan(self, config: LoopConfig, timeout_s: float = 30.0) -> None:
         ready = ReadySignal(self.ctx)
@@ -239,7 +187,7 @@ class Supervisor:
         except RuntimeError as exc:
             self.scan = None
             return f"restart {self.restarts} failed: {exc}"
-        _record_semaphores(self.tag)
+        record_semaphores(self.tag)
         return f"scan process restarted (restart {self.restarts}, pid {self.scan.pid})"
 
     def _comm_died(self) -> str:
@@ -254,7 +202,7 @@ class Supervisor:
             self.start_comm()
         except RuntimeError as exc:
             return f"communication process exited ({code}); restart failed: {exc}"
-        _record_semaphores(self.tag)
+        record_semaphores(self.tag)
         return f"communication process exited ({code}); restarted"
 
     def stop(self, timeout_s: float = STOP_S) -> None:
@@ -288,143 +236,3 @@ class Supervisor:
             return self.board.read()
         except TimeoutError:
             return {}
-
-
-def _port_in_use(endpoint: tuple[str, int] | None) -> str | None:
-    if endpoint is None or endpoint[1] == 0:
-        return None
-    with socket.socket() as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            probe.bind(endpoint)
-        except OSError as exc:
-            return f"{endpoint[0]}:{endpoint[1]}: {exc.strerror}"
-    return None
-
-
-def _startup_problem(args: argparse.Namespace) -> str | None:
-    """The first reason `softplc run` cannot start, as one line; None when it can."""
-    if args.program:
-        why = plant_conflict(compile_file(args.program).io, args.plant)
-        if why:
-            return why
-    for what, endpoint in (("Modbus", args.modbus), ("API", args.api)):
-        if problem := _port_in_use(endpoint):
-            return f"{what} port {problem} (another softplc? choose another with --{what.lower()})"
-    state = Path(args.state_dir)
-    try:
-        state.mkdir(parents=True, exist_ok=True)
-        probe = state / f".write-test-{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        return (f"state directory {state} is not usable: {exc.strerror} "
-                "(choose one with --state-dir)")
-    return None
-
-
-def run(args: argparse.Namespace) -> int:
-    if args.program:
-        try:
-            compile_file(args.program)
-        except ProgramError as exc:
-            for problem in exc.problems:
-                print(problem, file=sys.stderr)
-            return EXIT_START
-    try:
-        check_state_dir(args.state_dir)  # the scan process takes the lock; fail early and clearly
-    except StateDirBusy as exc:
-        print(f"softplc: {exc}", file=sys.stderr)
-        return EXIT_START
-    if trouble := _startup_problem(args):
-        print(f"softplc: {trouble}", file=sys.stderr)
-        return EXIT_START
-    _remove_stale_segments()
-    try:
-        supervisor = Supervisor.from_args(args)
-    except ValueError as exc:  # --rt-priority or --scan-cpu out of range
-        print(f"softplc: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    stopping = False
-
-    def on_signal(signum: int, frame: object) -> None:
-        nonlocal stopping
-        stopping = True
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
-    try:
-        supervisor.start()
-    except RuntimeError as exc:
-        print(f"softplc: {exc}", file=sys.stderr)
-        supervisor.stop()
-        return EXIT_START
-    notifier = Notifier()
-    notifier.send(f"READY=1\nMAINPID={os.getpid()}\nSTATUS=scanning")
-    _banner(args, supervisor.status())
-    print(f"  scan process pid {supervisor.scan.pid} ({supervisor.status().get('realtime', '?')}), "
-          f"communication process pid {supervisor.comm.pid if supervisor.comm else '-'}",
-          flush=True)
-    print(f"  supervisor pid {os.getpid()}: SIGTERM or SIGINT stops everything within "
-          f"{STOP_S:g} s; exit code 0 then, 3 if it gives up restarting", flush=True)
-    return _supervise(supervisor, args, lambda: stopping, notifier)
-
-
-def _supervise(supervisor: Supervisor, args: argparse.Namespace,
-               stopping: Callable[[], bool], notifier: Notifier) -> int:
-    began = time.monotonic()
-    tty = sys.stdout.isatty() and not args.quiet
-    last_print = 0.0
-    code = EXIT_OK
-    try:
-        while not stopping():
-            time.sleep(0.05)
-            try:
-                said = supervisor.watch()
-            except GaveUp as exc:
-                print(("\n" if tty else "") + f"softplc: {exc}", file=sys.stderr, flush=True)
-                code = EXIT_GAVE_UP
-                break
-            for line in said:
-                print(("\n" if tty else "") + f"softplc: {line}", file=sys.stderr, flush=True)
-                notifier.send(f"STATUS={line}")
-            now = time.monotonic()
-            notifier.ping(now)
-            if args.duration and now - began >= args.duration / 1e9:
-                break
-            if tty:
-                print("\r" + status_line(supervisor.status())[:150].ljust(150), end="", flush=True)
-            elif not args.quiet and now - last_print >= 5:
-                print(status_line(supervisor.status()), flush=True)
-                last_print = now
-    finally:
-        notifier.send("STOPPING=1")
-        supervisor.stop()
-        final = supervisor.final
-    ending = "gave up" if code else "stopped"
-    print(("\n" if tty else "") + f"{ending}: " + status_line(final) + ", outputs safe",
-          flush=True)
-    return code
-
-
-def _banner(args: argparse.Namespace, doc: dict[str, Any]) -> None:
-    print(f"softplc running {args.program or '(no program)'}"
-          f" (period {args.period / 1e6:g} ms){' started' if args.start else ''}")
-    print(f"  {doc.get('start_mode', '?')} start: {doc.get('start_reason', '?')}")
-    print(f"  program: {doc.get('program_source', '?')}; restarts: scan process restarted "
-          f"warm from the newest snapshot, at most {SCAN_RESTARTS} times in "
-          f"{RESTART_WINDOW_S:g} s")
-    interval = getattr(args, "retain_interval", 0)
-    print(f"  retain in {args.state_dir}/: "
-          + (f"every {interval / 1e9:g} s and on stop" if interval else "on stop only"))
-    if args.modbus:
-        host, port = args.modbus
-        print(f"  Modbus TCP slave on {host}:{port}; try: "
-              f"mbpoll -m tcp -p {port} -a 1 -0 -1 -t 0 -r 0 -c 8 {host}")
-    if args.api:
-        host, port = args.api
-        print(f"  HTTP API on http://{host}:{port}; try: curl -s http://{host}:{port}/api/v1/status")
-    if getattr(args, "opcua", None):
-        host, port = args.opcua
-        print(f"  OPC UA server on opc.tcp://{host}:{port} (writes and methods: user token)")
-    print("  Ctrl-C stops (outputs to their safe values first)", flush=True)

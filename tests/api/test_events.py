@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from softplc.api import server as server_module
+from softplc.api import events as events_module
 from softplc.api.client import ApiClient
 from tests.api.conftest import Plc, ServerThread, make_server
 
@@ -192,8 +192,8 @@ def test_api_client_reads_the_stream(sse: tuple[ServerThread, Board]) -> None:
 
 def test_a_slow_client_loses_the_oldest_events_and_is_told(monkeypatch: pytest.MonkeyPatch
                                                             ) -> None:
-    monkeypatch.setattr(server_module, "EVENT_QUEUE", 3)
-    sub = server_module._Subscriber(frozenset(), after=0)
+    monkeypatch.setattr(events_module, "EVENT_QUEUE", 3)
+    sub = events_module.Subscriber(frozenset(), after=0)
     for seq in range(1, 6):
         sub.offer(_event(seq, "e"))
     sub.offer(_event(5, "e"))  # seen already

@@ -16,11 +16,19 @@ from collections.abc import Iterator
 import pytest
 
 from softplc.core.image import ImageSizes
-from softplc.hmi.server import ModbusSlave, SlaveThread, run_in_thread
+from softplc.hmi.server import ModbusSlave
 from tests.fuzz import budget
 from tests.fuzz.frames import broken_stream, mbap, random_pdu
 from tests.fuzz.oracle import expected
-from tests.hmi.helpers import ImageSource, connect, is_closed_by_peer, recv_adu, request
+from tests.hmi.helpers import (
+    ImageSource,
+    SlaveThread,
+    connect,
+    is_closed_by_peer,
+    recv_adu,
+    request,
+    run_in_thread,
+)
 
 VALID_READ = bytes.fromhex("0400000001")  # %IW0
 

@@ -14,10 +14,10 @@ import pytest
 
 from softplc.core.image import ImageSizes
 from softplc.core.problems import ProgramError
-from softplc.hmi.server import ModbusSlave, run_in_thread
+from softplc.hmi.server import ModbusSlave
 from softplc.program.compiler import compile_text
 from tests.fuzz.frames import mbap
-from tests.hmi.helpers import ImageSource, connect, request
+from tests.hmi.helpers import ImageSource, connect, request, run_in_thread
 
 ROOT = Path(__file__).resolve().parents[2]
 DRILLING = ROOT / "programs" / "drilling.yaml"

@@ -5,8 +5,8 @@ from collections.abc import Iterator
 import pytest
 
 from softplc.core.image import ImageSizes
-from softplc.hmi.server import ModbusSlave, SlaveThread, run_in_thread
-from tests.hmi.helpers import ImageSource
+from softplc.hmi.server import ModbusSlave
+from tests.hmi.helpers import ImageSource, SlaveThread, run_in_thread
 
 
 @pytest.fixture

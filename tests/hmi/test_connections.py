@@ -21,9 +21,9 @@ from pymodbus.client import ModbusTcpClient
 
 from softplc.cli import build_parser
 from softplc.hmi.admission import Limits
-from softplc.hmi.server import ModbusSlave, run_in_thread
+from softplc.hmi.server import ModbusSlave
 from softplc.runtime.comm import CommConfig, modbus_limits, modbus_slave
-from tests.hmi.helpers import ImageSource, connect, is_closed_by_peer, request
+from tests.hmi.helpers import ImageSource, connect, is_closed_by_peer, request, run_in_thread
 from tests.support import wait_until
 
 IDLE_CONNECTIONS = 200

@@ -11,8 +11,7 @@ import pytest
 from softplc.core.image import parse_address
 from softplc.core.snapshot import HmiWrite
 from softplc.hmi.map import STATUS_WORDS, status_registers
-from softplc.hmi.server import SlaveThread
-from tests.hmi.helpers import ImageSource
+from tests.hmi.helpers import ImageSource, SlaveThread
 
 pytestmark = pytest.mark.skipif(
     shutil.which("mbpoll") is None, reason="mbpoll is not installed (apt-get install -y mbpoll)"

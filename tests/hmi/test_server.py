@@ -20,17 +20,19 @@ from softplc.core.image import ImageSizes, parse_address
 from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import HmiWrite, Status
 from softplc.hmi.map import STATUS_WORDS, status_registers
-from softplc.hmi.server import ModbusSlave, SlaveThread, run_in_thread
+from softplc.hmi.server import ModbusSlave
 from tests import support
 from tests.hmi import cases
 from tests.hmi.cases import Case
 from tests.hmi.helpers import (
     ImageSource,
+    SlaveThread,
     adu,
     connect,
     is_closed_by_peer,
     recv_adu,
     request,
+    run_in_thread,
 )
 
 VALID_READ = bytes.fromhex("0400000001")  # %IW0, which the fixture sets to 0

@@ -9,7 +9,6 @@ from softplc.runtime.clock import (
     MonotonicClock,
     Schedule,
     VirtualClock,
-    parse_duration_ns,
 )
 
 
@@ -47,51 +46,6 @@ def test_virtual_clock_advance() -> None:
     assert clock.advance(250) == 250
     with pytest.raises(ValueError, match="cannot go back"):
         clock.advance(-1)
-
-
-@pytest.mark.parametrize(
-    ("text", "ns"),
-    [
-        ("10ms", 10_000_000),
-        ("1s", 1_000_000_000),
-        ("500us", 500_000),
-        ("500µs", 500_000),
-        ("500μs", 500_000),
-        ("2.5s", 2_500_000_000),
-        ("3600s", 3_600_000_000_000),
-        ("1min", 60_000_000_000),
-        ("1.5min", 90_000_000_000),
-        ("2h", 7_200_000_000_000),
-        ("750ns", 750),
-        (" 10 ms ", 10_000_000),
-        ("0.1s", 100_000_000),
-        (".5ms", 500_000),
-        ("0s", 0),
-        ("10MS", 10_000_000),
-    ],
-)
-def test_parse_duration(text: str, ns: int) -> None:
-    assert parse_duration_ns(text) == ns
-
-
-@pytest.mark.parametrize(
-    ("text", "message"),
-    [
-        ("10", "expected a number and a unit"),
-        ("ms", "expected a number and a unit"),
-        ("", "expected a number and a unit"),
-        ("-5ms", "expected a number and a unit"),
-        ("1e3ms", "expected a number and a unit"),
-        ("10 m s", "expected a number and a unit"),
-        ("10sec", "unknown unit 'sec'"),
-        ("3days", "unknown unit 'days'"),
-        ("1.5ns", "whole number of nanoseconds"),
-    ],
-)
-def test_parse_duration_errors(text: str, message: str) -> None:
-    with pytest.raises(ValueError, match=message) as err:
-        parse_duration_ns(text)
-    assert repr(text) in str(err.value)
 
 
 def test_schedule_skips_the_slots_a_long_scan_ran_past_and_never_drifts() -> None:

@@ -248,7 +248,7 @@ def test_a_full_disk_never_stops_the_plc_from_starting(tmp_path: Path,
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     import errno
 
-    from softplc.runtime import boot
+    from softplc.program import boot
 
     def full(*args: object) -> None:
         raise OSError(errno.ENOSPC, "No space left on device")

@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -192,10 +193,32 @@ def test_warm_start_stop_restores_and_waits_for_resume(tmp_path: Path) -> None:
     quiet.retain.close()  # type: ignore[union-attr]
 
 
+class WriterPacedClock(VirtualClock):
+    """A virtual clock whose scans wait (bounded) for the retain writer to take what was
+    handed to it: on a virtual clock 100 scans take a few ms, and a loaded machine may not
+    run the writer thread before the stop snapshot replaces the periodic ones (the writer
+    keeps only the newest capture: a test then saw one write instead of several)."""
+
+    def __init__(self) -> None:
+        super().__init__(0)
+        self.loop: ScanLoop | None = None
+
+    def wait_until(self, deadline_ns: int) -> int:
+        writer = self.loop.retain if self.loop is not None else None
+        if writer is not None:
+            give_up = time.monotonic() + 5
+            while writer._pending is not None and time.monotonic() < give_up:
+                time.sleep(0.001)
+        return super().wait_until(deadline_ns)
+
+
 def test_snapshots_at_the_interval_and_on_stop_keep_two_files(tmp_path: Path) -> None:
     program = timed_program(tmp_path)
     state = tmp_path / "state"
-    loop = make_loop(program, state, scans=100, interval_ns=100 * MS)  # 1 s of scan time
+    clock = WriterPacedClock()
+    config = LoopConfig(program=program, start=True, period_ns=10 * MS, max_scans=100,
+                        state_dir=str(state), retain_interval_ns=100 * MS)  # 1 s of scan time
+    loop = clock.loop = ScanLoop(config, None, None, clock)
     loop.run()
     info = loop.document()["retain"]
     assert info["writes"] >= 2 and info["errors"] == 0  # at least one periodic, and on stop

@@ -16,10 +16,9 @@ import pytest
 
 from softplc.core.image import parse_address
 from softplc.core.lifecycle import Command
-from softplc.hmi.server import SlaveThread, run_in_thread
 from softplc.runtime.comm import CommConfig, ModbusWrites, modbus_slave
 from tests.fuzz.live import LivePlc
-from tests.hmi.helpers import connect, request
+from tests.hmi.helpers import SlaveThread, connect, request, run_in_thread
 from tests.support import eventually
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,0 +1,126 @@
+"""The program routes: download (`POST /api/v1/program`, YAML text or a bundle) and upload
+(`GET /api/v1/program`, the running program's bundle byte for byte).
+
+Owns: what is checked before a download reaches the scan process (UTF-8, not empty, no
+character YAML forbids, a usable bundle, a plain name), and turning a refused download into
+422 with one located problem per line.
+Does not know: compiling (the scan process does, behind the channel), the lifecycle.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import re
+from pathlib import Path
+from typing import TYPE_CHECKING, Final
+
+from aiohttp import web
+
+from softplc.api.commands import Record
+from softplc.api.openapi import API_PREFIX
+from softplc.api.problems import ApiProblem, flag, idempotency_key
+from softplc.core.lifecycle import Command
+from softplc.core.snapshot import CommandReply
+from softplc.program import boot
+from softplc.program import bundle as bundles
+
+if TYPE_CHECKING:
+    from softplc.api.server import ApiServer
+
+_NAME: Final = re.compile(r"[A-Za-z0-9._-]{1,128}")
+_REFUSED_PROGRAM: Final = "download refused"  # the scan's prefix for a program that failed
+# Characters a YAML stream may not hold (YAML 1.1 section 5.1, as PyYAML's reader checks).
+_NOT_YAML: Final = re.compile(
+    "[^\x09\x0A\x0D\x20-\x7E\x85\xA0-\uD7FF\uE000-\uFFFD\U00010000-\U0010FFFF]")
+
+
+def register(app: web.Application, api: ApiServer) -> None:
+    """Add the program routes to `app` (server.py's build_app calls this once)."""
+    routes = _Routes(api)
+    app.router.add_post(f"{API_PREFIX}/program", routes.download)
+    app.router.add_get(f"{API_PREFIX}/program", routes.upload)
+
+
+def unprintable(text: str, name: str) -> list[str]:
+    """Problems for characters no YAML may contain, found before the scan process sees them."""
+    problems = []
+    for match in itertools.islice(_NOT_YAML.finditer(text), 20):
+        line = text.count("\n", 0, match.start()) + 1
+        problems.append(f"{name}:{line}: character U+{ord(match.group()):04X} is not allowed "
+                        "in YAML")
+    return problems
+
+
+def program_problems(message: str) -> list[str]:
+    """Every problem line of a refused download ("download refused:\\nFILE:LINE: ...")."""
+    head, _, rest = message.partition("\n")
+    lines = [line.strip() for line in rest.splitlines() if line.strip()]
+    return lines or [head.removeprefix(f"{_REFUSED_PROGRAM}:").strip() or head]
+
+
+class _Routes:
+    def __init__(self, api: ApiServer) -> None:
+        self._api = api
+
+    async def download(self, request: web.Request) -> web.Response:
+        online = flag(request.query.get("online", request.headers.get("X-Softplc-Online")),
+                      "online")
+        replace = flag(request.query.get("replace"), "replace")
+        dry_run = flag(request.query.get("dry_run"), "dry_run")
+        name = request.query.get("name")
+        if name is not None and not _NAME.fullmatch(name):
+            raise ApiProblem(400, "name must be a plain file name (letters, digits, . _ -)")
+        body = await request.read()
+        if request.content_type == bundles.CONTENT_TYPE or bundles.is_bundle(body):
+            try:  # checked here, so that a bad archive never reaches the scan process
+                bundle = await asyncio.to_thread(bundles.unpack, body)
+            except bundles.BundleError as exc:
+                raise ApiProblem(422, "download refused: unusable bundle", [str(exc)]) from None
+            reply = await self._api.command(Command.DOWNLOAD, None, bundle.program, online,
+                                            idempotency_key(request), replace=replace,
+                                            bundle=body, dry_run=dry_run)
+            return self._answer(reply)
+        try:
+            text = body.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ApiProblem(400, f"the program must be UTF-8 text ({exc.reason} at byte "
+                                  f"{exc.start})") from None
+        if not text.strip():
+            raise ApiProblem(422, "download refused: empty program",
+                             [f"{name or 'program'}:1: the request body holds no program"])
+        if problems := unprintable(text, name or "program"):
+            raise ApiProblem(422, "download refused: not YAML text", problems)
+        reply = await self._api.command(Command.DOWNLOAD, text, name, online,
+                                        idempotency_key(request), replace=replace,
+                                        dry_run=dry_run)
+        return self._answer(reply)
+
+    def _answer(self, reply: CommandReply | Record) -> web.Response:
+        if isinstance(reply, CommandReply) and not reply.ok and reply.message.startswith(
+                _REFUSED_PROGRAM):
+            raise ApiProblem(422, reply.message.partition("\n")[0].rstrip(":"),
+                             program_problems(reply.message), state=reply.state.name,
+                             id=reply.id)
+        if isinstance(reply, CommandReply) and reply.ok and reply.detail is not None:
+            return web.json_response({"ok": True, "message": reply.message, "id": reply.id,
+                                      "state": reply.state.name, "plan": reply.detail})
+        return self._api.answer(reply)
+
+    async def upload(self, request: web.Request) -> web.Response:
+        """The running program's bundle, byte for byte as it was downloaded."""
+        state_dir = self._api.state_dir
+        try:
+            program = await asyncio.to_thread(boot.load, state_dir)
+        except boot.BootUnreadable as exc:
+            raise ApiProblem(409, f"no program to upload: {exc}") from None
+        running = (await self._api.board_document()).get("program_hash")
+        if program is None or program.bundle is None or not running:
+            raise ApiProblem(404, "no program to upload: the PLC runs none, or its program "
+                             f"came without a bundle (state directory {state_dir})")
+        if program.program_hash and program.program_hash != running:
+            raise ApiProblem(409, "the running program's bundle is not stored yet (the last "
+                             "accepted download is being written); try again", headers={
+                                 "Retry-After": "1"})
+        return web.Response(body=program.bundle, content_type=bundles.CONTENT_TYPE, headers={
+            "Content-Disposition": f'attachment; filename="{Path(program.filename).stem}.zip"'})

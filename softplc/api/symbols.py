@@ -1,0 +1,105 @@
+"""The symbol routes: `GET /api/v1/symbols`, `GET` and `PUT /api/v1/symbols/{name}`.
+
+Owns: a symbol's view (name, address, type, direction, value: from the latest snapshot, or
+the board's value when no snapshot can be read), and checking a write against the symbol's
+direction, `hmi_writable` and type before it is queued for the next scan.
+Does not know: the image's layout (core/image.py parses addresses), the channel's pipes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+from aiohttp import web
+
+from softplc.api.openapi import API_PREFIX
+from softplc.api.problems import ApiProblem, json_body
+from softplc.core.image import AddressError, parse_address
+from softplc.core.snapshot import ChannelFull, HmiWrite
+
+if TYPE_CHECKING:
+    from softplc.api.server import ApiServer
+
+
+def register(app: web.Application, api: ApiServer) -> None:
+    """Add the symbol routes to `app` (server.py's build_app calls this once)."""
+    routes = _Routes(api)
+    app.router.add_get(f"{API_PREFIX}/symbols", routes.symbols)
+    app.router.add_get(f"{API_PREFIX}/symbols/{{name}}", routes.symbol)
+    app.router.add_put(f"{API_PREFIX}/symbols/{{name}}", routes.write)
+
+
+def view(name: str, entry: Mapping[str, Any], image: Any) -> dict[str, Any]:
+    """A symbol's answer: the board's entry, its value read from `image` when there is one."""
+    value = entry.get("value", 0)
+    if image is not None:
+        with contextlib.suppress(AddressError, TypeError, KeyError):
+            value = image.get(parse_address(str(entry["address"])))
+    if entry.get("type") == "bool":
+        value = bool(value)
+    return {"name": name, "address": entry.get("address"), "type": entry.get("type"),
+            "direction": entry.get("direction"), "value": value}
+
+
+def write_value(name: str, entry: Mapping[str, Any], body: Any) -> bool | int:
+    """The value of a symbol write, checked against the symbol's type."""
+    if not isinstance(body, dict) or "value" not in body:
+        raise ApiProblem(422, 'the body must be a JSON object {"value": n}')
+    value = body["value"]
+    if entry.get("type") == "bool":
+        if isinstance(value, bool) or (type(value) is int and value in (0, 1)):
+            return bool(value)
+        raise ApiProblem(422, f"symbol {name} is a bool: value must be true/false or 0/1, "
+                              f"not {json.dumps(value)[:40]}")
+    if type(value) is int and 0 <= value <= 0xFFFF:
+        return value
+    raise ApiProblem(422, f"symbol {name} is a word: value must be an integer 0..65535, "
+                          f"not {json.dumps(value)[:40]}")
+
+
+class _Routes:
+    def __init__(self, api: ApiServer) -> None:
+        self._api = api
+
+    async def _table(self) -> dict[str, dict[str, Any]]:
+        symbols = (await self._api.board_document()).get("symbols") or {}
+        return {k: v for k, v in symbols.items() if isinstance(v, dict)}
+
+    async def _lookup(self, request: web.Request) -> tuple[str, dict[str, Any]]:
+        name = request.match_info["name"]
+        entry = (await self._table()).get(name)
+        if entry is None:
+            raise ApiProblem(404, f"no symbol {name!r} in the loaded program")
+        return name, entry
+
+    async def symbols(self, request: web.Request) -> web.Response:
+        table = await self._table()
+        seq, image = self._api.image()
+        return web.json_response({"snapshot_seq": seq, "symbols": {
+            name: view(name, entry, image) for name, entry in table.items()}})
+
+    async def symbol(self, request: web.Request) -> web.Response:
+        name, entry = await self._lookup(request)
+        return web.json_response(view(name, entry, self._api.image()[1]))
+
+    async def write(self, request: web.Request) -> web.Response:
+        name, entry = await self._lookup(request)
+        if entry.get("direction") == "in":
+            raise ApiProblem(403, f"symbol {name} ({entry.get('address')}) is an input: "
+                                  "inputs belong to the drivers")
+        if entry.get("hmi_writable") is False:
+            raise ApiProblem(403, f"symbol {name} is declared hmi_writable: false")
+        value = write_value(name, entry, await json_body(request))
+        try:
+            address = parse_address(str(entry.get("address")))
+        except AddressError as exc:
+            raise ApiProblem(409, f"symbol {name} has no usable address: {exc}") from None
+        try:
+            self._api.channel.send_hmi_write(HmiWrite(address, (int(value),)))
+        except ChannelFull as exc:
+            raise ApiProblem(503, str(exc), headers={"Retry-After": "1"}) from None
+        return web.json_response({"name": name, "address": str(address), "value": value,
+                                  "queued": True}, status=202)

@@ -1,0 +1,172 @@
+"""The PLC as seen in the address space: values pushed from the snapshot and the status
+board, and OPC UA events for what changed.
+
+Owns: writing only changed values into the address space (subscribers are told of changes
+only), rebuilding the program's nodes when the snapshot shows a new program hash and the
+board describes it, the Part 10 state that follows the PLC state, and events for board
+events, downloads, state changes, faults and refused commands.
+Does not know: sessions, who may write, the channel, when to poll (server.py does).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Mapping
+from typing import Any, Final
+
+from asyncua import Server, ua
+
+from softplc.core.image import AddressError
+from softplc.core.lifecycle import PlcState
+from softplc.core.snapshot import Snapshot
+from softplc.opcua.program import Outcome
+from softplc.opcua.space import PartState, Space, SymbolNode, part10_state
+
+_STATUS_TYPES: Final = {"State": ua.VariantType.String, "ProgramHash": ua.VariantType.String,
+                        "Program": ua.VariantType.String, "FaultReason": ua.VariantType.String,
+                        "ScanCount": ua.VariantType.UInt64, "FaultCode": ua.VariantType.UInt16}
+
+
+class Mirror:
+    """The address space of `space` kept in step with the PLC; `events` is asyncua's event
+    generator of the SoftplcEventType."""
+
+    def __init__(self, server: Server, space: Space, events: Any, modbus_writes: str) -> None:
+        self._server = server
+        self.space = space
+        self._events = events
+        self._modbus_writes = modbus_writes
+        self.by_node: dict[ua.NodeId, SymbolNode] = {}
+        self.built_hash: str | None = None  # the program whose nodes are built
+        self._values: dict[Any, Any] = {}  # node id -> last value pushed
+        self._part10: PartState | None = None
+        self._state: PlcState | None = None
+        self._fault = 0
+        self._event_seq = 0
+
+    async def first_look(self, document: Mapping[str, Any], snapshot: Snapshot | None) -> None:
+        """Nodes of the program that runs now; events from now on (no replay of old ones)."""
+        self._event_seq = newest_seq(document)
+        if snapshot is not None:
+            self._state = snapshot.status.state
+            self._part10 = part10_state(snapshot.status.state, None)
+            await self.maybe_rebuild(snapshot.status.program_hash, document)
+            await self.push(snapshot)
+        if self._part10 is not None:
+            await self.space.set_part10_state(self._part10)
+
+    async def maybe_rebuild(self, program_hash: str, document: Mapping[str, Any]) -> None:
+        if (document.get("program_hash") or "") != program_hash:
+            return  # the board does not describe this program yet: next board poll
+        await self.space.build_program(document, self._modbus_writes)
+        self.by_node = {s.node.nodeid: s for s in self.space.symbols.values()}
+        self._values = {}
+        previous, self.built_hash = self.built_hash, program_hash
+        if previous is not None and program_hash:
+            await self.emit("download", f"program {document.get('program')} loaded "
+                            f"(sha256 {program_hash[:12]}), state {document.get('state')}")
+            self._part10 = PartState.RUNNING if self._state is PlcState.RUNNING \
+                else PartState.READY
+            await self.space.set_part10_state(self._part10)
+
+    async def transitions(self, snapshot: Snapshot) -> None:
+        status = snapshot.status
+        if status.state is not self._state:
+            before, self._state = self._state, status.state
+            self._part10 = part10_state(status.state, self._part10)
+            await self.space.set_part10_state(self._part10)
+            await self.emit("state", f"{before.name if before else '?'} -> {status.state.name}"
+                            f" (Part 10: {self._part10.text})", scan=status.scan_count)
+        if status.fault_code != self._fault:
+            self._fault = status.fault_code
+            if status.fault_code:
+                await self.emit("fault", f"fault code {status.fault_code}",
+                                scan=status.scan_count, severity=900)
+
+    async def push(self, snapshot: Snapshot) -> None:
+        image, status = snapshot.image, snapshot.status
+        for symbol in self.by_node.values():
+            if symbol.location is not None:
+                with contextlib.suppress(AddressError, IndexError):
+                    await self.set(symbol.node.nodeid, symbol.variant(image.get(symbol.location)))
+        nodes = self.space.status
+        for name, value in (("State", status.state.name), ("ProgramHash", status.program_hash),
+                            ("ScanCount", status.scan_count), ("PeriodUs", status.period_us),
+                            ("LastExecUs", status.last_exec_us),
+                            ("MaxExecUs", status.max_exec_us),
+                            ("P99LatenessUs", status.p99_lateness_us),
+                            ("Overruns", status.overruns), ("FaultCode", status.fault_code)):
+            await self.set(nodes[name].nodeid, _status_variant(name, value))
+
+    async def board_values(self, document: dict[str, Any]) -> None:
+        if not document:
+            return
+        nodes = self.space.status
+        await self.set(nodes["Program"].nodeid, _status_variant("Program",
+                                                                document.get("program") or ""))
+        await self.set(nodes["FaultReason"].nodeid,
+                       _status_variant("FaultReason", document.get("fault_reason") or ""))
+        restarts = document.get("restarts")
+        if isinstance(restarts, int):
+            await self.set(nodes["Restarts"].nodeid, _status_variant("Restarts", restarts))
+        if document.get("program_hash") == self.built_hash:
+            marking = document.get("marking") or {}
+            for place in marking:
+                await self.space.place(str(place))
+            for place, node in self.space.places.items():  # unmarked places are absent: 0
+                count = marking.get(place, 0)
+                await self.set(node.nodeid, ua.Variant(count if isinstance(count, int) else 0,
+                                                       ua.VariantType.UInt32))
+        await self._board_events(document)
+
+    async def _board_events(self, document: dict[str, Any]) -> None:
+        events = [e for e in document.get("events") or []
+                  if isinstance(e, dict) and isinstance(e.get("seq"), int)]
+        newest = newest_seq(document)
+        if newest < self._event_seq:  # the scan process restarted: its seq starts again
+            self._event_seq = 0
+        for event in events:
+            if event["seq"] > self._event_seq:
+                name = str(event.get("name"))
+                await self.emit(name, f"event {name}", seq=event["seq"],
+                                scan=int(event.get("scan") or 0))
+        self._event_seq = max(self._event_seq, newest)
+        await self.set(self.space.status["LastEventSeq"].nodeid,
+                       ua.Variant(self._event_seq & 0xFFFFFFFF, ua.VariantType.UInt32))
+
+    async def command_done(self, method: str, outcome: Outcome) -> None:
+        """A method call's result in LastResult/LastProblems; a refusal is also an event."""
+        text = outcome.message if outcome.ok else f"{method} refused: {outcome.message}"
+        await self.set(self.space.status["LastResult"].nodeid,
+                       ua.Variant(text, ua.VariantType.String))
+        await self.set(self.space.status["LastProblems"].nodeid,
+                       ua.Variant(list(outcome.problems), ua.VariantType.String))
+        if not outcome.ok:
+            await self.emit("refused", text + "".join(f"\n{p}" for p in outcome.problems))
+
+    async def set(self, nodeid: ua.NodeId, variant: ua.Variant) -> None:
+        """Write a value into the address space only when it changed (subscribers are told
+        of changes only; an unchanged write would still cost a comparison per item)."""
+        if self._values.get(nodeid) == variant.Value:
+            return
+        self._values[nodeid] = variant.Value
+        await self._server.write_attribute_value(nodeid, ua.DataValue(variant))
+
+    async def emit(self, name: str, message: str, *, seq: int = 0, scan: int = 0,
+                   severity: int = 500) -> None:
+        event = self._events.event
+        event.EventName, event.Seq, event.Scan = name, seq & 0xFFFFFFFF, scan
+        event.Severity = severity
+        await self._events.trigger(message=message)
+
+
+def newest_seq(document: Mapping[str, Any]) -> int:
+    return max((int(e["seq"]) for e in document.get("events") or []
+                if isinstance(e, dict) and isinstance(e.get("seq"), int)), default=0)
+
+
+def _status_variant(name: str, value: object) -> ua.Variant:
+    vtype = _STATUS_TYPES.get(name, ua.VariantType.UInt32)
+    if vtype is ua.VariantType.String:
+        return ua.Variant(str(value), vtype)
+    return ua.Variant(int(value) if isinstance(value, int) else 0, vtype)

@@ -1,0 +1,110 @@
+"""The boot program at work: which program a starting PLC runs, and every accepted download
+kept as the next start's program (written off the scan).
+
+Owns: the command line's program or else the state directory's boot program; the boot
+program rewritten only when it changed; a disk that cannot take it shown (`problem`), never a
+stopped PLC. Storage itself: program/boot.py.
+Does not know: the scan, the channel.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from softplc.core.net import CompiledNet
+from softplc.core.problems import ProgramError
+from softplc.core.snapshot import CommandRequest
+from softplc.program import boot
+from softplc.program import bundle as bundles
+from softplc.program.compiler import compile_file, compile_text
+from softplc.runtime.config import LoopConfig
+from softplc.runtime.prepare import Preparer
+from softplc.runtime.runner import plant_conflict
+
+
+class BootKeeper:
+    """`source` says where the running program came from; `problem` why the boot program
+    could not be kept, if it could not."""
+
+    def __init__(self, config: LoopConfig, prep: Preparer) -> None:
+        self.config = config
+        self._prep = prep
+        self.source = config.program or "none"
+        self.problem = ""
+        self._writer: ThreadPoolExecutor | None = None
+
+    def program(self) -> tuple[CompiledNet | None, boot.BootProgram | None]:
+        """The program to run: the command line's, else the boot program of the state dir.
+        The command line's is compiled by the CLI first, which reports its errors."""
+        config = self.config
+        if config.program:
+            if config.plant and (why := plant_conflict(compile_file(config.program).io,
+                                                       config.plant)):
+                raise ValueError(why)
+            net = compile_file(config.program)
+            program = boot.from_file(config.program, net.program_hash)
+            if config.state_dir is not None:  # the program the PLC runs is its boot program
+                self._save(program, unless_same=True)
+            return net, program
+        if config.state_dir is None or not config.boot:
+            return None, None
+        try:
+            loaded = boot.load(config.state_dir)
+        except boot.BootUnreadable as exc:
+            self.source = f"none ({exc})"
+            return None, None
+        if loaded is None:
+            return None, None
+        program = loaded
+        try:
+            if program.bundle is not None:
+                net = self._prep.compile_bundle(program.bundle)  # unpacked anew if removed
+            else:
+                net = compile_text(program.text, program.filename,
+                                   Path(program.root) if program.root else None)
+        except (ProgramError, bundles.BundleError, OSError) as exc:
+            self.source = f"none ({program.describe()} no longer compiles: {exc})"
+            return None, None
+        self.source = program.describe()
+        return net, program
+
+    def keep(self, req: CommandRequest, net: CompiledNet) -> None:
+        """The accepted download becomes the boot program (written off the scan)."""
+        if self.config.state_dir is None:
+            return
+        if req.bundle is not None:
+            # Its text and folder are in the bundle, unpacked again when it boots.
+            program = boot.BootProgram(net.source, "", None, req.bundle, net.program_hash)
+        elif req.program_text is not None:
+            name = self._prep.download_name(req.program_path or "downloaded.yaml")
+            program = boot.BootProgram(name, req.program_text, self.config.root, None,
+                                       net.program_hash)
+        else:
+            return
+        if self._writer is None:
+            self._writer = ThreadPoolExecutor(1, thread_name_prefix="boot")
+        self._writer.submit(self._save, program)
+        self.source = program.describe()
+
+    def _save(self, program: boot.BootProgram, unless_same: bool = False) -> None:
+        """Keep `program` as the boot program. A full or read-only disk never stops the PLC:
+        the failure is shown in status (`boot_problem`) and the previous boot program stays."""
+        assert self.config.state_dir is not None
+        try:
+            if unless_same:
+                with contextlib.suppress(boot.BootUnreadable):
+                    kept = boot.load(self.config.state_dir)
+                    if kept is not None and kept.program_hash == program.program_hash:
+                        return  # a restart of the same program: nothing to write
+            boot.save(self.config.state_dir, program)
+            self.problem = ""
+        except OSError as exc:
+            self.problem = (f"{program.describe()} not saved in {self.config.state_dir}: "
+                                 f"{exc.strerror or exc}")
+
+    def close(self) -> None:
+        """Wait for a boot program being written."""
+        if self._writer is not None:
+            self._writer.shutdown(wait=True)

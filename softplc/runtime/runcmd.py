@@ -1,0 +1,188 @@
+"""`softplc run` as a command: check that it can start, start the supervisor, print the banner
+and a live status line, stop on Ctrl-C or SIGTERM, and end with an exit code.
+
+Owns: the startup checks (program, ports, state directory) with one clear line each, the
+signal handlers, the console output, systemd notifications, and the exit codes.
+Does not know: how processes are started, watched and healed (supervisor.py does).
+
+Exit codes (docs/operations.md): 0 stopped on request (SIGTERM, SIGINT, --duration); 1 could
+not start (program, port, state directory); 2 bad command line; 3 gave up: the scan process
+died more than SCAN_RESTARTS times within RESTART_WINDOW_S.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import socket
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from softplc.core.problems import ProgramError
+from softplc.program.compiler import compile_file
+from softplc.runtime.leftovers import remove_stale_segments
+from softplc.runtime.retain import StateDirBusy, check_state_dir
+from softplc.runtime.runner import plant_conflict
+from softplc.runtime.sdnotify import Notifier
+from softplc.runtime.supervisor import (
+    RESTART_WINDOW_S,
+    SCAN_RESTARTS,
+    STOP_S,
+    GaveUp,
+    Supervisor,
+)
+
+EXIT_OK, EXIT_START, EXIT_USAGE, EXIT_GAVE_UP = 0, 1, 2, 3
+
+
+def status_line(doc: dict[str, Any]) -> str:
+    timing = doc.get("timing", {})
+    marked = ",".join(sorted(doc.get("marking", {}))) or "-"
+    return (f"{doc.get('state', '?'):8} scans={doc.get('scan_count', 0):<8} "
+            f"period={doc.get('period_us', 0) / 1000:g}ms "
+            f"p99_late={timing.get('p99_lateness_us', 0):.0f}us "
+            f"overruns={timing.get('overruns', 0)} marked={marked}")
+
+
+def _port_in_use(endpoint: tuple[str, int] | None) -> str | None:
+    if endpoint is None or endpoint[1] == 0:
+        return None
+    with socket.socket() as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(endpoint)
+        except OSError as exc:
+            return f"{endpoint[0]}:{endpoint[1]}: {exc.strerror}"
+    return None
+
+
+def _startup_problem(args: argparse.Namespace) -> str | None:
+    """The first reason `softplc run` cannot start, as one line; None when it can."""
+    if args.program:
+        why = plant_conflict(compile_file(args.program).io, args.plant)
+        if why:
+            return why
+    for what, endpoint in (("Modbus", args.modbus), ("API", args.api)):
+        if problem := _port_in_use(endpoint):
+            return f"{what} port {problem} (another softplc? choose another with --{what.lower()})"
+    state = Path(args.state_dir)
+    try:
+        state.mkdir(parents=True, exist_ok=True)
+        probe = state / f".write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        return (f"state directory {state} is not usable: {exc.strerror} "
+                "(choose one with --state-dir)")
+    return None
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.program:
+        try:
+            compile_file(args.program)
+        except ProgramError as exc:
+            for problem in exc.problems:
+                print(problem, file=sys.stderr)
+            return EXIT_START
+    try:
+        check_state_dir(args.state_dir)  # the scan process takes the lock; fail early and clearly
+    except StateDirBusy as exc:
+        print(f"softplc: {exc}", file=sys.stderr)
+        return EXIT_START
+    if trouble := _startup_problem(args):
+        print(f"softplc: {trouble}", file=sys.stderr)
+        return EXIT_START
+    remove_stale_segments()
+    try:
+        supervisor = Supervisor.from_args(args)
+    except ValueError as exc:  # --rt-priority or --scan-cpu out of range
+        print(f"softplc: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    stopping = False
+
+    def on_signal(signum: int, frame: object) -> None:
+        nonlocal stopping
+        stopping = True
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    try:
+        supervisor.start()
+    except RuntimeError as exc:
+        print(f"softplc: {exc}", file=sys.stderr)
+        supervisor.stop()
+        return EXIT_START
+    notifier = Notifier()
+    notifier.send(f"READY=1\nMAINPID={os.getpid()}\nSTATUS=scanning")
+    _banner(args, supervisor.status())
+    print(f"  scan process pid {supervisor.scan.pid} ({supervisor.status().get('realtime', '?')}), "
+          f"communication process pid {supervisor.comm.pid if supervisor.comm else '-'}",
+          flush=True)
+    print(f"  supervisor pid {os.getpid()}: SIGTERM or SIGINT stops everything within "
+          f"{STOP_S:g} s; exit code 0 then, 3 if it gives up restarting", flush=True)
+    return _supervise(supervisor, args, lambda: stopping, notifier)
+
+
+def _supervise(supervisor: Supervisor, args: argparse.Namespace,
+               stopping: Callable[[], bool], notifier: Notifier) -> int:
+    began = time.monotonic()
+    tty = sys.stdout.isatty() and not args.quiet
+    last_print = 0.0
+    code = EXIT_OK
+    try:
+        while not stopping():
+            time.sleep(0.05)
+            try:
+                said = supervisor.watch()
+            except GaveUp as exc:
+                print(("\n" if tty else "") + f"softplc: {exc}", file=sys.stderr, flush=True)
+                code = EXIT_GAVE_UP
+                break
+            for line in said:
+                print(("\n" if tty else "") + f"softplc: {line}", file=sys.stderr, flush=True)
+                notifier.send(f"STATUS={line}")
+            now = time.monotonic()
+            notifier.ping(now)
+            if args.duration and now - began >= args.duration / 1e9:
+                break
+            if tty:
+                print("\r" + status_line(supervisor.status())[:150].ljust(150), end="", flush=True)
+            elif not args.quiet and now - last_print >= 5:
+                print(status_line(supervisor.status()), flush=True)
+                last_print = now
+    finally:
+        notifier.send("STOPPING=1")
+        supervisor.stop()
+        final = supervisor.final
+    ending = "gave up" if code else "stopped"
+    print(("\n" if tty else "") + f"{ending}: " + status_line(final) + ", outputs safe",
+          flush=True)
+    return code
+
+
+def _banner(args: argparse.Namespace, doc: dict[str, Any]) -> None:
+    print(f"softplc running {args.program or '(no program)'}"
+          f" (period {args.period / 1e6:g} ms){' started' if args.start else ''}")
+    print(f"  {doc.get('start_mode', '?')} start: {doc.get('start_reason', '?')}")
+    print(f"  program: {doc.get('program_source', '?')}; restarts: scan process restarted "
+          f"warm from the newest snapshot, at most {SCAN_RESTARTS} times in "
+          f"{RESTART_WINDOW_S:g} s")
+    interval = getattr(args, "retain_interval", 0)
+    print(f"  retain in {args.state_dir}/: "
+          + (f"every {interval / 1e9:g} s and on stop" if interval else "on stop only"))
+    if args.modbus:
+        host, port = args.modbus
+        print(f"  Modbus TCP slave on {host}:{port}; try: "
+              f"mbpoll -m tcp -p {port} -a 1 -0 -1 -t 0 -r 0 -c 8 {host}")
+    if args.api:
+        host, port = args.api
+        print(f"  HTTP API on http://{host}:{port}; try: curl -s http://{host}:{port}/api/v1/status")
+    if getattr(args, "opcua", None):
+        host, port = args.opcua
+        print(f"  OPC UA server on opc.tcp://{host}:{port} (writes and methods: user token)")
+    print("  Ctrl-C stops (outputs to their safe values first)", flush=True)

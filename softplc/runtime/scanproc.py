@@ -1,0 +1,70 @@
+"""The scan process's entry point: signals, the watch on the supervisor, shared memory
+attached, the loop built and run, everything let go at the end.
+
+Owns: the scan process's exit codes (0 stopped, 3 state directory busy, 4 cannot start).
+Does not know: what a scan does (runtime/loop.py).
+"""
+
+from __future__ import annotations
+
+import gc
+import os
+import signal
+import sys
+import threading
+
+from softplc.core.problems import ProgramError
+from softplc.runtime.board import StatusBoard
+from softplc.runtime.channel import Channel
+from softplc.runtime.config import LoopConfig
+from softplc.runtime.loop import ScanLoop
+from softplc.runtime.procs import Flag as Event
+from softplc.runtime.realtime import apply
+from softplc.runtime.retain import StateDirBusy
+from softplc.runtime.shm import SnapshotWriter
+
+
+def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board_name: str,
+                      ready: Event, stop: Event) -> None:
+    """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`.
+    Exit codes: 0 stopped, 3 state directory busy, 4 cannot start (program, devices)."""
+    from softplc.runtime.procs import die_with_parent, once, supervisor_pid
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, once(stop.set))
+    die_with_parent()
+    parent = supervisor_pid()
+
+    def watch_parent() -> None:
+        while not stop.wait(0.5):
+            if os.getppid() != parent:
+                stop.set()  # the supervisor is gone: go safe and end
+
+    threading.Thread(target=watch_parent, name="watch-parent", daemon=True).start()
+    realtime = apply(config.realtime)  # after the watcher: it keeps normal scheduling
+    writer, own_segment = SnapshotWriter.open_or_create(config.sizes, shm_name)
+    board, own_board = StatusBoard.open_or_create(board_name)
+    try:
+        try:
+            loop = ScanLoop(config, channel, writer, board=board)
+            loop.realtime = realtime
+        except StateDirBusy as exc:
+            print(f"softplc: {exc}", file=sys.stderr)
+            raise SystemExit(3) from None
+        except (ProgramError, ValueError, OSError) as exc:
+            print(f"softplc: cannot start the scan: {exc}", file=sys.stderr)
+            raise SystemExit(4) from None
+        writer.publish(loop.runner.plc.image, loop.status())
+        board.publish(loop.document())
+        gc.collect()  # before the first scan, not during one; then keep what start-up built
+        gc.freeze()  # out of every later collection (real-time practice, see Preparer.prepare)
+        ready.set()
+        loop.run(stop)
+    finally:
+        writer.close()
+        if own_segment:
+            writer.unlink()
+        if own_board:
+            board.close()
+        else:
+            board.detach()
