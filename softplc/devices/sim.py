@@ -44,6 +44,9 @@ class SimDriver:
         self._open = False
         self._image: ProcessImage | None = None  # the image _in_slots points into
         self._in_slots: list[tuple[Any, int, bool, str]] = []
+        self._out_image: ProcessImage | None = None  # the image _out_slots points into
+        self._out_slots: list[tuple[Any, int]] = []
+        self._out_raw: bytes | None = None  # _out_image's output areas when last read
         self._out_channels = tuple(str(s.channel) for s in self.outputs)
 
     @property
@@ -63,10 +66,11 @@ class SimDriver:
         self._open = False
 
     def read_inputs(self, image: ProcessImage, now_ns: int) -> None:
-        self.plant.advance(now_ns)
+        plant = self._plant
+        plant.advance(now_ns)
         if self.offline:
             return
-        sensors = self.plant.read_sensors()
+        sensors = plant.read_sensors()
         if image is not self._image:
             self._bind(image)
         for arr, index, bit, channel in self._in_slots:
@@ -76,11 +80,16 @@ class SimDriver:
     def write_outputs(self, image: ProcessImage, now_ns: int) -> None:
         if self.offline:
             return
-        values = tuple(image.get(s.address) for s in self.outputs)
-        if values == self._sent:
-            return  # the plant has these already: no bookkeeping on a steady scan
-        self.plant.set_actuators(dict(zip(self._out_channels, values, strict=True)))
-        self._sent = values
+        if image is not self._out_image:
+            self._bind_outputs(image)
+        raw = image.outputs_bytes()
+        if raw == self._out_raw and self._sent is not None:
+            return  # the output image the plant's actuators were last set from, unchanged
+        values = tuple([int(arr[index]) for arr, index in self._out_slots])
+        if values != self._sent:  # equal: the plant has these already, no bookkeeping
+            self.plant.set_actuators(dict(zip(self._out_channels, values, strict=True)))
+            self._sent = values
+        self._out_raw = raw  # only once the plant has them (set_actuators may raise)
 
     def _bind(self, image: ProcessImage) -> None:
         """Where each input lands in `image`, checked once per image, not per scan."""
@@ -89,6 +98,15 @@ class SimDriver:
         self._in_slots = [(getattr(image, s.address.attr), s.address.index, s.address.is_bit,
                            str(s.channel)) for s in self.inputs]
         self._image = image
+
+    def _bind_outputs(self, image: ProcessImage) -> None:
+        """Where each output is read from in `image`, checked once per image."""
+        for sym in self.outputs:
+            image.check(sym.address)
+        self._out_slots = [(getattr(image, s.address.attr), s.address.index)
+                           for s in self.outputs]
+        self._out_image = image
+        self._out_raw = None
 
     def go_safe(self, image: ProcessImage, timeout_s: float) -> bool:
         """In memory, so immediate: confirmed unless the device is closed or offline."""

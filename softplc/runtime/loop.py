@@ -265,14 +265,16 @@ class ScanLoop:
         """One scan; True if it applied program commands (exempt from the watchdog: a
         download swaps the net and may open devices, not the program's execution time)."""
         requests, writes = self.channel.drain() if self.channel else ([], [])
-        self.downloads.put(requests)
+        if requests:
+            self.downloads.put(requests)
         commands = self.pending + self._due_commands()
         self.pending = []
         was_running = self.runner.plc.state is PlcState.RUNNING
         result = self.runner.step(now_ns, commands, writes, observed=observed)
         if was_running and self.runner.plc.state is not PlcState.RUNNING:
             self._confirm_safe(now_ns)  # stop, kill, fault: the devices confirm before replies
-        self._after(commands, result.replies)
+        if commands or result.replies:  # the steady scan has nothing to swap or answer
+            self._after(commands, result.replies)
         for name in result.events:
             self._event(name, now_ns)
         self._diagnostic_events(now_ns)
@@ -411,7 +413,8 @@ class ScanLoop:
             if self.writer is not None:
                 self.writer.publish(self.runner.plc.image, self.status())
             interval = self.config.retain_interval_ns
-            self._retain(now_ns, interval > 0 and now_ns - self._retained_ns >= interval)
+            if self.retain is not None:
+                self._retain(now_ns, interval > 0 and now_ns - self._retained_ns >= interval)
             if self.board is not None and refresh:
                 self.board.publish(self.document())
         except Exception as exc:

@@ -13,7 +13,7 @@ from typing import Any
 
 from softplc.core.faults import DeviceMonitor
 from softplc.core.image import ProcessImage
-from softplc.core.lifecycle import Command
+from softplc.core.lifecycle import Command, PlcState
 from softplc.core.net import CompiledNet
 from softplc.core.scan import (
     NOTHING_OBSERVED,
@@ -87,20 +87,25 @@ class ScanRunner:
         self.trace = trace
         self._traced_out: dict[str, int] = {}  # output symbols as the trace last gave them
         self._traced_diag = 0
+        self._traced_net: CompiledNet | None = None  # the net whose outputs _traced_out holds
         self._last_inputs: ProcessImage | None = None
+        self._last_in: bytes | None = None  # _last_inputs' input areas, as bytes
         self._digest = ""
         self.fired_counts: dict[str, int] = {}
         self._noted: Observed | None = None  # judged between scans; traced with the next one
         self._raised: dict[str, str] = {}  # drivers whose call raised this scan, and how
         self._steady = NOTHING_OBSERVED  # every device answering, as last observed
+        self._state_seen: PlcState | None = None  # the state whose name _state_name is
+        self._state_name = ""
 
     def set_drivers(self, drivers: Sequence[Driver]) -> None:
         for driver in self.drivers:
             driver.close()
         self.drivers = list(drivers)
+        self._steady = NOTHING_OBSERVED  # other devices: their first answers are judged anew
         self.devices.forget()
         self.inputs = ProcessImage(self.plc.image.sizes)
-        self._last_inputs = None
+        self._last_inputs = self._last_in = None
 
     @property
     def devices(self) -> DeviceMonitor:
@@ -113,12 +118,13 @@ class ScanRunner:
         """Per driver: the fault policy's verdict, scans without an answer, and why."""
         return self.devices.report()
 
-    def _extra(self, outputs: ProcessImage) -> dict[str, Any]:
+    def _extra(self, result: ScanResult) -> dict[str, Any]:
         """The trace's readable part: output symbols whose value changed since the last
         traced scan (so replay names what differs), and the scan's new diagnostics."""
         extra: dict[str, Any] = {}
-        net, engine = self.plc.net, self.plc.engine
-        if net is not None:
+        net, engine, outputs = self.plc.net, self.plc.engine, result.outputs
+        if net is not None and (result.outputs_changed or net is not self._traced_net):
+            self._traced_net = net  # an unchanged output image has the values traced last
             changed = {}
             for symbol in net.io.symbols.values():
                 if symbol.direction.value == "out":
@@ -133,8 +139,8 @@ class ScanRunner:
         return extra
 
     def step(self, now_ns: int, commands: Sequence[ProgramCommand] = (),
-             hmi: Sequence[HmiWrite] = (), timing: dict[str, int] | None = None,
-             observed: Observed = NOTHING_OBSERVED) -> ScanResult:
+             hmi: Sequence[HmiWrite] = (), observed: Observed = NOTHING_OBSERVED
+             ) -> ScanResult:
         """Read inputs, scan, write outputs, trace. A driver that raises is a device that did
         not answer this scan (its exception is the reason): the PLC never dies of a driver."""
         for driver in self.drivers:
@@ -149,12 +155,7 @@ class ScanRunner:
         for name in result.fired:
             self.fired_counts[name] = self.fired_counts.get(name, 0) + 1
         if self.trace is not None:
-            self.trace.record(self._record(now_ns, commands, hmi, result, observed), timing,
-                              self._extra(result.outputs))
-        if self._last_inputs is None:
-            self._last_inputs = self.inputs.copy()
-        else:
-            self.inputs.copy_into(self._last_inputs)
+            self._trace(self.trace, now_ns, commands, hmi, result, observed)
         return result
 
     def _write(self, outputs: ProcessImage, now_ns: int) -> None:
@@ -184,6 +185,14 @@ class ScanRunner:
     def _observe(self, observed: Observed) -> Observed:
         # Health after read_inputs: the inputs this scan uses are the ones it judges.
         raised = self._raised
+        steady = self._steady
+        if (not raised and not observed.overrun and not observed.stall
+                and len(steady.answering) == len(self.drivers)):
+            for driver in self.drivers:
+                if driver.health() is not Health.OK:
+                    break
+            else:  # every device answers, as in the last such scan: no dictionary to build
+                return steady
         if raised:
             self._raised = {}
         answering = {d.name: d.health() is Health.OK and d.name not in raised
@@ -205,12 +214,25 @@ class ScanRunner:
             return driver.problem() or driver.health().value
         return driver.health().value
 
-    def _record(self, now_ns: int, commands: Sequence[ProgramCommand],
-                hmi: Sequence[HmiWrite], result: ScanResult, observed: Observed
-                ) -> dict[str, Any]:
+    def _trace(self, trace: TraceWriter, now_ns: int, commands: Sequence[ProgramCommand],
+               hmi: Sequence[HmiWrite], result: ScanResult, observed: Observed) -> None:
+        """The scan's trace record; a scan in which only time passed takes the short way
+        (TraceWriter.steady: the same line, no dictionary, no encoder)."""
+        extra = self._extra(result) if trace.writes_file else None
+        inputs = self._input_changes()
+        digest = self._output_digest(result)
+        steady_obs = self._noted is None and (observed is self._steady
+                                              or observed is NOTHING_OBSERVED)
+        if (steady_obs and not extra and not inputs and not commands and not hmi
+                and not result.fired and not result.completed and not result.marking_changes
+                and not result.events):
+            state = self.plc.state
+            if state is not self._state_seen:  # Enum.name is a descriptor call: once per state
+                self._state_seen, self._state_name = state, state.name
+            trace.steady(self.plc.scan_count - 1, now_ns, digest, self._state_name)
+            return
         record: dict[str, Any] = {"k": self.plc.scan_count - 1, "t": now_ns,
-                                  "in": self._input_changes(),
-                                  "out": self._output_digest(result), "state": self.plc.state.name}
+                                  "in": inputs, "out": digest, "state": self.plc.state.name}
         obs = _observation(observed, self._noted)
         self._noted = None
         if obs:
@@ -227,13 +249,20 @@ class ScanRunner:
             record["m"] = result.marking_changes
         if result.events:
             record["ev"] = list(result.events)
-        return record
+        trace.record(record, None, extra)
 
     def _input_changes(self) -> dict[str, dict[str, int]]:
-        last = self._last_inputs
-        if last is not None and self.inputs.inputs_bytes() == last.inputs_bytes():
-            return {}  # the steady scan: one comparison instead of one per input area
-        return input_changes(self.inputs, last)
+        """The inputs that differ from the last traced scan's, which this scan's become."""
+        now = self.inputs.inputs_bytes()
+        if now == self._last_in:
+            return {}  # the steady scan: one comparison, nothing copied
+        changes = input_changes(self.inputs, self._last_inputs)
+        if self._last_inputs is None:
+            self._last_inputs = self.inputs.copy()
+        else:
+            self.inputs.copy_into(self._last_inputs)
+        self._last_in = now
+        return changes
 
     def _output_digest(self, result: ScanResult) -> str:
         if result.outputs_changed or not self._digest:

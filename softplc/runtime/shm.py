@@ -49,6 +49,7 @@ import numpy.typing as npt
 from softplc.core.image import ImageSizes, ProcessImage
 from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import Snapshot, SnapshotUnavailable, Status
+from softplc.runtime.shmcopy import SlotCopies
 
 MAGIC: Final = b"SPLCSNAP"
 VERSION: Final = 3  # 2: status carries published_ns; 3: and `forced`
@@ -153,6 +154,7 @@ class SnapshotWriter:
             [(name, buf[at + start : at + stop].view(dtype)) for name, start, stop, dtype in layout]
             for at in self._slot_at
         ]
+        self._copies = SlotCopies(buf, self._slot_at, sizes, layout)
 
     @classmethod
     def create(cls, sizes: ImageSizes | None = None, name: str | None = None) -> SnapshotWriter:
@@ -218,7 +220,7 @@ class SnapshotWriter:
 
     def publish(self, image: ProcessImage, status: Status) -> int:
         """Copy `image` and `status` in as one snapshot; return its sequence number (1, 2, ...)."""
-        if image.sizes != self.sizes:
+        if image.sizes is not self.sizes and image.sizes != self.sizes:
             raise ValueError(f"image sizes {image.sizes} differ from the segment's {self.sizes}")
         # Stamped here, on the machine-wide monotonic clock, so that a reader in another
         # process can tell a frozen scan process from a live one (the snapshot's age).
@@ -229,8 +231,11 @@ class SnapshotWriter:
         control = self._control
         control[1 + slot] = 2 * seq - 1  # odd: this slot is being written
         self._buf()[at : at + _STATUS.size] = packed
-        for name, target in self._targets[slot]:
-            target[:] = getattr(image, name)
+        if image.buf is not None:  # one image buffer: its areas in four runs (shmcopy.py)
+            self._copies.copy(slot, image.buf)
+        else:
+            for name, target in self._targets[slot]:
+                target[:] = getattr(image, name)
         control[1 + slot] = 2 * seq
         control[0] = seq
         self._seq = seq
@@ -241,6 +246,7 @@ class SnapshotWriter:
         # numpy views export the buffer; they must go before the mapping can close.
         self._control = np.zeros(3, dtype=np.uint64)
         self._targets = []
+        self._copies.close()
         self._shm.close()
 
     def unlink(self) -> None:

@@ -39,6 +39,10 @@ def input_changes(now: ProcessImage, before: ProcessImage | None) -> dict[str, d
     return out
 
 
+# One encoder for every record: json.dumps with options builds a new one per call.
+_CANONICAL = json.JSONEncoder(sort_keys=True, separators=(",", ":"))
+
+
 class TraceWriter:
     """Writes one line per scan (when given a path) and keeps the running sha256."""
 
@@ -47,17 +51,35 @@ class TraceWriter:
         self._sha = hashlib.sha256()
         self.lines = 0
 
+    @property
+    def writes_file(self) -> bool:
+        """Whether records go to a file (the readable `extra` part is only written there)."""
+        return self._file is not None
+
     def record(self, record: dict[str, Any], timing: dict[str, int] | None = None,
                extra: dict[str, Any] | None = None) -> None:
         """`timing` and `extra` (output symbols that changed: "q", new diagnostics: "diag")
         go in the file but not in the hash: golden hashes do not move when they are added."""
-        canonical = json.dumps(record, sort_keys=True, separators=(",", ":"))
-        self._sha.update(canonical.encode() + b"\n")
+        self._line(_CANONICAL.encode(record), record, timing, extra)
+
+    def steady(self, k: int, t: int, out: str, state: str) -> None:
+        """The record of a scan in which nothing but time passed ({"in": {}, "k", "out",
+        "state", "t"}), formatted as the canonical JSON of record() would be, without it:
+        most scans are such, and the encoder was the trace's whole cost (issue 15.5).
+        `out` and `state` are plain ASCII words (a hex digest, a state name): no escaping."""
+        self._line(f'{{"in":{{}},"k":{k},"out":"{out}","state":"{state}","t":{t}}}',
+                   None, None, None)
+
+    def _line(self, canonical: str, record: dict[str, Any] | None,
+              timing: dict[str, int] | None, extra: dict[str, Any] | None) -> None:
+        self._sha.update((canonical + "\n").encode())
         self.lines += 1
         if self._file is not None:
             if timing or extra:
+                assert record is not None
                 record = {**record, **(extra or {}), **({"timing": timing} if timing else {})}
-            self._file.write(json.dumps(record, sort_keys=True, separators=(",", ":")) + "\n")
+                canonical = _CANONICAL.encode(record)
+            self._file.write(canonical + "\n")
 
     @property
     def sha256(self) -> str:

@@ -33,6 +33,8 @@ S1 = Zone(fm(0), fm(60_000), True)  # input/unload position
 S2 = Zone(fm(470_000), fm(530_000), True)  # machine position
 # Boundaries where a moving part's fate changes: input end, edge of the drill's reach, output end.
 BOUNDARIES = (0, X_DRILL - NEAR_DRILL, X_END)
+assert S1.hi_inclusive and S2.hi_inclusive  # read_sensors tests them inline
+_NEVER = 1 << 62  # no event ahead (ns): later than any advance() can ask for
 
 
 @dataclass(frozen=True, slots=True)
@@ -90,23 +92,45 @@ class DrillingPlant:
         self._bottom_since_ns: int | None = None  # set while at the bottom after a drilling
         self._dwell_s: list[float] = []
 
+    # The next event's absolute time, or None when it must be computed again (as in
+    # TransportPlant: event times are absolute and positions exact integers, so it holds
+    # until an event, an actuator change or a part's unload timer starting or stopping).
+    # A class default: a plant pickled by an older version has no such attribute.
+    _next_event_ns: int | None = None
+
     def set_actuators(self, values: Mapping[str, int]) -> None:
         apply_actuators(self._out, values)
+        self._next_event_ns = None
 
     def advance(self, now_ns: int) -> None:
         check_time(self._now_ns, now_ns)
         # Between two events the belt and the drill move at constant speed: each step is exact.
+        # Arrivals, falls, drilling, unloads and placing all happen at an event: a step that
+        # ends between events only moves (issue 15.5).
         while self._now_ns < now_ns:
-            self._settle()
-            step_end = min((now_ns, *self._event_times()))
+            if self._next_event_ns is None:  # the start, an event or new actuator values
+                self._settle()  # between events it would find everything as it left it
+                self._next_event_ns = min(self._event_times(), default=_NEVER)
+            event = self._next_event_ns
+            step_end = now_ns if now_ns < event else event
             reached_bottom = self._move(step_end - self._now_ns)
             self._now_ns = step_end
-            self._resolve(reached_bottom)
+            if step_end == event or reached_bottom:
+                self._next_event_ns = None
+                self._resolve(reached_bottom)
 
     def read_sensors(self) -> dict[str, int]:
+        # The two zones' tests spelled out (both include their upper bound): every scan.
+        s1 = s2 = 0
+        for p in self._parts:
+            x = p.x_fm
+            if S1.lo_fm <= x <= S1.hi_fm:
+                s1 = 1
+            if S2.lo_fm <= x <= S2.hi_fm:
+                s2 = 1
         return {
-            "s1": int(any(p.x_fm in S1 for p in self._parts)),
-            "s2": int(any(p.x_fm in S2 for p in self._parts)),
+            "s1": s1,
+            "s2": s2,
             "drill_top": int(self._z_ns == 0),
             "drill_bottom": int(self._z_ns == self.config.drill_travel_ns),
         }
@@ -164,7 +188,8 @@ class DrillingPlant:
         return arrived
 
     def _settle(self) -> None:
-        """Bookkeeping of states that start or end with an actuator change or an event."""
+        """Bookkeeping of states that start or end with an actuator change or an event (so
+        advance() calls it only after one)."""
         self._check_clash("conveyor", "m_fwd", "m_rev")
         self._check_clash("drill", "drill_down", "drill_up")
         self._check_drill_leaving()

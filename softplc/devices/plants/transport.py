@@ -126,6 +126,7 @@ SENSOR_ZONES = {
     "s2_o": Zone(fm(1_940_000), fm(2_000_000), False),
 }
 X1, X_END, X_PLACE = fm(HANDOVER_UM), fm(END_UM), fm(PLACE_UM)
+_NEVER = 1 << 62  # no event ahead (ns): later than any advance() can ask for
 
 
 @dataclass(frozen=True, slots=True)
@@ -170,24 +171,46 @@ class TransportPlant:
         self._faults: list[str] = []
         self._collided: set[tuple[int, int]] = set()
 
+    # The next event's absolute time, or None when it must be computed again. Between events
+    # it does not move: every event time is absolute, and positions are exact integers (a
+    # crossing or contact computed later from the moved positions is the same instant). It is
+    # forgotten at an event, when the motors change, and when a part comes to rest.
+    # (A class default: a plant pickled by an older version has no such attribute.)
+    _next_event_ns: int | None = None
+
     def set_actuators(self, values: Mapping[str, int]) -> None:
         apply_actuators(self._motor, values)
+        self._next_event_ns = None
 
     def advance(self, now_ns: int) -> None:
         check_time(self._now_ns, now_ns)
-        # Between two events every part moves at a constant speed, so each step is exact.
+        # Between two events every part moves at a constant speed, so each step is exact;
+        # nothing is resolved between events (arrivals, falls, unloads, placing and contacts
+        # all happen at one), so a scan between events only moves the parts (issue 15.5).
         while self._now_ns < now_ns:
-            self._settle()
-            step_end = min((now_ns, *self._event_times()))
+            if self._next_event_ns is None:  # the start, an event or new actuator values
+                self._settle()  # between events it would find everything as it left it
+                self._next_event_ns = min(self._event_times(), default=_NEVER)
+            event = self._next_event_ns
+            step_end = now_ns if now_ns < event else event
             self._move(step_end - self._now_ns)
             self._now_ns = step_end
-            self._resolve()
+            if step_end == event:
+                self._next_event_ns = None
+                self._resolve()
 
     def read_sensors(self) -> dict[str, int]:
-        return {
-            name: int(any(p.x_fm in zone for p in self._parts))
-            for name, zone in SENSOR_ZONES.items()
-        }
+        # Zone.__contains__ spelled out: this runs every scan for every zone and part.
+        xs = [p.x_fm for p in self._parts]
+        out = {}
+        for name, zone in SENSOR_ZONES.items():
+            lo, hi, inclusive = zone.lo_fm, zone.hi_fm, zone.hi_inclusive
+            out[name] = 0
+            for x in xs:
+                if lo <= x and (x <= hi if inclusive else x < hi):
+                    out[name] = 1
+                    break
+        return out
 
     def report(self) -> PlantReport:
         return PlantReport(
@@ -240,6 +263,9 @@ class TransportPlant:
             p.x_fm = X1 if stopped_c2 and p.x_fm < X1 <= x else x
 
     def _settle(self) -> None:
+        """Parts at rest in the unload zone start their unload timer, moving ones stop it. A
+        part comes to rest or moves again only when the motors change (advance() calls this
+        only after an actuator change or an event)."""
         unload_zone = SENSOR_ZONES["s2_o"]
         for p in self._parts:
             resting = p.x_fm in unload_zone and self._speed(p.x_fm) == 0
