@@ -3,9 +3,9 @@
 Owns: the Clock protocol, MonotonicClock (the real clock of the scan: the scan time `now_ns`
 handed to the core is read here, or from a VirtualClock), VirtualClock (jumps to each
 deadline; simulation and tests), Schedule (absolute deadlines, skipped slots). Durations
-written as text: core/units.py, the one parser. Other code reads time.monotonic directly for what never reaches the scan's
-semantics: timeouts and deadlines of commands and connections, the age of a snapshot, I/O
-threads' backoff, benchmarks.
+written as text: core/units.py, the one parser. Other code reads time.monotonic directly
+for what never reaches the scan's semantics: timeouts and deadlines of commands and
+connections, the age of a snapshot, I/O threads' backoff, benchmarks.
 Does not know: scans, programs, processes.
 """
 

@@ -13,7 +13,6 @@ Does not know: Modbus, HTTP (the communication process), terminals (the CLI).
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from collections import deque
@@ -22,11 +21,10 @@ from typing import Any
 
 from softplc.core.firing import Engine
 from softplc.core.lifecycle import Command, PlcState
-from softplc.core.net import CompiledNet, NetState
 from softplc.core.problems import FaultCode, ProgramError
 from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
-from softplc.runtime import netview
+from softplc.runtime import statusdoc, warmstart
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.bootkeeper import BootKeeper
 from softplc.runtime.channel import Channel
@@ -42,15 +40,8 @@ from softplc.runtime.prepare import (
 )
 from softplc.runtime.procs import Flag as Event
 from softplc.runtime.retain import (
-    ContinuedClock,
-    Loaded,
-    RetainStore,
     RetainWriter,
-    StartDecision,
     capture,
-    decide,
-    load_plant,
-    restore,
 )
 from softplc.runtime.runner import ScanRunner, open_drivers
 from softplc.runtime.shm import SnapshotWriter
@@ -100,16 +91,7 @@ class ScanLoop:
         # The program the PLC starts with is analysed too, never refused: the person at the
         # console chose it. Its findings are in status.
         self.analysis = self.prep.analyse(net, gate=False) if net is not None else None
-        decision = StartDecision("cold", self.start_reason)
-        if config.state_dir is not None:
-            store = RetainStore.open(config.state_dir)  # StateDirBusy: another runtime has it
-            decision = decide(store, net)
-            self.retain = RetainWriter(store)
-        self.start_mode, self.start_reason = decision.mode, decision.reason
-        if net is not None and decision.snapshot is not None:
-            self._warm(net, decision.snapshot)
-        elif net is not None:
-            self._cold(net)
+        warmstart.begin(self, net)
         if config.restarts:
             self._event(f"plc_restarted:{config.restarts}", 0)
 
@@ -121,40 +103,6 @@ class ScanLoop:
         return ScanPace()
 
     # -- retain -----------------------------------------------------------------------------
-
-    def _cold(self, net: CompiledNet) -> None:
-        """Download `net` (and start it, if asked) on the first scan, from its initial marking.
-        A restart after a crash with no usable snapshot waits STOPPED: nothing says whether the
-        program was running, and starting a machine from its initial marking is a person's call."""
-        self.pending = [ProgramCommand(Command.DOWNLOAD, net, id=0)]
-        if self.config.start and not self.config.restarts:
-            self.pending.append(ProgramCommand(Command.START, id=0))
-
-    def _warm(self, net: CompiledNet, snap: Loaded) -> None:
-        """Download `net`, open its devices and put the snapshot in; on a snapshot that does
-        not fit after all (same hash, unusable content) fall back to a cold start."""
-        payload = snap.payload
-        resume = (self.config.start or self.config.restarts > 0) and (
-            self.config.warm_start == "run" or self.config.restarts > 0)
-        plc = self.runner.plc
-        plc.apply(ProgramCommand(Command.DOWNLOAD, net), payload["now_ns"])
-        try:
-            state = restore(plc, payload, resume)
-            plants = {name: load_plant(blob)
-                      for name, blob in payload.get("field_simulation_only", {}).items()}
-        except (KeyError, TypeError, ValueError, IndexError, AttributeError, EOFError) as exc:
-            self.runner.plc = Plc.empty(self.runner.plc.image)
-            self._cold(net)
-            self.start_mode = "cold"
-            self.start_reason = f"snapshot {snap.path.name} unusable ({type(exc).__name__}: {exc})"
-            return
-        self._swap_drivers(None)  # the program's devices, opened before the first scan
-        for driver in self.runner.drivers:
-            if driver.name in plants and hasattr(driver, "plant"):
-                driver.plant = plants[driver.name]  # simulation only: the field side
-        self.clock = ContinuedClock(self.clock, payload["now_ns"])
-        self._retained_ns = payload["now_ns"]
-        self.start_reason += f" -> {state.name}"
 
     def _sim_plants(self) -> dict[str, object]:
         return {d.name: d.plant for d in self.runner.drivers if hasattr(d, "plant")}
@@ -231,7 +179,7 @@ class ScanLoop:
             elif prepared is not None:
                 prepared.discard()
         if accepted is not None:
-            self._swap_drivers(accepted)
+            self.swap_drivers(accepted)
             self.boot.keep(accepted.request, accepted.net)
             self.analysis = accepted.analysis
             if accepted.analysis and accepted.analysis["findings"]:
@@ -240,11 +188,11 @@ class ScanLoop:
                                         "see status)", r.state, r.expired)
                            if r.id == accepted.request.id else r for r in replies]
         elif any(c.command is Command.DOWNLOAD and c.id == 0 for c in commands):
-            self._swap_drivers(None)
+            self.swap_drivers(None)
         for reply in replies:
             self._reply(reply)
 
-    def _swap_drivers(self, prepared: Prepared | None) -> None:
+    def swap_drivers(self, prepared: Prepared | None) -> None:
         net = self.runner.plc.net
         if net is None:
             return
@@ -306,54 +254,10 @@ class ScanLoop:
 
     def document(self) -> dict[str, Any]:
         """The status board: what `softplc status` and the HTTP API show."""
-        plc = self.runner.plc
-        timing: dict[str, Any] = dict(self.summary.as_dict())
-        timing["p99_lateness_us"] = timing.get("lateness_p99_us", 0)
-        timing["overruns"] = self.stats.overruns
-        timing["stalls"] = self.stalls
-        timing["longest_gap_us"] = self.longest_gap_ns // 1000
-        net = plc.net
-        symbols = {} if net is None else {
-            s.name: {"address": str(s.address), "type": s.type.value,
-                     "direction": s.direction.value, "value": plc.image.get(s.address),
-                     "hmi_writable": s.hmi_writable, "description": s.description}
-            for s in net.io.symbols.values()}
-        return {
-            "state": plc.state.name, "program": net.name if net else None,
-            "program_hash": net.program_hash if net else None, "scan_count": plc.scan_count,
-            "period_us": self.config.period_ns // 1000, "marking": plc.marking(),
-            "timing": timing, "fault_code": int(plc.fault_code),
-            "fault_name": plc.fault_code.name.lower(),
-            "fault_reason": plc.fault_reason, "devices": self.runner.device_report(),
-            "start_mode": self.start_mode,
-            "start_reason": self.start_reason, "program_source": self.boot.source,
-            "realtime": self.realtime,
-            "restarts": self.config.restarts, "restart_reason": self.config.restart_reason,
-            "scan_pid": os.getpid(),
-            "on_stall": self.config.on_stall, "watchdog_ms": self.budget_ns / 1e6,
-            "stall_fault_ms": max(self.config.stall_fault_ns, self.budget_ns) / 1e6,
-            "internal_errors": self.internal_errors, "analysis": self.analysis,
-            "boot_problem": self.boot.problem,
-            "retain": self.retain.info() if self.retain else None,
-            "health": {name: h.value for name, h in self.runner.health().items()},
-            "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
-            "diagnostic_count": plc.engine.diagnostic_count if plc.engine else 0,
-            "tokens": _records(net, plc.engine.state if plc.engine else None),
-            "symbols": symbols, "events": list(self.events),
-            "forced": plc.forces.values(),  # forcing (docs/design.md section 10)
-            # The operator's page (docs/web.md): structure cached per program, live state.
-            "net": netview.structure(net) if net else None,
-            "net_live": netview.live(net, plc.engine.state if plc.engine else None,
-                                     self.clock.now_ns(), self.runner.fired_counts),
-        }
+        return statusdoc.document(self)
 
     def status(self) -> Status:
-        plc = self.runner.plc
-        return Status(plc.state, plc.scan_count, self.stats.last_exec_ns // 1000,
-                      self.stats.max_exec_ns // 1000, int(self.summary.lateness_p99_us),
-                      self.stats.overruns,
-                      plc.net.program_hash if plc.net else "", int(plc.fault_code),
-                      self.config.period_ns // 1000, len(plc.forces))
+        return statusdoc.status(self)
 
     def run(self, stop: Event | None = None) -> None:
         try:
@@ -459,11 +363,3 @@ class ScanLoop:
                 print(f"softplc: {outcome}", file=sys.stderr, flush=True)
         if self.board is not None:
             self.board.publish(self.document())
-
-
-def _records(net: CompiledNet | None, state: NetState | None) -> dict[str, list[Any]]:
-    """Coloured places' records (the first 20 of each), for status and the API."""
-    if net is None or state is None:
-        return {}
-    return {net.place_names[p]: [dict(t) for t in records[:20]]
-            for p, records in sorted(state.tokens.items()) if records}

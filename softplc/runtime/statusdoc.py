@@ -1,0 +1,79 @@
+"""The scan loop's status, as people and other processes read it.
+
+Owns: the status board document (`softplc status`, the HTTP API, the operator's page) and the
+fixed-size Status of every published snapshot, both read off a ScanLoop between scans.
+Does not know: how they are published (runtime/board.py, runtime/shm.py).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import TYPE_CHECKING, Any
+
+from softplc.core.net import CompiledNet, NetState
+from softplc.core.snapshot import Status
+from softplc.runtime import netview
+
+if TYPE_CHECKING:
+    from softplc.runtime.loop import ScanLoop
+
+
+def document(loop: ScanLoop) -> dict[str, Any]:
+    """The status board of `loop`: what `softplc status` and the HTTP API show."""
+    plc = loop.runner.plc
+    timing: dict[str, Any] = dict(loop.summary.as_dict())
+    timing["p99_lateness_us"] = timing.get("lateness_p99_us", 0)
+    timing["overruns"] = loop.stats.overruns
+    timing["stalls"] = loop.stalls
+    timing["longest_gap_us"] = loop.longest_gap_ns // 1000
+    net = plc.net
+    symbols = {} if net is None else {
+        s.name: {"address": str(s.address), "type": s.type.value,
+                 "direction": s.direction.value, "value": plc.image.get(s.address),
+                 "hmi_writable": s.hmi_writable, "description": s.description}
+        for s in net.io.symbols.values()}
+    return {
+        "state": plc.state.name, "program": net.name if net else None,
+        "program_hash": net.program_hash if net else None, "scan_count": plc.scan_count,
+        "period_us": loop.config.period_ns // 1000, "marking": plc.marking(),
+        "timing": timing, "fault_code": int(plc.fault_code),
+        "fault_name": plc.fault_code.name.lower(),
+        "fault_reason": plc.fault_reason, "devices": loop.runner.device_report(),
+        "start_mode": loop.start_mode,
+        "start_reason": loop.start_reason, "program_source": loop.boot.source,
+        "realtime": loop.realtime,
+        "restarts": loop.config.restarts, "restart_reason": loop.config.restart_reason,
+        "scan_pid": os.getpid(),
+        "on_stall": loop.config.on_stall, "watchdog_ms": loop.budget_ns / 1e6,
+        "stall_fault_ms": max(loop.config.stall_fault_ns, loop.budget_ns) / 1e6,
+        "internal_errors": loop.internal_errors, "analysis": loop.analysis,
+        "boot_problem": loop.boot.problem,
+        "retain": loop.retain.info() if loop.retain else None,
+        "health": {name: h.value for name, h in loop.runner.health().items()},
+        "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
+        "diagnostic_count": plc.engine.diagnostic_count if plc.engine else 0,
+        "tokens": _records(net, plc.engine.state if plc.engine else None),
+        "symbols": symbols, "events": list(loop.events),
+        "forced": plc.forces.values(),  # forcing (docs/design.md section 10)
+        # The operator's page (docs/web.md): structure cached per program, live state.
+        "net": netview.structure(net) if net else None,
+        "net_live": netview.live(net, plc.engine.state if plc.engine else None,
+                                 loop.clock.now_ns(), loop.runner.fired_counts),
+    }
+
+def status(loop: ScanLoop) -> Status:
+    """The fixed-size status of every snapshot (shared memory, Modbus status block)."""
+    plc = loop.runner.plc
+    return Status(plc.state, plc.scan_count, loop.stats.last_exec_ns // 1000,
+                  loop.stats.max_exec_ns // 1000, int(loop.summary.lateness_p99_us),
+                  loop.stats.overruns,
+                  plc.net.program_hash if plc.net else "", int(plc.fault_code),
+                  loop.config.period_ns // 1000, len(plc.forces))
+
+
+def _records(net: CompiledNet | None, state: NetState | None) -> dict[str, list[Any]]:
+    """Coloured places' records (the first 20 of each), for status and the API."""
+    if net is None or state is None:
+        return {}
+    return {net.place_names[p]: [dict(t) for t in records[:20]]
+            for p, records in sorted(state.tokens.items()) if records}

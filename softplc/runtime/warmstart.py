@@ -1,0 +1,78 @@
+"""How a scan loop starts its program: warm from the newest usable retain snapshot of the
+same program, else cold from the initial marking (docs/retain.md).
+
+Owns: the start decision applied to a ScanLoop before its first scan: the program's devices
+opened and the snapshot put in (warm), or the download queued (cold); a snapshot that does not
+fit after all falls back to cold, with the reason.
+Does not know: how snapshots are stored and chosen (runtime/retain.py).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from softplc.core.lifecycle import Command
+from softplc.core.net import CompiledNet
+from softplc.core.scan import Plc, ProgramCommand
+from softplc.runtime.retain import (
+    ContinuedClock,
+    Loaded,
+    RetainStore,
+    RetainWriter,
+    StartDecision,
+    decide,
+    load_plant,
+    restore,
+)
+
+if TYPE_CHECKING:
+    from softplc.runtime.loop import ScanLoop
+
+
+def begin(loop: ScanLoop, net: CompiledNet | None) -> None:
+    """Decide and prepare the start of `net` (None: no program, nothing to start)."""
+    decision = StartDecision("cold", loop.start_reason)
+    if loop.config.state_dir is not None:
+        store = RetainStore.open(loop.config.state_dir)  # StateDirBusy: another runtime has it
+        decision = decide(store, net)
+        loop.retain = RetainWriter(store)
+    loop.start_mode, loop.start_reason = decision.mode, decision.reason
+    if net is not None and decision.snapshot is not None:
+        warm(loop, net, decision.snapshot)
+    elif net is not None:
+        cold(loop, net)
+
+
+def cold(loop: ScanLoop, net: CompiledNet) -> None:
+    """Download `net` (and start it, if asked) on the first scan, from its initial marking.
+    A restart after a crash with no usable snapshot waits STOPPED: nothing says whether the
+    program was running, and starting a machine from its initial marking is a person's call."""
+    loop.pending = [ProgramCommand(Command.DOWNLOAD, net, id=0)]
+    if loop.config.start and not loop.config.restarts:
+        loop.pending.append(ProgramCommand(Command.START, id=0))
+
+def warm(loop: ScanLoop, net: CompiledNet, snap: Loaded) -> None:
+    """Download `net`, open its devices and put the snapshot in; on a snapshot that does
+    not fit after all (same hash, unusable content) fall back to a cold start."""
+    payload = snap.payload
+    resume = (loop.config.start or loop.config.restarts > 0) and (
+        loop.config.warm_start == "run" or loop.config.restarts > 0)
+    plc = loop.runner.plc
+    plc.apply(ProgramCommand(Command.DOWNLOAD, net), payload["now_ns"])
+    try:
+        state = restore(plc, payload, resume)
+        plants = {name: load_plant(blob)
+                  for name, blob in payload.get("field_simulation_only", {}).items()}
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError, EOFError) as exc:
+        loop.runner.plc = Plc.empty(loop.runner.plc.image)
+        cold(loop, net)
+        loop.start_mode = "cold"
+        loop.start_reason = f"snapshot {snap.path.name} unusable ({type(exc).__name__}: {exc})"
+        return
+    loop.swap_drivers(None)  # the program's devices, opened before the first scan
+    for driver in loop.runner.drivers:
+        if driver.name in plants and hasattr(driver, "plant"):
+            driver.plant = plants[driver.name]  # simulation only: the field side
+    loop.clock = ContinuedClock(loop.clock, payload["now_ns"])
+    loop._retained_ns = payload["now_ns"]
+    loop.start_reason += f" -> {state.name}"
