@@ -14,6 +14,8 @@ Does not know: what the objects mean.
 
 from __future__ import annotations
 
+import gc
+from types import MappingProxyType
 from typing import Any
 
 _LEAVES = (str, bytes, int, float, bool, type(None))
@@ -72,6 +74,8 @@ def _release(order: list[Any], start: int) -> None:
 def _children(obj: Any) -> list[Any]:
     if isinstance(obj, dict):
         return [*obj.keys(), *obj.values(), *getattr(obj, "__dict__", {}).values()]
+    if isinstance(obj, MappingProxyType):
+        return gc.get_referents(obj)  # the mapping it shows
     if isinstance(obj, list | tuple | set | frozenset):
         return [*obj, *getattr(obj, "__dict__", {}).values()]
     if type(obj).__module__.startswith("softplc."):  # the program's own values

@@ -18,10 +18,11 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from types import FrameType
-from typing import Any
+from typing import Any, TypeVar
 
 from softplc.core.lifecycle import Command
 from softplc.core.snapshot import CommandRequest
+from softplc.program.teardown import bury
 from softplc.runtime.realtime import compile_thread
 
 # While a compile runs, a waiting scan thread gets the GIL back after at most this long. The
@@ -31,6 +32,7 @@ from softplc.runtime.realtime import compile_thread
 COMPILE_SWITCH_INTERVAL_S = 0.00005
 
 
+_T = TypeVar("_T")
 _OPEN = 1 << 62  # a pace nobody keeps: compiles never park
 
 
@@ -87,12 +89,12 @@ class ScanPace:
                 while self._now_ns is not None and self._now_ns() >= self._until_ns:
                     self._turn.wait()
 
-    def paced(self, work: Callable[[CommandRequest], Any]) -> Callable[[CommandRequest], Any]:
+    def paced(self, work: Callable[[_T], Any]) -> Callable[[_T], Any]:
         """`work`, run on the calling thread at the scan's pace."""
-        def run(request: CommandRequest) -> Any:
+        def run(argument: _T) -> Any:
             sys.settrace(self.hook)
             try:
-                return work(request)
+                return work(argument)
             finally:
                 sys.settrace(None)
         return run
@@ -152,6 +154,15 @@ class DownloadQueue:
         if finished and self._compiling == 0:  # not on every scan: only when the last one ends
             sys.setswitchinterval(self._default_interval_s)
         return decided
+
+    def discard(self, box: list[Any]) -> None:
+        """Let go of what `box` holds (a replaced net and its engine) on the compile thread, at
+        the scan's pace, a container at a time (program/teardown.py): freed on the scan
+        thread, a 10,000-transition net and engine took 7.4 ms in one decref cascade. The
+        box is emptied; the caller must hold no other reference."""
+        held = box[:]
+        box.clear()
+        self._pool().submit(self.pace.paced(bury), held)
 
     @property
     def waiting(self) -> int:

@@ -24,7 +24,7 @@ from softplc.core.lifecycle import Command, PlcState
 from softplc.core.problems import FaultCode, ProgramError
 from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
-from softplc.runtime import statusdoc, warmstart
+from softplc.runtime import netview, statusdoc, warmstart
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.bootkeeper import BootKeeper
 from softplc.runtime.channel import Channel
@@ -84,6 +84,7 @@ class ScanLoop:
         self.retain: RetainWriter | None = None
         self._retained_ns = 0
         self._prepared: dict[int, Prepared] = {}  # downloads handed to the scan, by request id
+        self._retired: list[Any] = []  # a replaced net and its engine (scan_once)
         self._diag_engine: Engine | None = None  # diagnostics put on the event stream
         self._diag_seen = 0
         self.boot = BootKeeper(config, self.prep)
@@ -212,13 +213,21 @@ class ScanLoop:
     def scan_once(self, now_ns: int, observed: Observed = NOTHING_OBSERVED) -> bool:
         """One scan; True if it applied program commands (exempt from the watchdog: a
         download swaps the net and may open devices, not the program's execution time)."""
+        if self._retired:  # replaced last scan: its transient references are gone by now
+            self.downloads.discard(self._retired)
         requests, writes = self.channel.drain() if self.channel else ([], [])
         if requests:
             self.downloads.put(requests)
         commands = self.pending + self._due_commands()
         self.pending = []
         was_running = self.runner.plc.state is PlcState.RUNNING
+        replaced = (self.runner.plc.net, self.runner.plc.engine) if commands else None
         result = self.runner.step(now_ns, commands, writes, observed=observed)
+        if replaced is not None and replaced[0] is not None \
+                and self.runner.plc.net is not replaced[0]:
+            self._retired += replaced  # let go of off the scan thread, next scan
+            netview.forget()
+        replaced = None
         if was_running and self.runner.plc.state is not PlcState.RUNNING:
             self._confirm_safe(now_ns)  # stop, kill, fault: the devices confirm before replies
         if commands or result.replies:  # the steady scan has nothing to swap or answer

@@ -40,6 +40,12 @@ def structure(net: CompiledNet) -> dict[str, Any]:
         return {"error": f"net structure unavailable ({type(exc).__name__}: {exc})"}
 
 
+def forget() -> None:
+    """Drop the cached structure (its net was replaced: the loop lets go of that net off the
+    scan thread, and this cache must not be what frees it later)."""
+    _cache.clear()
+
+
 def _structure(net: CompiledNet) -> dict[str, Any]:
     cached = _cache.get(id(net))
     if cached is not None and cached[0] is net:
