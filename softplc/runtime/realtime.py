@@ -71,10 +71,10 @@ def compile_thread() -> None:
 
     Why not normal scheduling, like the other helpers: this thread holds the interpreter lock
     the scan needs. It lets go of it before every deadline (runtime/downloads.py, ScanPace),
-    but at normal priority any busy process preempts it wherever it holds the lock, and the
-    FIFO scan then waits for a thread the kernel does not run: slots missed by 10-30 ms
-    during an online change (bench, 2 busy cores). Just below the scan, nothing but the scan
-    preempts it, and the scan only at its deadline."""
+    but at normal priority any busy process may preempt it wherever it holds the lock, and
+    the FIFO scan then waits for a thread the kernel does not run (a priority inversion).
+    Just below the scan, nothing but the scan preempts it, and the scan only at its
+    deadline."""
     try:
         if os.sched_getscheduler(0) == os.SCHED_FIFO:
             priority = max(1, os.sched_getparam(0).sched_priority - 1)
