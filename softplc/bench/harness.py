@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
 import json
 import os
 import platform
@@ -110,46 +111,18 @@ TARGETS = (
 HEADLINE = (*(t.key for t in TARGETS), "memory.rss_mb")
 
 
+# Each section's module in softplc/bench (imported when its section runs: some need the
+# bench extra, SNAKES or matplotlib).
+_MODULES = {"engine": "engine", "scan": "scanbench", "simulate": "simbench",
+            "modbus": "modbusbench", "web": "webbench", "opcua": "opcuabench",
+            "analysis": "analysisbench", "restart": "restartbench",
+            "online_change": "onlinebench", "memory": "memorybench"}
+
+
 def _section_runner(name: str) -> Callable[[bool, Progress], dict[str, Any]]:
-    if name == "engine":
-        from softplc.bench import engine
-
-        return lambda quick, progress: engine.run(quick, progress)
-    if name == "scan":
-        from softplc.bench import scanbench
-
-        return lambda quick, progress: scanbench.run(quick, progress)
-    if name == "simulate":
-        from softplc.bench import simbench
-
-        return lambda quick, progress: simbench.run(quick, progress)
-    if name == "modbus":
-        from softplc.bench import modbusbench
-
-        return lambda quick, progress: modbusbench.run(quick, progress)
-    if name == "web":
-        from softplc.bench import webbench
-
-        return lambda quick, progress: webbench.run(quick, progress)
-    if name == "opcua":
-        from softplc.bench import opcuabench
-
-        return lambda quick, progress: opcuabench.run(quick, progress)
-    if name == "analysis":
-        from softplc.bench import analysisbench
-
-        return lambda quick, progress: analysisbench.run(quick, progress)
-    if name == "restart":
-        from softplc.bench import restartbench
-
-        return lambda quick, progress: restartbench.run(quick, progress)
-    if name == "online_change":
-        from softplc.bench import onlinebench
-
-        return lambda quick, progress: onlinebench.run(quick, progress)
-    from softplc.bench import memorybench
-
-    return lambda quick, progress: memorybench.run(quick, progress)
+    module = importlib.import_module(f"softplc.bench.{_MODULES[name]}")
+    run: Callable[[bool, Progress], dict[str, Any]] = module.run
+    return run
 
 
 def machine() -> dict[str, Any]:

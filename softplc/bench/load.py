@@ -16,12 +16,14 @@ import socket
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
 from urllib.parse import urlsplit
 
 from softplc.bench.measure import figures
+from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
 
 _CTX = mp.get_context("spawn")
 _REQUEST = struct.Struct(">HHHBBHH")  # MBAP (transaction, protocol 0, length 6, unit) + PDU
@@ -51,6 +53,25 @@ class _Tally:
     def fail(self, exc: BaseException | str) -> None:
         self.errors += 1
         self.first_error = self.first_error or str(exc)
+
+
+def client_process(target: Callable[..., None], args: tuple[Any, ...], name: str,
+                   realtime: Realtime, timeout_s: float, what: str) -> dict[str, Any]:
+    """Run `target(*args, results)` in a client process off the scan's CPU and return the
+    dict it sends on `results`; RuntimeError naming `what` if nothing comes in `timeout_s`."""
+    here, there = _CTX.Pipe(duplex=False)
+    proc = _CTX.Process(target=target, args=(*args, there), name=name, daemon=True)
+    proc.start()
+    keep_off_scan_cpu(int(proc.pid or 0), realtime)
+    try:
+        if not here.poll(timeout_s):
+            raise RuntimeError(f"{what} did not report")
+        result: dict[str, Any] = here.recv()
+    finally:
+        proc.join(10)
+        if proc.is_alive():
+            proc.kill()
+    return result
 
 
 def _read_reply(sock: socket.socket) -> bytes:

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import multiprocessing as mp
 import os
 import statistics
 import tempfile
@@ -28,15 +27,15 @@ from typing import Any, Final
 from asyncua import Client
 
 from softplc.bench.live import LiveRuntime, run_floor
+from softplc.bench.load import client_process
 from softplc.bench.measure import Progress, ratio
 from softplc.bench.scanbench import SETTLE_S, window_figures
 from softplc.core.image import ProcessImage
 from softplc.opcua.driver import OpcUaIoDriver
 from softplc.opcua.ids import string_id
 from softplc.program.io_image import parse_io_image
-from softplc.runtime.realtime import Realtime, keep_off_scan_cpu, recommended
+from softplc.runtime.realtime import Realtime, recommended
 
-_CTX = mp.get_context("spawn")
 CLIENTS: Final = 4
 SUBSCRIPTION_MS: Final = 50.0  # an HMI's refresh rate
 CALLER_PERIOD_S: Final = 0.01
@@ -109,21 +108,9 @@ def clients_main(url: str, duration_s: float, results: Connection) -> None:
 
 
 def _subscribed(runtime: LiveRuntime, duration_s: float, realtime: Realtime) -> dict[str, Any]:
-    here, there = _CTX.Pipe(duplex=False)
     url = f"opc.tcp://127.0.0.1:{runtime.opcua_port}"
-    proc = _CTX.Process(target=clients_main, args=(url, duration_s, there),
-                        name="opcua-clients", daemon=True)
-    proc.start()
-    keep_off_scan_cpu(int(proc.pid or 0), realtime)
-    try:
-        if not here.poll(2 * duration_s + 60):
-            raise RuntimeError("the OPC UA clients did not report")
-        result: dict[str, Any] = here.recv()
-    finally:
-        proc.join(10)
-        if proc.is_alive():
-            proc.kill()
-    return result
+    return client_process(clients_main, (url, duration_s), "opcua-clients", realtime,
+                          2 * duration_s + 60, "the OPC UA clients")
 
 
 def _load(duration_s: float, realtime: Realtime, progress: Progress) -> dict[str, Any]:

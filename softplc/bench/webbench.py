@@ -12,7 +12,6 @@ Owns: the page readers and the section's keys. Does not know: how the runtime st
 from __future__ import annotations
 
 import http.client
-import multiprocessing as mp
 import os
 import threading
 import time
@@ -20,11 +19,11 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 from softplc.bench.live import LiveRuntime, run_floor
+from softplc.bench.load import client_process
 from softplc.bench.measure import Progress, ratio
 from softplc.bench.scanbench import SETTLE_S, window_figures
-from softplc.runtime.realtime import Realtime, keep_off_scan_cpu, recommended
+from softplc.runtime.realtime import Realtime, recommended
 
-_CTX = mp.get_context("spawn")
 PAGES = 3
 
 
@@ -60,20 +59,8 @@ def pages_main(port: int, pages: int, duration_s: float, results: Connection) ->
 
 
 def _pages(port: int, duration_s: float, realtime: Realtime) -> dict[str, Any]:
-    here, there = _CTX.Pipe(duplex=False)
-    proc = _CTX.Process(target=pages_main, args=(port, PAGES, duration_s, there),
-                        name="web-pages", daemon=True)
-    proc.start()
-    keep_off_scan_cpu(int(proc.pid or 0), realtime)
-    try:
-        if not here.poll(duration_s + 30):
-            raise RuntimeError("the page clients did not report")
-        result: dict[str, Any] = here.recv()
-    finally:
-        proc.join(10)
-        if proc.is_alive():
-            proc.kill()
-    return result
+    return client_process(pages_main, (port, PAGES, duration_s), "web-pages", realtime,
+                          duration_s + 30, "the page clients")
 
 
 def _period(period_ms: int, duration_s: float, realtime: Realtime,

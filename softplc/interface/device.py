@@ -231,24 +231,6 @@ class DeviceInterface(PaperProgramHandling):
         self._names = frozenset({net.name, str(file), str(path)})
         return summarize(net)
 
-    def start_program(self, program: str | None = None) -> PlcState:
-        """Cold start: initial marking."""
-        return self._control(Command.START, program)
-
-    def stop_program(self, program: str | None = None) -> PlcState:
-        """Graceful stop: outputs safe, marking and timers frozen."""
-        return self._control(Command.STOP, program)
-
-    def reset_program(self, program: str | None = None) -> PlcState:
-        return self._control(Command.RESET, program)
-
-    def resume_program(self, program: str | None = None) -> PlcState:
-        """Warm start: kept marking, timers shifted by the time spent stopped."""
-        return self._control(Command.RESUME, program)
-
-    def kill_program(self, program: str | None = None) -> PlcState:
-        return self._control(Command.KILL, program)
-
     def _control(self, command: Command, program: str | None) -> PlcState:
         self._check_open()
         self.commands.append((command.value, program or ""))

@@ -59,21 +59,6 @@ class RemoteSoftplc(PaperProgramHandling):
         self._names = frozenset({str(file), str(path), path.name, path.stem})
         return str(reply.get("message", ""))
 
-    def start_program(self, program: str | None = None) -> PlcState:
-        return self._control(Command.START, program)
-
-    def stop_program(self, program: str | None = None) -> PlcState:
-        return self._control(Command.STOP, program)
-
-    def reset_program(self, program: str | None = None) -> PlcState:
-        return self._control(Command.RESET, program)
-
-    def resume_program(self, program: str | None = None) -> PlcState:
-        return self._control(Command.RESUME, program)
-
-    def kill_program(self, program: str | None = None) -> PlcState:
-        return self._control(Command.KILL, program)
-
     def status(self) -> dict[str, Any]:
         return self._call(self._client.status)
 

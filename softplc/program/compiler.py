@@ -359,6 +359,10 @@ def compile_text(text: str, filename: str, root: Path | None = None) -> Compiled
                 problems.extend(_at_reference(p, ref, where) for p in exc.problems)
     if io is None:
         raise ProgramError(sorted(set(problems)))
+    return _compile_spec(spec, io, problems)
+
+
+def _compile_spec(spec: ProgramSpec, io: IoImage, problems: list[Problem]) -> CompiledNet:
     compiler = _Compiler(spec, io, problems)
     compiler.check_names()
     net = _build(spec, io, compiler)
@@ -375,13 +379,7 @@ def compile_text_with_io(text: str, filename: str, io: IoImage,
     spec, problems = parse_program(text, filename, root)
     if any("YAML" in p.message for p in problems):
         raise ProgramError(sorted(set(problems)))
-    compiler = _Compiler(spec, io, problems)
-    compiler.check_names()
-    net = _build(spec, io, compiler)
-    box = [spec, compiler]  # the parsed program, let go of a piece at a time (teardown.py)
-    del spec, compiler
-    bury(box)
-    return net
+    return _compile_spec(spec, io, problems)
 
 
 def compile_file(path: str | Path, root: Path | None = None) -> CompiledNet:

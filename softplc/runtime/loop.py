@@ -227,7 +227,6 @@ class ScanLoop:
                 and self.runner.plc.net is not replaced[0]:
             self._retired += replaced  # let go of off the scan thread, next scan
             netview.forget()
-        replaced = None
         if was_running and self.runner.plc.state is not PlcState.RUNNING:
             self._confirm_safe(now_ns)  # stop, kill, fault: the devices confirm before replies
         if commands or result.replies:  # the steady scan has nothing to swap or answer

@@ -26,7 +26,7 @@ from softplc.core.net import CompiledNet, NetState
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.scan import Plc
 from softplc.core.snapshot import CommandReply, CommandRequest
-from softplc.devices.driver import Driver
+from softplc.devices.driver import DeviceError, Driver
 from softplc.program import bundle as bundles
 from softplc.program.compiler import compile_file, compile_text
 from softplc.runtime.config import LoopConfig
@@ -240,8 +240,6 @@ def plc_marking(net: CompiledNet) -> dict[str, int]:
 
 def describe_error(error: BaseException) -> str:
     """A refused download's reason in one line: a device, or an internal compiler error."""
-    from softplc.devices.driver import DeviceError
-
     if isinstance(error, DeviceError | ValueError | OSError):
         return f"its devices cannot be opened: {error}"
     return f"internal compiler error ({type(error).__name__}: {error})"
