@@ -68,10 +68,13 @@ class Compiled:
     `edges` the symbols it takes edges of, so the scan knows when to re-evaluate it."""
 
     text: str
-    fn: Thunk
+    fn: Thunk = field(compare=False)  # the same text in the same names: the same expression
     reads: frozenset[str]
     edges: frozenset[str]
     tokens: frozenset[str]
+    # What it was compiled in: a net crossing to another process compiles its expressions
+    # again from text and scope (program/wire.py), never ships the closures.
+    scope: Scope | None = field(default=None, compare=False, repr=False)
 
     def __call__(self, ctx: EvalContext) -> Value:
         return self.fn(ctx)
@@ -311,9 +314,8 @@ def compile_expr(text: str | int | bool, scope: Scope) -> Compiled:
     source = str(text).lower() if isinstance(text, bool) else str(text)
     compiler = _Compiler(source, scope)
     fn = compiler.build(parse(source))
-    return Compiled(
-        source, fn, frozenset(compiler.reads), frozenset(compiler.edges), frozenset(compiler.tokens)
-    )
+    return Compiled(source, fn, frozenset(compiler.reads), frozenset(compiler.edges),
+                    frozenset(compiler.tokens), scope)
 
 
 def names_in(text: str) -> set[str]:

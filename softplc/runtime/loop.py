@@ -29,6 +29,7 @@ from softplc.runtime.board import StatusBoard
 from softplc.runtime.bootkeeper import BootKeeper
 from softplc.runtime.channel import Channel
 from softplc.runtime.clock import Clock, MonotonicClock, Schedule
+from softplc.runtime.compileproc import CompileProcess
 from softplc.runtime.config import LoopConfig as LoopConfig  # importable from here too
 from softplc.runtime.downloads import DownloadQueue, ScanPace
 from softplc.runtime.prepare import (
@@ -78,7 +79,12 @@ class ScanLoop:
         self.runner = ScanRunner(Plc.empty(), [],
                                  TraceWriter(config.trace) if config.trace else None)
         self.pending: list[ProgramCommand] = []
-        self.prep = Preparer(config, lambda: self.runner.plc.net, lambda: self._driver_specs)
+        # Downloads compile in a process of their own beside a real-time loop; on a virtual
+        # clock (tests, simulation) on the compile thread.
+        self.compiler = CompileProcess(config) if isinstance(self.clock, MonotonicClock) \
+            else None
+        self.prep = Preparer(config, lambda: self.runner.plc.net, lambda: self._driver_specs,
+                             self.compiler)
         self.downloads = DownloadQueue(self.prep.prepare, pace=self._pace())
         self._driver_specs: tuple[object, ...] = ()
         self.retain: RetainWriter | None = None
@@ -268,6 +274,8 @@ class ScanLoop:
         return statusdoc.status(self)
 
     def run(self, stop: Event | None = None) -> None:
+        if self.compiler is not None:
+            self.compiler.start()  # ready before the first download, from the thread that stays
         try:
             self._run(stop)
         finally:
@@ -361,6 +369,8 @@ class ScanLoop:
             self.writer.publish(plc.image, self.status())
         self.runner.close()
         self.downloads.close()
+        if self.compiler is not None:
+            self.compiler.close()
         for prepared in self._prepared.values():
             prepared.discard()
         self.boot.close()

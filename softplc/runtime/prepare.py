@@ -1,6 +1,8 @@
-"""Downloads prepared off the scan: compiled, analysed, their engine and carry plan built
-and their devices opened on the compile thread (runtime/downloads.py), so that the scan only
-swaps; and the dry run, which says what a download would do and applies nothing.
+"""Downloads prepared off the scan: compiled and analysed in the compile process
+(runtime/compileproc.py; on the compile thread when there is none), then their net loaded,
+their engine and carry plan built and their devices opened on the scan process's compile
+thread (runtime/downloads.py), so that the scan only swaps; and the dry run, which says what
+a download would do and applies nothing.
 
 Owns: where a plain-text download resolves its files (the programs directory) and where a
 bundle is unpacked; the analysis gate (docs/analysis.md) and its size bound; refusal texts
@@ -16,7 +18,7 @@ import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from softplc.core import online
 from softplc.core.firing import Engine
@@ -28,6 +30,7 @@ from softplc.core.scan import Plc
 from softplc.core.snapshot import CommandReply, CommandRequest
 from softplc.devices.driver import DeviceError, Driver
 from softplc.program import bundle as bundles
+from softplc.program import wire
 from softplc.program.compiler import compile_file, compile_text
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.runner import open_drivers
@@ -41,6 +44,32 @@ class AnalysisRefused(Exception):
     def __init__(self, findings: tuple[str, ...]) -> None:
         super().__init__("\n".join(findings))
         self.findings = findings
+
+    def __reduce__(self) -> tuple[Any, ...]:  # crosses from the compile process
+        return AnalysisRefused, (self.findings,)
+
+
+class CompilerFailed(Exception):
+    """The compile process failed a download for another reason than its program: it died,
+    ran past its time, or the compiler raised an internal error."""
+
+
+@dataclass(frozen=True, slots=True)
+class Built:
+    """What the compile process sends back for a valid program: the net as bytes
+    (program/wire.py), the analysis gate's summary, and the folders bundles were unpacked in
+    (stripped from messages)."""
+
+    net: tuple[bytes, ...]
+    analysis: dict[str, Any] | None
+    bundle_roots: tuple[str, ...] = ()
+
+
+class Remote(Protocol):
+    """Compiles and analyses a download elsewhere (runtime/compileproc.py). Raises
+    ProgramError, AnalysisRefused or CompilerFailed."""
+
+    def build(self, req: CommandRequest) -> Built: ...
 
 
 @dataclass(slots=True)
@@ -67,10 +96,12 @@ class Preparer:
     answer only costs a carry plan rebuilt on the scan, or devices opened for nothing)."""
 
     def __init__(self, config: LoopConfig, running: Callable[[], CompiledNet | None],
-                 running_specs: Callable[[], tuple[object, ...]]) -> None:
+                 running_specs: Callable[[], tuple[object, ...]],
+                 remote: Remote | None = None) -> None:
         self.config = config
         self._running = running
         self._running_specs = running_specs
+        self.remote = remote  # compiles in another process; None: on the calling thread
         self.bundle_roots: set[str] = set()  # unpacked bundles, stripped from messages
 
     def relative(self, message: str) -> str:
@@ -143,9 +174,23 @@ class Preparer:
             gc.freeze()
             gc.enable()
 
-    def _prepare_net(self, req: CommandRequest) -> Prepared:
+    def build(self, req: CommandRequest) -> Built:
+        """Compile and analyse: what the compile process does for each download."""
         net = self.compile(req)
-        analysis = self.analyse(net)
+        return Built(wire.dumps(net), self.analyse(net), tuple(sorted(self.bundle_roots)))
+
+    def _compiled(self, req: CommandRequest) -> tuple[CompiledNet, dict[str, Any] | None]:
+        if self.remote is None:
+            net = self.compile(req)
+            return net, self.analyse(net)
+        built = self.remote.build(req)
+        self.bundle_roots.update(built.bundle_roots)
+        # Loaded here, on the compile thread at the scan's pace: every expression compiled
+        # again from its text by the sandboxed compiler (~50 ms for 10,000 transitions).
+        return wire.loads(built.net), built.analysis
+
+    def _prepare_net(self, req: CommandRequest) -> Prepared:
+        net, analysis = self._compiled(req)
         specs = tuple(net.io.drivers.values())
         # Everything the swap needs, built here: the engine's tables and the carry plan
         # against the net running now (the scan checks it is still that net).
@@ -240,6 +285,8 @@ def plc_marking(net: CompiledNet) -> dict[str, int]:
 
 def describe_error(error: BaseException) -> str:
     """A refused download's reason in one line: a device, or an internal compiler error."""
+    if isinstance(error, CompilerFailed):
+        return str(error)
     if isinstance(error, DeviceError | ValueError | OSError):
         return f"its devices cannot be opened: {error}"
     return f"internal compiler error ({type(error).__name__}: {error})"

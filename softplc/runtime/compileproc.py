@@ -1,0 +1,164 @@
+"""The compile process: downloads compiled and analysed in a process of their own.
+
+Owns: starting the compile process (spawned, at the lowest scheduling there is: it runs on
+CPU time nothing else of the runtime wants, off the scan's CPU when the scan is pinned), one
+download at a time over a private pipe, a compile that dies or runs past COMPILE_TIMEOUT_S
+turned into a refused download (the next download starts a new process), and its end with
+the scan process (pipe closed, or PR_SET_PDEATHSIG).
+Why a process: threads of the scan process share one interpreter lock with the scan. Paced
+between scans (runtime/downloads.py), a 10,000-transition compile took ~3 s of the scan
+process's time and still cost slots at 1 ms; here it takes ~0.8 s of another process's, and
+the scan process only loads the result (program/wire.py), paced, ~0.1 s. A program that
+crashes or exhausts the compiler takes this process down, never the scan.
+Does not know: the scan, the lifecycle, what compiling means (runtime/prepare.py).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import multiprocessing
+import os
+import pickle
+import signal
+import threading
+import time
+from multiprocessing.connection import Connection
+from typing import Any
+
+from softplc.core.problems import Problem, ProgramError
+from softplc.core.snapshot import CommandRequest
+from softplc.runtime.config import LoopConfig
+from softplc.runtime.prepare import AnalysisRefused, Built, CompilerFailed, Preparer
+from softplc.runtime.realtime import keep_off_scan_cpu
+
+COMPILE_TIMEOUT_S = 120.0  # one download's compile and analysis; then it is refused
+_CTX = multiprocessing.get_context("spawn")  # a fresh interpreter: nothing of the scan's
+
+
+def compile_main(config: LoopConfig, conn: Connection) -> None:
+    """Entry point of the compile process: a request in, a Built or an error out, until the
+    scan process closes the pipe."""
+    from softplc.runtime.procs import die_with_parent
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the supervisor's business
+    die_with_parent()
+    idle(0)
+    prep = Preparer(config, lambda: None, lambda: ())
+    while True:
+        try:
+            req = pickle.loads(conn.recv_bytes())
+        except (EOFError, OSError):
+            return  # the scan process is gone or closed the pipe
+        try:
+            reply: tuple[str, Any] = ("ok", prep.build(req))
+        except ProgramError as exc:  # paths as the sender knows them: a bundle's folder is here
+            reply = ("error", ProgramError([
+                Problem(prep.relative(p.file), p.line, p.path, prep.relative(p.message))
+                for p in exc.problems]))
+        except AnalysisRefused as exc:  # its findings are relative already
+            reply = ("error", exc)
+        except Exception as exc:  # a compiler bug: the download is refused, the process lives
+            reply = ("error", CompilerFailed(
+                f"internal compiler error ({type(exc).__name__}: {exc})"))
+        try:
+            conn.send_bytes(pickle.dumps(reply, protocol=5))
+        except (OSError, ValueError):
+            return
+        del reply
+        gc.collect()  # between downloads, where nobody waits
+
+
+def idle(pid: int) -> None:
+    """SCHED_IDLE for `pid` (0: this process): it runs only when a CPU has nothing else."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(pid, os.SCHED_IDLE, os.sched_param(0))
+
+
+class CompileProcess:
+    """The scan process's side: `build()` on the compile thread; `start()` ahead of the first
+    download (from the thread that stays: PR_SET_PDEATHSIG follows the thread that spawned
+    it); `close()` on the way out."""
+
+    def __init__(self, config: LoopConfig, timeout_s: float = COMPILE_TIMEOUT_S) -> None:
+        self.config = config
+        self.timeout_s = timeout_s
+        self.started = 0  # processes started, for status and tests
+        self._proc: Any = None
+        self._conn: Connection | None = None
+        self._lock = threading.Lock()
+
+    def start(self) -> None:
+        with self._lock:
+            if self._proc is not None and self._proc.is_alive():
+                return
+            self._end()
+            mine, theirs = _CTX.Pipe(duplex=True)
+            proc = _CTX.Process(target=compile_main, args=(self.config, theirs),
+                                name="softplc-compile", daemon=True)
+            proc.start()
+            theirs.close()
+            assert proc.pid is not None  # started
+            idle(proc.pid)  # at once, not after its imports: it inherited the scan's policy
+            keep_off_scan_cpu(proc.pid, self.config.realtime)
+            self._proc, self._conn = proc, mine
+            self.started += 1
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc is not None else None
+
+    def build(self, req: CommandRequest) -> Built:
+        """Compile and analyse `req` in the compile process. Raises what the compile raised
+        (ProgramError, AnalysisRefused) or CompilerFailed."""
+        self.start()
+        conn = self._conn
+        assert conn is not None
+        try:
+            conn.send_bytes(pickle.dumps(req, protocol=5))
+            deadline = time.monotonic() + self.timeout_s
+            while not conn.poll(0.25):
+                if not self._proc.is_alive():
+                    raise EOFError
+                if time.monotonic() > deadline:
+                    self._fail()
+                    raise CompilerFailed(f"the compile process took longer than "
+                                         f"{self.timeout_s:g} s; it was stopped")
+            kind, value = pickle.loads(conn.recv_bytes())
+        except (EOFError, OSError, ValueError):
+            raise CompilerFailed(self._died()) from None
+        if kind == "error":
+            raise value
+        assert isinstance(value, Built)
+        return value
+
+    def _died(self) -> str:
+        """Why the compile process ended, said as a refusal; it is ended for good."""
+        proc = self._proc
+        if proc is not None:
+            proc.join(1.0)
+        code = proc.exitcode if proc is not None else None
+        self._fail()
+        how = (f"killed by signal {-code}" if code is not None and code < 0
+               else f"exit code {code}" if code is not None else "closed")
+        return (f"the compile process ended while compiling ({how}); it restarts with the "
+                "next download")
+
+    def _fail(self) -> None:
+        with self._lock:
+            self._end()
+
+    def _end(self) -> None:
+        """Close the pipe and end the process (the lock held)."""
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        proc, self._proc = self._proc, None
+        if proc is not None:
+            proc.join(0.2)  # it leaves by itself once the pipe is closed
+            if proc.is_alive():
+                proc.kill()
+                proc.join(1.0)
+
+    def close(self) -> None:
+        self._fail()
