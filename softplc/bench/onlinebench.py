@@ -15,7 +15,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from softplc.api.client import ApiClient, ApiError, ApiUnreachable
-from softplc.bench.live import ROOT, LiveRuntime, ScanRecord
+from softplc.bench.live import ROOT, LiveRuntime, ScanRecord, run_floor
 from softplc.bench.measure import Progress, figures
 from softplc.core import online
 from softplc.core.firing import Engine
@@ -29,6 +29,7 @@ from softplc.program.compiler import compile_text
 PROGRAM = "online_bench"
 FILE_NAME = "online_bench.yaml"  # resolved under the runtime's programs/ directory
 _SETUP_IDS = iter(range(1_000_000, 2_000_000))  # far from the API's ids (1, 2, ...)
+FLOOR_S = 5.0  # the empty loop's run, at least
 BIG_SETTLE_S = 4.0  # before a net over 1,000 transitions: its change takes up to ~3 s
 
 
@@ -192,8 +193,17 @@ def run(quick: bool, progress: Progress, *, sizes: tuple[int, ...] = (10, 10_000
     changes = [{"size": n, "from_transitions": old, **_evaluate(r, record, period_ns)}
                for old, n, r in requests]
     by_size = _by_size(changes, sizes, split_limit, progress)
+    # The machine's noise once more, side by side: the empty loop on the same clock, no
+    # PLC at all, for as long as the slowest change took (at least FLOOR_S).
+    longest_s = max(c["request_to_first_scan_ms"] for c in changes) / 1e3
+    floor_s = max(FLOOR_S, min(longest_s * 4, 30.0))
+    progress(f"online_change: the empty loop for {floor_s:.0f} s (the machine's floor)")
+    floor = run_floor(period_ns, floor_s)
+    floor_missed = int(floor.missed.sum())
     return {"period_ms": period_ms, "via": "HTTP API POST /api/v1/program?online=true",
             "load_average_1m": [load_before[0], os.getloadavg()[0]],
+            "floor": {"seconds": floor_s, "missed": floor_missed,
+                      "missed_per_s": floor_missed / floor_s},
             "changes": changes, "by_size": by_size,
             "missed_scans": max(v["missed_scans"] for v in by_size.values()),
             "missed_scans_before": _worst(v["missed_scans_before"] for v in by_size.values())}

@@ -1,6 +1,8 @@
-"""Downloads compiled off the scan: one worker thread in the scan process.
+"""Downloads prepared off the scan: one worker thread in the scan process.
 
-Owns: compiling downloaded programs on a background thread in arrival order, holding the
+Owns: preparing downloaded programs on a background thread in arrival order (the compile
+itself runs in the compile process, runtime/compileproc.py; this thread loads its result and
+builds the engine; on a virtual clock it compiles too), holding the
 commands that arrived after a download until it is decided (commands apply in the order they
 were sent), and keeping that thread out of the scan's way: a short GIL switch interval while
 a compile runs, so that a waking scan thread gets the interpreter back within a fraction of a

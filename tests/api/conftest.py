@@ -56,6 +56,8 @@ class ScanThread:
         self._stop.set()
         self._thread.join(5)
         self.loop.runner.close()
+        if self.loop.compiler is not None:  # downloads compiled in a real compile process
+            self.loop.compiler.close()
 
 
 @dataclass
