@@ -22,8 +22,7 @@ import os
 import pickle
 import signal
 import threading
-import time
-from multiprocessing.connection import Connection
+from multiprocessing.connection import Connection, wait
 from typing import Any
 
 from softplc.core.problems import Problem, ProgramError
@@ -116,14 +115,12 @@ class CompileProcess:
         assert conn is not None
         try:
             conn.send_bytes(pickle.dumps(req, protocol=5))
-            deadline = time.monotonic() + self.timeout_s
-            while not conn.poll(0.25):
-                if not self._proc.is_alive():
-                    raise EOFError
-                if time.monotonic() > deadline:
-                    self._fail()
-                    raise CompilerFailed(f"the compile process took longer than "
-                                         f"{self.timeout_s:g} s; it was stopped")
+            # One wait for the answer or the process's end: no periodic wake-ups, each of
+            # which would take the interpreter lock from the scan thread for a moment.
+            if not wait([conn, self._proc.sentinel], self.timeout_s):
+                self._fail()
+                raise CompilerFailed(f"the compile process took longer than "
+                                     f"{self.timeout_s:g} s; it was stopped")
             kind, value = pickle.loads(conn.recv_bytes())
         except (EOFError, OSError, ValueError):
             raise CompilerFailed(self._died()) from None
