@@ -177,7 +177,7 @@ def _memory_tables(section: dict[str, Any]) -> list[str]:
     return [
         *_table(
             ["process", "RSS at start MB", "RSS at end MB"],
-            [[p, start.get(p), end.get(p)] for p in ("scan", "comm", "total")],
+            [[p, start.get(p), end.get(p)] for p in ("scan", "comm", "compile", "total")],
         ),
         "",
     ]
@@ -251,7 +251,7 @@ def write_markdown(results: dict[str, Any], path: Path) -> None:
             results["headline"].get("memory.rss_mb"),
             "",
             "reported",
-            "resident memory of the scan and communication processes after the soak",
+            "resident memory of the scan, communication and compile processes after the soak",
         ]
     )
     lines += [*_table(["key", "value", "target", "verdict", "meaning"], rows), ""]

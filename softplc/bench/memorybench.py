@@ -1,4 +1,4 @@
-"""Benchmark section `memory`: resident memory (VmRSS) of the scan and communication
+"""Benchmark section `memory`: resident memory (VmRSS) of the scan, communication and compile
 processes, unchanged from production, before and after a soak: transport at 10 ms with the
 loaded clients (Modbus pollers and an HTTP status poller) for the whole soak.
 
@@ -8,8 +8,10 @@ Does not know: how the processes are started (live.py) or the clients work (load
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
+from pathlib import Path
 from typing import Any
 
 from softplc.bench.live import LiveRuntime, rss_kib
@@ -19,10 +21,24 @@ from softplc.bench.measure import Progress
 SETTLE_S = 1.0
 
 
+def _children(pid: int) -> list[int]:
+    """Live processes whose parent is `pid` (the scan process's compile process)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            with contextlib.suppress(OSError, IndexError, ValueError):
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+                if int(fields[1]) == pid and fields[0] != "Z":
+                    found.append(int(entry.name))
+    return found
+
+
 def _rss_mb(runtime: LiveRuntime) -> dict[str, float]:
     scan = rss_kib(runtime.scan.pid) / 1024
     comm = rss_kib(runtime.comm.pid) / 1024 if runtime.comm is not None else 0.0
-    return {"scan": round(scan, 2), "comm": round(comm, 2), "total": round(scan + comm, 2)}
+    compiler = sum(rss_kib(pid) for pid in _children(runtime.scan.pid)) / 1024
+    return {"scan": round(scan, 2), "comm": round(comm, 2), "compile": round(compiler, 2),
+            "total": round(scan + comm + compiler, 2)}
 
 
 def run(quick: bool, progress: Progress, *, duration_s: float | None = None,

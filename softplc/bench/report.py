@@ -32,7 +32,8 @@ def headline_table(results: dict[str, Any]) -> str:
     period = f"{memory['period_ms']} ms" if isinstance(memory, dict) and "period_ms" in memory \
         else "-"
     rows.append(("memory.rss_mb", with_unit(rss, "MB"), "-", "reported", period,
-                 "resident memory of the scan process after the soak (4 Modbus clients + HTTP)"))
+                 "resident memory of the scan, communication and compile processes after the soak "
+                 "(4 Modbus clients + HTTP)"))
     head = ("figure", "value", "target", "verdict", "period", "meaning")
     widths = [max(len(str(r[i])) for r in [head, *rows]) for i in range(5)]
     return "\n".join("  ".join(str(c).ljust(w) for c, w in zip(r, widths, strict=False))

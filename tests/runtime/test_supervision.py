@@ -322,3 +322,44 @@ def test_the_last_accepted_program_boots_after_a_stop(tmp_path: Path, runs: list
     assert status["state"] == "RUNNING" and status["start_mode"] == "warm"
     assert "boot program drilling.yaml" in status["program_source"]
     assert second.stop() == 0
+
+
+def children_of(pid: int) -> list[int]:
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            with contextlib.suppress(OSError, IndexError, ValueError):
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+                if int(fields[1]) == pid and fields[0] != "Z":
+                    found.append(int(entry.name))
+    return found
+
+
+def test_a_compile_process_killed_during_a_download_refuses_it_and_the_plc_runs_on(
+        tmp_path: Path, runs: list[Run]) -> None:
+    """The compile runs in the scan process's child (runtime/compileproc.py): its death is a
+    refused download with the reason, never a dead or changed PLC; the next download gets a
+    new compile process."""
+    from softplc.bench.onlinebench import ring_program
+
+    run = Run(ROOT, "programs/transport.yaml", tmp_path / "state")
+    runs.append(run)
+    before = eventually_reachable(lambda: (s := run.status())["scan_count"] > 20 and s, 30, "scans")
+    scan = run.scan_pid()
+    first = eventually_reachable(lambda: children_of(scan), 30, "the compile process")
+    assert len(first) == 1
+    killer = threading.Timer(0.5, os.kill, (first[0], signal.SIGKILL))
+    killer.start()
+    with pytest.raises(ApiError) as refused:  # 20,000 transitions: compiles for over a second
+        run.api.download(ring_program(20_000, 0), online=True, replace=True, name="ring.yaml")
+    killer.join()
+    assert "compile process ended while compiling (killed by signal 9)" in str(refused.value)
+    after = run.status()
+    assert (after["program"], after["program_hash"], after["state"], after["scan_pid"]) == (
+        "transport", before["program_hash"], "RUNNING", scan)
+    assert after["scan_count"] > before["scan_count"]
+    variant = (ROOT / "programs" / "transport.yaml").read_text() + "\n# variant\n"
+    assert "online change" in run.api.download(variant, online=True, name="transport.yaml")[
+        "message"]
+    assert children_of(scan) not in ([], first)  # a new compile process compiled it
+    assert run.stop() == 0
