@@ -48,3 +48,26 @@ def test_what_others_still_hold_is_kept_whole() -> None:
     bury(box)
     assert kept == {"tokens": 42, "name": "p42"} and kept.lines == {"tokens": 42}
     assert len(kept_places) == 100 and kept_places[99]["name"] == "p99"
+
+
+def test_where_no_scan_thread_waits_a_burial_frees_all_at_once() -> None:
+    """The compile process (runtime/compileproc.py) turns the piecewise burial off: the same
+    result, without walking the tree (there, freeing in one cascade delays nobody)."""
+    from softplc.program import teardown
+
+    gc.disable()
+    teardown.piecewise(False)
+    try:
+        root = document(1000)
+        watched = [weakref.ref(root), weakref.ref(root["places"])]
+        walked: list[object] = []
+        original, teardown._walk = teardown._walk, lambda *a: walked.append(a)  # type: ignore[assignment]
+        box = [root]
+        del root
+        bury(box)
+        assert box == [] and walked == []  # nothing walked: freed as the box let go
+        assert [w() for w in watched] == [None, None]
+    finally:
+        teardown._walk = original
+        teardown.piecewise(True)
+        gc.enable()
