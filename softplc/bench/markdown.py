@@ -320,9 +320,13 @@ def explain(results: dict[str, Any]) -> list[str]:
             "windows as long just before each request with no download: the noise of this "
             "shared 2-core VM, where the empty loop alone (no PLC) missed "
             f"{fmt(_get(results, 'online_change', 'floor', 'missed_per_s'))} slots a "
-            "second in the same run; the target, 0, is not met here. What "
-            "would take it further: an isolated core on real hardware (isolcpus, nohz_full), "
-            "and a faster compile, which shortens the window the noise falls into.")
+            "second in the same run; the target, 0, is not met here. What would take it "
+            "further: an isolated core on real hardware (isolcpus, nohz_full); on a virtual "
+            "machine, a scan that never lets its CPU halt (measured: the empty loop yielding "
+            "instead of sleeping missed 0 slots in 8 s, sleeping 4-11), which needs the "
+            "download finished on the scan thread itself, in slices between scans, since a "
+            "helper thread sharing a busy scan's CPU holds the interpreter lock for a whole "
+            "time slice.")
     if "scan.exec_over_round" in missed:
         exec_us = _get(results, "scan", "exec_median_us")
         round_us = _get(results, "scan", "round_median_us")
