@@ -8,35 +8,22 @@ Does not know: how the processes are started (live.py) or the clients work (load
 
 from __future__ import annotations
 
-import contextlib
 import os
 import time
-from pathlib import Path
 from typing import Any
 
 from softplc.bench.live import LiveRuntime, rss_kib
 from softplc.bench.load import LoadJob, LoadWorker
 from softplc.bench.measure import Progress
+from softplc.runtime.procs import children
 
 SETTLE_S = 1.0
-
-
-def _children(pid: int) -> list[int]:
-    """Live processes whose parent is `pid` (the scan process's compile process)."""
-    found = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            with contextlib.suppress(OSError, IndexError, ValueError):
-                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-                if int(fields[1]) == pid and fields[0] != "Z":
-                    found.append(int(entry.name))
-    return found
 
 
 def _rss_mb(runtime: LiveRuntime) -> dict[str, float]:
     scan = rss_kib(runtime.scan.pid) / 1024
     comm = rss_kib(runtime.comm.pid) / 1024 if runtime.comm is not None else 0.0
-    compiler = sum(rss_kib(pid) for pid in _children(runtime.scan.pid)) / 1024
+    compiler = sum(rss_kib(pid) for pid in children(runtime.scan.pid)) / 1024
     return {"scan": round(scan, 2), "comm": round(comm, 2), "compile": round(compiler, 2),
             "total": round(scan + comm + compiler, 2)}
 

@@ -1,7 +1,8 @@
 """Helpers every child process of `softplc run` uses.
 
-Owns: ending a child when its supervisor ends (PR_SET_PDEATHSIG), and the stop and ready
-signals between the supervisor and its children (safe against a child killed at any moment).
+Owns: ending a child when its supervisor ends (PR_SET_PDEATHSIG), the stop and ready
+signals between the supervisor and its children (safe against a child killed at any moment),
+and finding a process's children.
 Does not know: what the child does.
 """
 
@@ -26,6 +27,21 @@ def die_with_parent() -> None:
         libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
+
+
+def children(pid: int) -> list[int]:
+    """The live (not zombie) processes whose parent is `pid`, from /proc (Linux): the scan
+    process's compile process, for the memory bench and tests."""
+    from pathlib import Path
+
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            with contextlib.suppress(OSError, IndexError, ValueError):
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+                if int(fields[1]) == pid and fields[0] != "Z":
+                    found.append(int(entry.name))
+    return found
 
 
 def supervisor_pid() -> int:

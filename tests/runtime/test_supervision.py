@@ -24,6 +24,7 @@ from pymodbus.client import ModbusTcpClient
 
 from softplc.api.client import ApiClient, ApiError
 from softplc.hmi.map import FLAG_STALE, STATUS_FLAGS, STATUS_WORDS
+from softplc.runtime.procs import children
 from tests.support import eventually_reachable, free_port
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -324,17 +325,6 @@ def test_the_last_accepted_program_boots_after_a_stop(tmp_path: Path, runs: list
     assert second.stop() == 0
 
 
-def children_of(pid: int) -> list[int]:
-    found = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            with contextlib.suppress(OSError, IndexError, ValueError):
-                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-                if int(fields[1]) == pid and fields[0] != "Z":
-                    found.append(int(entry.name))
-    return found
-
-
 def test_a_compile_process_killed_during_a_download_refuses_it_and_the_plc_runs_on(
         tmp_path: Path, runs: list[Run]) -> None:
     """The compile runs in the scan process's child (runtime/compileproc.py): its death is a
@@ -346,7 +336,7 @@ def test_a_compile_process_killed_during_a_download_refuses_it_and_the_plc_runs_
     runs.append(run)
     before = eventually_reachable(lambda: (s := run.status())["scan_count"] > 20 and s, 30, "scans")
     scan = run.scan_pid()
-    first = eventually_reachable(lambda: children_of(scan), 30, "the compile process")
+    first = eventually_reachable(lambda: children(scan), 30, "the compile process")
     assert len(first) == 1
     killer = threading.Timer(0.5, os.kill, (first[0], signal.SIGKILL))
     killer.start()
@@ -361,5 +351,5 @@ def test_a_compile_process_killed_during_a_download_refuses_it_and_the_plc_runs_
     variant = (ROOT / "programs" / "transport.yaml").read_text() + "\n# variant\n"
     assert "online change" in run.api.download(variant, online=True, name="transport.yaml")[
         "message"]
-    assert children_of(scan) not in ([], first)  # a new compile process compiled it
+    assert children(scan) not in ([], first)  # a new compile process compiled it
     assert run.stop() == 0
