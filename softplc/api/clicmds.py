@@ -290,6 +290,8 @@ def format_status(status: dict[str, Any]) -> str:
         lines.append(f"diagnostics {status['diagnostic_count']} run-time error(s) of guards "
                      "and actions (the last shown)")
     lines += [f"diagnostic  {d}" for d in status.get("diagnostics") or []]
+    if failure := (status.get("compile_process") or {}).get("last_failure"):
+        lines.append(f"compiler    {failure}")  # a refused download's reason, kept
     return "\n".join(lines)
 
 

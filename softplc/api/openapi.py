@@ -193,6 +193,14 @@ _SCHEMAS: Final[dict[str, Any]] = {
                          "description": "scan process restarts by the supervisor"},
             "restart_reason": {"type": "string"},
             "scan_pid": {"type": "integer"},
+            "compile_process": {
+                "type": ["object", "null"],
+                "description": "the scan process's compile process (runtime/compileproc.py): "
+                               "pid now, processes started, why the last one ended while "
+                               "compiling (empty: never)",
+                "properties": {"pid": {"type": ["integer", "null"]},
+                               "started": {"type": "integer"},
+                               "last_failure": {"type": "string"}}},
             "forced": {"type": "object", "description": "forced symbols and their values",
                        "additionalProperties": {"type": "integer"}},
         },

@@ -87,6 +87,7 @@ class CompileProcess:
         self.config = config
         self.timeout_s = timeout_s
         self.started = 0  # processes started, for status and tests
+        self.last_failure = ""  # why the last one ended while compiling (status)
         self._proc: Any = None
         self._conn: Connection | None = None
         self._lock = threading.Lock()
@@ -111,6 +112,10 @@ class CompileProcess:
     def pid(self) -> int | None:
         return self._proc.pid if self._proc is not None else None
 
+    def info(self) -> dict[str, Any]:
+        """For status: the process now, how many were started, the last failure."""
+        return {"pid": self.pid, "started": self.started, "last_failure": self.last_failure}
+
     def build(self, req: CommandRequest) -> Built:
         """Compile and analyse `req` in the compile process. Raises what the compile raised
         (ProgramError, AnalysisRefused) or CompilerFailed."""
@@ -123,8 +128,9 @@ class CompileProcess:
             # which would take the interpreter lock from the scan thread for a moment.
             if not wait([conn, self._proc.sentinel], self.timeout_s):
                 self._fail()
-                raise CompilerFailed(f"the compile process took longer than "
+                self.last_failure = (f"the compile process took longer than "
                                      f"{self.timeout_s:g} s; it was stopped")
+                raise CompilerFailed(self.last_failure)
             kind, value = pickle.loads(conn.recv_bytes())
         except (EOFError, OSError, ValueError):
             raise CompilerFailed(self._died()) from None
@@ -142,8 +148,9 @@ class CompileProcess:
         self._fail()
         how = (f"killed by signal {-code}" if code is not None and code < 0
                else f"exit code {code}" if code is not None else "closed")
-        return (f"the compile process ended while compiling ({how}); it restarts with the "
-                "next download")
+        self.last_failure = (f"the compile process ended while compiling ({how}); it restarts "
+                             "with the next download")
+        return self.last_failure
 
     def _fail(self) -> None:
         with self._lock:

@@ -49,6 +49,7 @@ def document(loop: ScanLoop) -> dict[str, Any]:
         "internal_errors": loop.internal_errors, "analysis": loop.analysis,
         "boot_problem": loop.boot.problem,
         "retain": loop.retain.info() if loop.retain else None,
+        "compile_process": loop.compiler.info() if loop.compiler else None,
         "health": {name: h.value for name, h in loop.runner.health().items()},
         "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
         "diagnostic_count": plc.engine.diagnostic_count if plc.engine else 0,

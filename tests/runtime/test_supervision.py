@@ -348,8 +348,18 @@ def test_a_compile_process_killed_during_a_download_refuses_it_and_the_plc_runs_
     assert (after["program"], after["program_hash"], after["state"], after["scan_pid"]) == (
         "transport", before["program_hash"], "RUNNING", scan)
     assert after["scan_count"] > before["scan_count"]
+    told = eventually_reachable(  # the board refreshes every few scans
+        lambda: (c := run.status()["compile_process"])["last_failure"] and c, 10, "status")
+    assert "killed by signal 9" in told["last_failure"] and told["started"] == 1
+    from softplc.api.clicmds import format_status
+
+    assert "compiler    the compile process ended while compiling (killed by signal 9)" in \
+        format_status(run.status())  # what `softplc status` prints
     variant = (ROOT / "programs" / "transport.yaml").read_text() + "\n# variant\n"
     assert "online change" in run.api.download(variant, online=True, name="transport.yaml")[
         "message"]
     assert children(scan) not in ([], first)  # a new compile process compiled it
+    now = eventually_reachable(
+        lambda: (c := run.status()["compile_process"])["started"] == 2 and c, 10, "status")
+    assert now["pid"] == children(scan)[0]
     assert run.stop() == 0
