@@ -38,7 +38,7 @@ from softplc.runtime.leftovers import SHM_PREFIX
 from softplc.runtime.loop import ScanLoop
 from softplc.runtime.procs import die_with_parent
 from softplc.runtime.realtime import NORMAL, Realtime, apply
-from softplc.runtime.scanproc import scan_process_main
+from softplc.runtime.scanproc import attached, scan_process_main
 from softplc.runtime.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
 from softplc.runtime.supervisor import Supervisor
@@ -167,9 +167,7 @@ def bench_scan_main(config: LoopConfig, channel: Channel, shm_name: str, board_n
     realtime = apply(config.realtime)
     # The supervisor created both segments (it owns them, as for `softplc run`): publish into
     # them. Creating them here replaced the supervisor's, which then leaked in the harness.
-    writer, own_segment = SnapshotWriter.open_or_create(config.sizes, shm_name)
-    board, own_board = StatusBoard.open_or_create(board_name)
-    try:
+    with attached(config, shm_name, board_name) as (writer, board):
         loop = RecordingLoop(config, channel, writer, board, capacity)
         loop.realtime = realtime
         writer.publish(loop.runner.plc.image, loop.status())
@@ -177,14 +175,6 @@ def bench_scan_main(config: LoopConfig, channel: Channel, shm_name: str, board_n
         ready.set()
         loop.run(stop)
         results.send(loop.stats.as_record(loop.changes))
-    finally:
-        writer.close()
-        if own_segment:
-            writer.unlink()
-        if own_board:
-            board.close()
-        else:
-            board.detach()
 
 
 def floor_main(period_ns: int, duration_s: float, results: Connection,

@@ -120,14 +120,14 @@ class CompileProcess:
         """Compile and analyse `req` in the compile process. Raises what the compile raised
         (ProgramError, AnalysisRefused) or CompilerFailed."""
         self.start()
-        conn = self._conn
-        assert conn is not None
+        conn, proc = self._conn, self._proc  # close() may clear them meanwhile
+        assert conn is not None and proc is not None
         try:
             conn.send_bytes(pickle.dumps(req, protocol=5))
             # One wait for the answer or the process's end: no periodic wake-ups, each of
             # which would take the interpreter lock from the scan thread for a moment.
-            if not wait([conn, self._proc.sentinel], self.timeout_s):
-                self._fail()
+            if not wait([conn, proc.sentinel], self.timeout_s):
+                self.close()
                 self.last_failure = (f"the compile process took longer than "
                                      f"{self.timeout_s:g} s; it was stopped")
                 raise CompilerFailed(self.last_failure)
@@ -145,16 +145,12 @@ class CompileProcess:
         if proc is not None:
             proc.join(1.0)
         code = proc.exitcode if proc is not None else None
-        self._fail()
+        self.close()
         how = (f"killed by signal {-code}" if code is not None and code < 0
                else f"exit code {code}" if code is not None else "closed")
         self.last_failure = (f"the compile process ended while compiling ({how}); it restarts "
                              "with the next download")
         return self.last_failure
-
-    def _fail(self) -> None:
-        with self._lock:
-            self._end()
 
     def _end(self) -> None:
         """Close the pipe and end the process (the lock held)."""
@@ -169,4 +165,6 @@ class CompileProcess:
                 proc.join(1.0)
 
     def close(self) -> None:
-        self._fail()
+        """End the process (also from another thread while a build waits: it fails)."""
+        with self._lock:
+            self._end()

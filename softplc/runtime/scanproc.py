@@ -7,11 +7,13 @@ Does not know: what a scan does (runtime/loop.py).
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 import signal
 import sys
 import threading
+from collections.abc import Iterator
 
 from softplc.core.problems import ProgramError
 from softplc.runtime.board import StatusBoard
@@ -42,9 +44,7 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
 
     threading.Thread(target=watch_parent, name="watch-parent", daemon=True).start()
     realtime = apply(config.realtime)  # after the watcher: it keeps normal scheduling
-    writer, own_segment = SnapshotWriter.open_or_create(config.sizes, shm_name)
-    board, own_board = StatusBoard.open_or_create(board_name)
-    try:
+    with attached(config, shm_name, board_name) as (writer, board):
         try:
             loop = ScanLoop(config, channel, writer, board=board)
             loop.realtime = realtime
@@ -60,6 +60,18 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
         gc.freeze()  # out of every later collection (real-time practice, see Preparer.prepare)
         ready.set()
         loop.run(stop)
+
+
+@contextlib.contextmanager
+def attached(config: LoopConfig, shm_name: str,
+             board_name: str) -> Iterator[tuple[SnapshotWriter, StatusBoard]]:
+    """The snapshot segment and the status board a scan process publishes into. The
+    supervisor created both (it owns them: they outlive a scan process); one created here
+    because it was missing is removed again at the end."""
+    writer, own_segment = SnapshotWriter.open_or_create(config.sizes, shm_name)
+    board, own_board = StatusBoard.open_or_create(board_name)
+    try:
+        yield writer, board
     finally:
         writer.close()
         if own_segment:

@@ -22,6 +22,7 @@ from typing import Any
 import pytest
 from pymodbus.client import ModbusTcpClient
 
+from softplc.api.clicmds import format_status
 from softplc.api.client import ApiClient, ApiError
 from softplc.hmi.map import FLAG_STALE, STATUS_FLAGS, STATUS_WORDS
 from softplc.runtime.procs import children
@@ -351,8 +352,6 @@ def test_a_compile_process_killed_during_a_download_refuses_it_and_the_plc_runs_
     told = eventually_reachable(  # the board refreshes every few scans
         lambda: (c := run.status()["compile_process"])["last_failure"] and c, 10, "status")
     assert "killed by signal 9" in told["last_failure"] and told["started"] == 1
-    from softplc.api.clicmds import format_status
-
     assert "compiler    the compile process ended while compiling (killed by signal 9)" in \
         format_status(run.status())  # what `softplc status` prints
     variant = (ROOT / "programs" / "transport.yaml").read_text() + "\n# variant\n"
