@@ -252,6 +252,10 @@ def build_parser() -> argparse.ArgumentParser:
                      "scheduling)")
     run.add_argument("--scan-cpu", type=int, metavar="N",
                      help="pin the scan process to CPU N (default: not pinned)")
+    run.add_argument("--busy-wait", action="store_true",
+                     help="the scan waits for each slot without sleeping (a CPU always busy): "
+                     "for virtual machines, which wake a sleeping CPU late; not with "
+                     "--rt-priority (default: sleep)")
     run.add_argument("--programs-dir", metavar="DIR", default=None,
                      help="where a program downloaded as plain YAML text (not a bundle) finds "
                      "its io image and subnets (default: programs/ beside the program's "

@@ -183,7 +183,7 @@ def floor_main(period_ns: int, duration_s: float, results: Connection,
     scheduled as the scan is."""
     die_with_parent()
     apply(realtime)
-    clock = MonotonicClock()
+    clock = MonotonicClock(busy=realtime.busy_wait)
     stats = RecordingStats(int(duration_s * 1e9 / period_ns) + 16)
     schedule = Schedule(clock, period_ns)
     end = schedule.start_ns + int(duration_s * 1e9)

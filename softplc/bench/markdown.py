@@ -156,7 +156,10 @@ def _online_tables(section: dict[str, Any]) -> list[str]:
         ]
         for c in section.get("changes", [])
     ]
+    sleeping = section.get("sleeping") or {}
     return [
+        f"The scan waiting {section.get('wait', 'sleeping')} (`softplc run --busy-wait`):",
+        "",
         *_table(["transitions", "request to first scan ms", "missed scans",
                  "missed in as long a window before", "missed by the swap scan",
                  "swap scan ms"], rows),
@@ -165,10 +168,23 @@ def _online_tables(section: dict[str, Any]) -> list[str]:
         "nothing was being downloaded (the machine's own noise, same run; empty when that "
         "window reaches into the previous change).",
         "",
-        *([f"The empty loop alone (no PLC, same clock, same run) missed "
+        *([f"The empty loop alone (no PLC, same clock, waiting the same way, same run) missed "
            f"{fmt(floor.get('missed'))} slots in {fmt(floor.get('seconds'))} s."]
           if (floor := section.get("floor")) else []),
         "",
+        *([
+            "The same changes with the scan sleeping between slots (the default):",
+            "",
+            *_table(["transitions", "changes", "missed scans (worst)",
+                     "missed before (worst)", "request to first scan ms (median)"],
+                    [[n, v.get("changes"), v.get("missed_scans"), v.get("missed_scans_before"),
+                      (v.get("request_to_first_scan_ms") or {}).get("median")]
+                     for n, v in (sleeping.get("by_size") or {}).items()]),
+            "",
+            f"Its empty loop, sleeping: {fmt((sleeping.get('floor') or {}).get('missed'))} "
+            f"slots missed in {fmt((sleeping.get('floor') or {}).get('seconds'))} s.",
+            "",
+        ] if sleeping else []),
     ]
 
 
@@ -310,23 +326,16 @@ def explain(results: dict[str, Any]) -> list[str]:
         notes.append(
             "Online change: the program is compiled and analysed in the compile process "
             "(runtime/compileproc.py, SCHED_IDLE, off the scan's interpreter); the scan "
-            "process's compile thread only loads the net it sends (program/wire.py, in "
-            "pieces), opens new devices, builds the engine's tables primed on the new marking "
-            "and the carry plan, parked before each deadline (runtime/downloads.py "
-            "ScanPace); the swap scan only carries the marking over (at most "
-            f"{fmt(swap_max)} ms here; {swap_missed} slots missed by swap scans) and the "
-            "replaced net is freed off the scan. Over all changes "
-            f"{during} slots were missed from request to first scan, against {before} in "
-            "windows as long just before each request with no download: the noise of this "
-            "shared 2-core VM, where the empty loop alone (no PLC) missed "
-            f"{fmt(_get(results, 'online_change', 'floor', 'missed_per_s'))} slots a "
-            "second in the same run; the target, 0, is not met here. What would take it "
-            "further: an isolated core on real hardware (isolcpus, nohz_full); on a virtual "
-            "machine, a scan that never lets its CPU halt (measured: the empty loop yielding "
-            "instead of sleeping missed 0 slots in 8 s, sleeping 4-11), which needs the "
-            "download finished on the scan thread itself, in slices between scans, since a "
-            "helper thread sharing a busy scan's CPU holds the interpreter lock for a whole "
-            "time slice.")
+            "thread itself loads the net it sends (program/wire.py, a piece a step), builds "
+            "the engine's tables primed on the new marking and the carry plan, and later "
+            "frees the replaced net, a step at a time between scans (runtime/idlework.py); "
+            "the swap scan only carries the marking over (at most "
+            f"{fmt(swap_max)} ms here; {swap_missed} slots missed by swap scans). Over all "
+            f"changes {during} slots were missed from request to first scan, against "
+            f"{before} in windows as long just before each request with no download, and "
+            "the empty loop alone (no PLC, waiting the same way) missed "
+            f"{fmt(_get(results, 'online_change', 'floor', 'missed_per_s'))} slots a second "
+            "in the same run: what is left is this shared 2-core VM's noise.")
     if "scan.exec_over_round" in missed:
         exec_us = _get(results, "scan", "exec_median_us")
         round_us = _get(results, "scan", "round_median_us")

@@ -25,6 +25,7 @@ from softplc.core.net import NetState
 from softplc.core.scan import Plc, ProgramCommand, scan
 from softplc.core.snapshot import CommandRequest
 from softplc.program.compiler import compile_text
+from softplc.runtime.realtime import Realtime
 
 PROGRAM = "online_bench"
 FILE_NAME = "online_bench.yaml"  # resolved under the runtime's programs/ directory
@@ -168,22 +169,16 @@ def _by_size(changes: list[dict[str, Any]], sizes: tuple[int, ...], split_limit:
     return by_size
 
 
-def run(quick: bool, progress: Progress, *, sizes: tuple[int, ...] = (10, 10_000),
-        repeats: dict[int, int] | None = None, period_ms: int = 1,
-        settle_s: float = 0.3, timeout_s: float = 600.0,
-        split_up_to: int | None = None) -> dict[str, Any]:
-    """Online changes into nets of each size (the first from the smallest net running);
-    key `missed_scans` (max over sizes). `split_up_to`: sizes up to this also get
-    split_cost_ms (quick: 1,000; full: all), which compiles each net once more here."""
-    split_limit = split_up_to if split_up_to is not None else (1000 if quick else max(sizes))
-    counts = repeats or {n: (3 if n <= 1000 else 1) if quick else (10 if n <= 1000 else 3)
-                         for n in sizes}
-    period_ns = period_ms * 1_000_000
-    load_before = os.getloadavg()
+def _session(busy_wait: bool, sizes: tuple[int, ...], counts: dict[int, int], period_ns: int,
+             settle_s: float, timeout_s: float, split_limit: int,
+             progress: Progress) -> dict[str, Any]:
+    """The runtime started, the online changes, the empty loop waiting as the scan did."""
+    wait = "busy" if busy_wait else "sleeping"
     runtime = LiveRuntime(program=None, start=False, plant=None, period_ns=period_ns,
-                          modbus=False, capacity_s=300 + 30 * sum(counts.values()))
+                          modbus=False, capacity_s=300 + 30 * sum(counts.values()),
+                          realtime=Realtime(busy_wait=busy_wait))
     try:
-        progress("online_change: starting the runtime")
+        progress(f"online_change: starting the runtime (scan waiting {wait})")
         runtime.start()
         requests = _drive(runtime, sizes, counts, settle_s, timeout_s, progress)
         record = runtime.stop()
@@ -193,20 +188,43 @@ def run(quick: bool, progress: Progress, *, sizes: tuple[int, ...] = (10, 10_000
     changes = [{"size": n, "from_transitions": old, **_evaluate(r, record, period_ns)}
                for old, n, r in requests]
     by_size = _by_size(changes, sizes, split_limit, progress)
-    # The machine's noise once more, side by side: the empty loop on the same clock, no
-    # PLC at all, for as long as the slowest change took (at least FLOOR_S).
+    # The machine's noise once more, side by side: the empty loop on the same clock, waiting
+    # the same way, no PLC at all, for as long as the slowest change took (at least FLOOR_S).
     longest_s = max(c["request_to_first_scan_ms"] for c in changes) / 1e3
     floor_s = max(FLOOR_S, min(longest_s * 4, 30.0))
-    progress(f"online_change: the empty loop for {floor_s:.0f} s (the machine's floor)")
-    floor = run_floor(period_ns, floor_s)
+    progress(f"online_change: the empty loop for {floor_s:.0f} s, waiting {wait} (the floor)")
+    floor = run_floor(period_ns, floor_s, Realtime(busy_wait=busy_wait))
     floor_missed = int(floor.missed.sum())
-    return {"period_ms": period_ms, "via": "HTTP API POST /api/v1/program?online=true",
-            "load_average_1m": [load_before[0], os.getloadavg()[0]],
-            "floor": {"seconds": floor_s, "missed": floor_missed,
-                      "missed_per_s": floor_missed / floor_s},
+    return {"wait": wait, "floor": {"seconds": floor_s, "missed": floor_missed,
+                                    "missed_per_s": floor_missed / floor_s},
             "changes": changes, "by_size": by_size,
             "missed_scans": max(v["missed_scans"] for v in by_size.values()),
             "missed_scans_before": _worst(v["missed_scans_before"] for v in by_size.values())}
+
+
+def run(quick: bool, progress: Progress, *, sizes: tuple[int, ...] = (10, 10_000),
+        repeats: dict[int, int] | None = None, period_ms: int = 1,
+        settle_s: float = 0.3, timeout_s: float = 600.0,
+        split_up_to: int | None = None) -> dict[str, Any]:
+    """Online changes into nets of each size (the first from the smallest net running), the
+    scan waiting busy (`softplc run --busy-wait`, what a virtual machine needs: a sleeping
+    virtual CPU is woken late); then the same changes with the scan sleeping (key
+    `sleeping`), each beside its own empty-loop floor. Key `missed_scans` (max over sizes,
+    busy). `split_up_to`: sizes up to this also get split_cost_ms (quick: 1,000; full: all),
+    which compiles each net once more here."""
+    split_limit = split_up_to if split_up_to is not None else (1000 if quick else max(sizes))
+    counts = repeats or {n: (3 if n <= 1000 else 1) if quick else (10 if n <= 1000 else 3)
+                         for n in sizes}
+    period_ns = period_ms * 1_000_000
+    load_before = os.getloadavg()
+    busy = _session(True, sizes, counts, period_ns, settle_s, timeout_s, split_limit, progress)
+    sleeping = _session(False, sizes, counts, period_ns, settle_s, timeout_s, 0, progress)
+    for v in sleeping["by_size"].values():
+        v.pop("split", None)
+    return {"period_ms": period_ms, "via": "HTTP API POST /api/v1/program?online=true",
+            "load_average_1m": [load_before[0], os.getloadavg()[0]], **busy,
+            "sleeping": {k: sleeping[k] for k in ("floor", "by_size", "missed_scans",
+                                                  "missed_scans_before")}}
 
 
 def _worst(values: Iterable[int | None]) -> int | None:

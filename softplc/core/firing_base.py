@@ -11,12 +11,15 @@ from __future__ import annotations
 from collections.abc import Collection, Mapping, MutableSequence
 from dataclasses import dataclass
 from types import MappingProxyType
+from typing import Self
 
 from softplc.core.expr import Compiled, EvalContext, Value
 from softplc.core.net import CompiledNet, IntArray, NetState, Token
+from softplc.core.steps import STEP, Steps, drain
 
 MAX_BINDINGS = 1000  # coloured binding search bound per transition and round
 MAX_DIAGNOSTICS = 100
+TABLE_STEP = 128  # transitions per step of building the tables (~1.5 µs each)
 SMALL_NET = 64  # places: below this a Python reduction is cheaper than a numpy call
 NO_TOKENS: Mapping[str, Token] = MappingProxyType({})
 NO_EDGES: frozenset[str] = frozenset()
@@ -88,11 +91,20 @@ class EngineCore:
                  plain_paths: bool = True) -> None:
         """`plain_paths=False` sends every transition down the general path: the same rounds,
         slower (tests compare the two)."""
+        drain(self._setup(net, state, plain_paths))
+
+    @classmethod
+    def stepwise(cls, net: CompiledNet, state: NetState | None = None,
+                 plain_paths: bool = True) -> Steps[Self]:
+        """The engine built a step at a time (core/steps.py): an online change builds it on
+        the scan thread between scans."""
+        engine = cls.__new__(cls)
+        yield from engine._setup(net, state, plain_paths)
+        return engine
+
+    def _setup(self, net: CompiledNet, state: NetState | None, plain_paths: bool) -> Steps[None]:
         self.net = net
         self.state = state if state is not None else NetState.initial(net)
-        # Transitions that put tokens on a place with a capacity: only these need the check.
-        self._capped = frozenset(t.index for t in net.transitions
-                                 if any(net.capacity[o.place] >= 0 for o in t.post))
         self._ready: set[int] = set()  # marking-enabled, not busy, guard (or a binding) holds
         self._dirty_places: set[int] = set()
         self._dirty_edges: Collection[str] = NO_EDGES  # edges seen last round: "change back" now
@@ -111,46 +123,78 @@ class EngineCore:
         # or not known yet: the first round checks and learns it
         self._planned: dict[int, int] = {}  # coloured place -> records reserved this round
         self._coloured_now = 0  # records in the net when this round's productions began
-        self._tables(net, plain_paths)
+        yield from self._tables(net, plain_paths)
         self._marr = self.state.marking
         self._m = counts_view(self._marr)
 
-    def _tables(self, net: CompiledNet, plain_paths: bool) -> None:
-        """Flat per-transition tables for the hot loops (bench: engine scaling). A "simple"
-        transition (no colour, no capacity on its output places) is checked inline, and fired
-        inline if it also has no duration and no action, decided here once per transition,
-        so one timed or coloured transition does not slow down the rest."""
+    def _tables(self, net: CompiledNet, plain_paths: bool) -> Steps[None]:
+        """Flat per-transition tables for the hot loops (bench: engine scaling), built
+        TABLE_STEP transitions a step. A "simple" transition (no colour, no capacity on its
+        output places) is checked inline, and fired inline if it also has no duration and no
+        action, decided here once per transition, so one timed or coloured transition does
+        not slow down the rest."""
         ts = net.transitions
         rank = [0] * len(ts)
-        for r, ti in enumerate(net.order):
-            rank[ti] = r
+        for start in range(0, len(ts), STEP):
+            for r in range(start, min(start + STEP, len(ts))):
+                rank[net.order[r]] = r
+            yield
         # Identity order (no priorities): sorting the indices themselves is the same order.
         self._rank_key = None if net.order == tuple(range(len(ts))) else rank.__getitem__
-        self._pre = [tuple((a.place, a.weight) for a in t.pre) for t in ts]
-        self._need = [pre + tuple(t.test) for pre, t in zip(self._pre, ts, strict=True)]
-        self._inhibit = [tuple(t.inhibit) for t in ts]
-        self._guards = [t.guard for t in ts]
-        coloured = [bool(c) for c in net.coloured]
-        simple = [plain_paths and not t.coloured and t.index not in self._capped
-                  and not any(coloured[o.place] for o in t.post) for t in ts]
-        self._simple = simple
-        self._enable_kind = [(ARCS if t.guard is None and not t.inhibit else ARCS_GUARD)
-                             if s else GENERAL for s, t in zip(simple, ts, strict=True)]
-        self._enable_kind = [ARC if kind is ARCS and len(need) == 1 else kind
-                             for kind, need in zip(self._enable_kind, self._need, strict=True)]
-        self._plain_fire = [s and t.duration_ns == 0 and not t.actions
-                            for s, t in zip(simple, ts, strict=True)]
-        self._post = [tuple((o.place, o.weight) for o in t.post) for t in ts]
-        # A simple transition with one input arc (and none other to take from): selection
-        # takes its tokens with one comparison (firing_select.py).
-        self._single_pre = [pre[0] if s and len(pre) == 1 else None
-                            for s, pre in zip(simple, self._pre, strict=True)]
-        # Only a firing that puts more tokens than it takes can raise a count past a limit.
-        self._growers = frozenset(t.index for t in ts if sum(o.weight for o in t.post)
-                                  > sum(a.weight for a in t.pre))
-        self._delays = [t.delay_ns for t in ts]
-        self._coloured_ts = frozenset(t.index for t in ts if t.coloured)
-        self._any_actions = any(t.actions for t in ts)
+        capacity = net.capacity.tolist()
+        coloured = net.coloured.tolist()
+        yield
+        self._pre: list[tuple[tuple[int, int], ...]] = []
+        self._need: list[tuple[tuple[int, int], ...]] = []
+        self._inhibit: list[tuple[tuple[int, int], ...]] = []
+        self._guards: list[Compiled | None] = []
+        self._simple: list[bool] = []
+        self._enable_kind: list[str] = []
+        self._plain_fire: list[bool] = []
+        self._post: list[tuple[tuple[int, int], ...]] = []
+        self._single_pre: list[tuple[int, int] | None] = []
+        self._delays: list[int] = []
+        capped: list[int] = []
+        growers: list[int] = []
+        coloured_ts: list[int] = []
+        any_actions = False
+        for start in range(0, len(ts), TABLE_STEP):
+            for t in ts[start:start + TABLE_STEP]:
+                pre = tuple((a.place, a.weight) for a in t.pre)
+                need = pre + tuple(t.test)
+                # Transitions that put tokens on a place with a capacity: only these need
+                # the check.
+                is_capped = any(capacity[o.place] >= 0 for o in t.post)
+                simple = (plain_paths and not t.coloured and not is_capped
+                          and not any(coloured[o.place] for o in t.post))
+                kind = (ARCS if t.guard is None and not t.inhibit else ARCS_GUARD) \
+                    if simple else GENERAL
+                self._pre.append(pre)
+                self._need.append(need)
+                self._inhibit.append(tuple(t.inhibit))
+                self._guards.append(t.guard)
+                self._simple.append(simple)
+                self._enable_kind.append(ARC if kind is ARCS and len(need) == 1 else kind)
+                self._plain_fire.append(simple and t.duration_ns == 0 and not t.actions)
+                self._post.append(tuple((o.place, o.weight) for o in t.post))
+                # A simple transition with one input arc (and none other to take from):
+                # selection takes its tokens with one comparison (firing_select.py).
+                self._single_pre.append(pre[0] if simple and len(pre) == 1 else None)
+                self._delays.append(t.delay_ns)
+                if is_capped:
+                    capped.append(t.index)
+                # Only a firing that puts more tokens than it takes can raise a count past
+                # a limit.
+                if sum(o.weight for o in t.post) > sum(a.weight for a in t.pre):
+                    growers.append(t.index)
+                if t.coloured:
+                    coloured_ts.append(t.index)
+                any_actions = any_actions or bool(t.actions)
+            yield
+        self._capped = frozenset(capped)
+        self._growers = frozenset(growers)
+        self._coloured_ts = frozenset(coloured_ts)
+        self._any_actions = any_actions
         self._output_places = frozenset(net.place_outputs)
 
     def _view(self) -> MutableSequence[int]:

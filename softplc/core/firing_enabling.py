@@ -27,6 +27,7 @@ from softplc.core.firing_base import (
 )
 from softplc.core.net import Transition
 from softplc.core.problems import FaultCode, PlcFault
+from softplc.core.steps import STEP, Steps, drain
 
 
 class Enabling(EngineCore):
@@ -132,9 +133,21 @@ class Enabling(EngineCore):
         invalidate() then re-checks only the transitions reading a place whose tokens differ
         from it, and those with guards, inhibitors, colours or capacities, instead of every
         transition: the same enabledness, without O(transitions) work in the swap scan."""
-        m, need = self._view(), self._need
-        arcs = [ti for ti, kind in enumerate(self._enable_kind) if kind is ARCS or kind is ARC]
-        ready = {ti for ti in arcs if all(m[p] >= w for p, w in need[ti])}
+        drain(self.priming())
+
+    def priming(self) -> Steps[None]:
+        """prime(), a step at a time (core/steps.py)."""
+        m, need, kinds = self._view(), self._need, self._enable_kind
+        arcs: list[int] = []
+        ready: list[int] = []
+        for start in range(0, len(kinds), STEP):
+            for ti in range(start, min(start + STEP, len(kinds))):
+                kind = kinds[ti]
+                if kind is ARCS or kind is ARC:
+                    arcs.append(ti)
+                    if all(m[p] >= w for p, w in need[ti]):
+                        ready.append(ti)
+            yield
         others = frozenset(range(len(self.net.transitions))).difference(arcs)
         self._primed = Primed(self.state.marking.copy(), frozenset(ready), others)
 

@@ -18,11 +18,14 @@ import gc
 from types import MappingProxyType
 from typing import Any
 
+from softplc.core.steps import Steps, drain
+
 _LEAVES = (str, bytes, int, float, bool, type(None))
 
 
-_CHUNK = 256  # containers freed per call: each call is a point where a paced compile parks
+_CHUNK = 256  # containers walked or freed per step
 _SHARDS = 64
+_WALK_STEP = 1024  # objects looked at per step of the walk (~0.2 µs each)
 _PIECEWISE = [True]  # this process: is there a scan thread sharing the interpreter?
 
 
@@ -37,6 +40,12 @@ def bury(box: list[Any]) -> None:
     """Empty `box` and let go of what it held, a container at a time. The caller hands over
     its last references in the box (a reference passed as an argument would stay on the
     caller's stack until the call returns, and the cascade would come then)."""
+    drain(burying(box))
+
+
+def burying(box: list[Any]) -> Steps[None]:
+    """bury(), _CHUNK containers a step (core/steps.py): the scan thread frees a replaced
+    net between its scans."""
     if not _PIECEWISE[0]:
         box.clear()
         return
@@ -44,15 +53,17 @@ def bury(box: list[Any]) -> None:
     # Ids seen, in shards: one set of ~100,000 ids took 3 ms to grow and 4 ms to free.
     seen: list[set[int]] = [set() for _ in range(_SHARDS)]
     while box:
-        _walk(box.pop(), order, seen)
+        yield from _walk(box.pop(), order, seen)
     for shard in seen:
         while shard:
             _forget(shard)
+            yield
     for start in range(0, len(order), _CHUNK):
         _release(order, start)
+        yield
 
 
-def _walk(root: Any, order: list[Any], seen: list[set[int]]) -> None:
+def _walk(root: Any, order: list[Any], seen: list[set[int]]) -> Steps[None]:
     """Append `root` and every container and program object under it not yet seen to
     `order`, parents before children."""
     key = id(root)
@@ -61,15 +72,23 @@ def _walk(root: Any, order: list[Any], seen: list[set[int]]) -> None:
     seen[(key >> 4) % _SHARDS].add(key)
     i = len(order)
     order.append(root)
+    work = 0
     while i < len(order):
-        for child in _children(order[i]):
-            if not isinstance(child, _LEAVES):
-                key = id(child)
-                shard = seen[(key >> 4) % _SHARDS]
-                if key not in shard:
-                    shard.add(key)
-                    order.append(child)
+        children = _children(order[i])
         i += 1
+        for start in range(0, len(children), _WALK_STEP):
+            for child in children[start:start + _WALK_STEP]:
+                if not isinstance(child, _LEAVES):
+                    key = id(child)
+                    shard = seen[(key >> 4) % _SHARDS]
+                    if key not in shard:
+                        shard.add(key)
+                        order.append(child)
+            work += min(_WALK_STEP, len(children) - start)
+            if work >= _WALK_STEP:  # a step: about this many objects looked at
+                work = 0
+                yield
+        work += 1
 
 
 def _forget(seen: set[int]) -> None:

@@ -7,8 +7,8 @@ sandboxed compiler (core/expr.py), so no code object or closure ever crosses, on
 allowlist checks.
 Why pickle: the scan process must end with Python objects; rebuilding them from pickle's
 opcodes is the cheapest way there (10,000 transitions: ~50 ms, gc off, against ~320 ms to
-compile the YAML), and every object is rebuilt by a Python-level call, so the thread that
-loads can be paced between scans (runtime/downloads.py ScanPace) like a compile.
+compile the YAML), and it goes a piece at a time (`loading`), so the scan thread loads a
+download between its scans (runtime/idlework.py).
 Trust: the bytes come from the runtime's own compile process over a private pipe, never from
 a client; `loads` is not for bytes of unknown origin.
 Does not know: files, processes, the scan.
@@ -19,7 +19,6 @@ from __future__ import annotations
 import copyreg
 import dataclasses
 import io
-import itertools
 import pickle
 from collections.abc import Mapping
 from types import MappingProxyType
@@ -27,6 +26,7 @@ from typing import Any
 
 from softplc.core.expr import Compiled, Scope, compile_expr
 from softplc.core.net import CompiledNet
+from softplc.core.steps import Steps, drain
 
 
 def _read_only(items: dict[Any, Any]) -> Mapping[Any, Any]:
@@ -47,7 +47,8 @@ def _reduce_compiled(expr: Compiled) -> tuple[Any, ...]:
 _TABLE = copyreg.dispatch_table.copy()
 _TABLE[MappingProxyType] = _reduce_proxy
 _TABLE[Compiled] = _reduce_compiled
-CHUNK = 256  # entries of a long field per piece
+CHUNK = 256  # entries of a long field per piece: a place's entry loads in ~0.1 µs ...
+OBJECT_CHUNK = 32  # ... a transition (a tree of objects) in ~4.5 µs: ~150 µs a piece
 
 
 class _Pickler(pickle.Pickler):
@@ -90,11 +91,11 @@ def dumps(net: CompiledNet) -> tuple[bytes, ...]:
     """The net in pieces: the scope table, the net without its long fields, then each long
     field (the transitions, every per-place table) CHUNK entries at a time.
 
-    Why pieces: unpickling builds each container in one C stretch that no other thread can
+    Why pieces: unpickling builds each container in one C stretch that nothing can
     interrupt, and frees what its memo held only at the end; for a 10,000-transition net in
     one piece that was a 1.3 ms stretch building a per-place table and 5 ms freeing the
-    transitions' temporary states, while a scan thread waited for the interpreter lock at
-    1 ms. Between pieces, `loads` is Python: the interpreter can switch threads there."""
+    transitions' temporary states, at a scan period of 1 ms. A piece loads in ~150 µs at
+    most: one step of `loading` between two scans."""
     scopes: dict[int, tuple[int, Scope]] = {}
     long_fields: dict[str, Any] = {}
     pieces: list[bytes] = []
@@ -102,8 +103,9 @@ def dumps(net: CompiledNet) -> tuple[bytes, ...]:
         value = getattr(net, f.name)
         if isinstance(value, tuple) and len(value) > CHUNK:
             long_fields[f.name] = ()
-            pieces += [_dump((f.name, value[i:i + CHUNK]), scopes)
-                       for i in range(0, len(value), CHUNK)]
+            size = OBJECT_CHUNK if f.name == "transitions" else CHUNK
+            pieces += [_dump((f.name, value[i:i + size]), scopes)
+                       for i in range(0, len(value), size)]
         elif isinstance(value, Mapping) and len(value) > CHUNK:
             long_fields[f.name] = MappingProxyType({}) if isinstance(value, MappingProxyType) \
                 else {}
@@ -116,23 +118,31 @@ def dumps(net: CompiledNet) -> tuple[bytes, ...]:
 
 
 def loads(pieces: tuple[bytes, ...]) -> CompiledNet:
+    return drain(loading(pieces))
+
+
+def loading(pieces: tuple[bytes, ...]) -> Steps[CompiledNet]:
+    """loads(), a piece a step (core/steps.py): the scan thread loads a download between
+    scans."""
     scopes = pickle.loads(pieces[0])
     net = _load(pieces[1], scopes)
     if not isinstance(net, CompiledNet):
         raise TypeError(f"expected a compiled net, got {type(net).__name__}")
-    parts: dict[str, list[Any]] = {}
+    yield
+    parts: dict[str, Any] = {}
     for piece in pieces[2:]:
         name, chunk = _load(piece, scopes)
-        parts.setdefault(name, []).append(chunk)
+        if isinstance(chunk, tuple):
+            parts.setdefault(name, []).extend(chunk)
+        else:
+            parts.setdefault(name, {}).update(chunk)
+        yield
     fields: dict[str, Any] = {}
-    for name, chunks in parts.items():
+    for name, joined in parts.items():
         empty = getattr(net, name)
         if isinstance(empty, tuple):
-            fields[name] = tuple(itertools.chain.from_iterable(chunks))
+            fields[name] = tuple(joined)
         else:
-            joined: dict[Any, Any] = {}
-            for chunk in chunks:
-                joined.update(chunk)
             fields[name] = MappingProxyType(joined) if isinstance(empty, MappingProxyType) \
                 else joined
     return dataclasses.replace(net, **fields)

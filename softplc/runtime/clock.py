@@ -11,6 +11,7 @@ Does not know: scans, programs, processes.
 
 from __future__ import annotations
 
+import select
 import time
 from typing import Protocol
 
@@ -33,23 +34,36 @@ class MonotonicClock:
     be compared between the scan and the communication process. `time.sleep` wakes 50-100 µs
     late on a stock kernel; spinning through the final 200 µs keeps lateness in the low
     microseconds at the cost of that much CPU per scan.
+
+    `busy`: no sleep at all. The coarse part spins too, letting go of the interpreter lock at
+    every turn (a select() with no timeout: other threads of the process may take the lock,
+    but the CPU is not given away). On a virtual machine a sleeping virtual CPU halts, and
+    the hypervisor wakes it up to several ms late: measured here, an empty 1 ms loop missed
+    0-27 slots in 8 s sleeping and 0 busy (BENCHMARKS.md, online_change floor). Not
+    sched_yield(): it handed the CPU to any runnable task there, the SCHED_IDLE compile
+    process included, for a whole time slice (slots missed 3 ms late).
     """
 
-    __slots__ = ("spin_ns",)
+    __slots__ = ("busy", "spin_ns")
 
-    def __init__(self, spin_ns: int = 200_000) -> None:
+    def __init__(self, spin_ns: int = 200_000, busy: bool = False) -> None:
         if spin_ns < 0:
             raise ValueError(f"spin_ns must be >= 0, got {spin_ns}")
         self.spin_ns = spin_ns
+        self.busy = busy
 
     def now_ns(self) -> int:
         return time.monotonic_ns()
 
     def wait_until(self, deadline_ns: int) -> int:
         now = time.monotonic_ns()
-        coarse_ns = deadline_ns - self.spin_ns - now
-        if coarse_ns > 0:
-            time.sleep(coarse_ns / 1e9)
+        coarse_until = deadline_ns - self.spin_ns
+        if self.busy:
+            while now < coarse_until:
+                select.select((), (), (), 0)  # lets other threads have the lock, not the CPU
+                now = time.monotonic_ns()
+        elif coarse_until > now:
+            time.sleep((coarse_until - now) / 1e9)
             now = time.monotonic_ns()
         while now < deadline_ns:
             now = time.monotonic_ns()

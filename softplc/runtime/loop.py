@@ -4,9 +4,10 @@ Owns: absolute deadlines on the monotonic clock, skipped slots counted as overru
 cycle supervision (a whole scan longer than period x watchdog, or a cycle that starts that
 late: a stall), measured here and judged by the pure scan; commands and HMI writes drained
 at the scan boundary, expired commands refused unapplied; prepared downloads handed to the
-scan (prepared off it: prepare.py, on downloads.py's thread, which runs between scans), so
-the scan only swaps; the snapshot published after every scan; retain captures at scan
-boundaries; the cold or warm start; safe outputs, confirmed by the devices, on every way out.
+scan (compiled off it: prepare.py, compileproc.py; loaded and built between scans on this
+thread, idlework.py), so the scan only swaps; the snapshot published after every scan;
+retain captures at scan boundaries; the cold or warm start; safe outputs, confirmed by the
+devices, on every way out.
 The boot program: bootkeeper.py; the process around the loop: scanproc.py.
 Does not know: Modbus, HTTP (the communication process), terminals (the CLI).
 """
@@ -24,6 +25,7 @@ from softplc.core.lifecycle import Command, PlcState
 from softplc.core.problems import FaultCode, ProgramError
 from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Status
+from softplc.core.steps import drain
 from softplc.runtime import netview, statusdoc, warmstart
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.bootkeeper import BootKeeper
@@ -32,6 +34,7 @@ from softplc.runtime.clock import Clock, MonotonicClock, Schedule
 from softplc.runtime.compileproc import CompileProcess
 from softplc.runtime.config import LoopConfig as LoopConfig  # importable from here too
 from softplc.runtime.downloads import DownloadQueue, ScanPace
+from softplc.runtime.idlework import IdleWork
 from softplc.runtime.prepare import (
     AnalysisRefused,
     Prepared,
@@ -70,7 +73,7 @@ class ScanLoop:
         self.start_mode = "cold"
         self.start_reason = "retain off (no state directory)"
         self.realtime = "normal scheduling"  # what scan_process_main obtained
-        self.clock: Clock = clock or MonotonicClock()
+        self.clock: Clock = clock or MonotonicClock(busy=config.realtime.busy_wait)
         self.stats = TimingStats()
         self.stalls = 0
         self.longest_gap_ns = 0
@@ -81,11 +84,15 @@ class ScanLoop:
         self.pending: list[ProgramCommand] = []
         # Downloads compile in a process of their own beside a real-time loop; on a virtual
         # clock (tests, simulation) on the compile thread.
-        self.compiler = CompileProcess(config) if isinstance(self.clock, MonotonicClock) \
-            else None
+        real = isinstance(self.clock, MonotonicClock)
+        self.compiler = CompileProcess(config) if real else None
+        # What a download still needs once compiled (its net loaded, its engine, its carry
+        # plan) is built on this thread between scans, a step at a time; on a virtual clock
+        # on the compile thread.
+        self.idle = IdleWork(time.monotonic_ns) if real else None
         self.prep = Preparer(config, lambda: self.runner.plc.net, lambda: self._driver_specs,
-                             self.compiler)
-        self.downloads = DownloadQueue(self.prep.prepare, pace=self._pace())
+                             self.compiler, self.idle.finish if self.idle else drain)
+        self.downloads = DownloadQueue(self.prep.prepare, pace=self._pace(), idle=self.idle)
         self._driver_specs: tuple[object, ...] = ()
         self.retain: RetainWriter | None = None
         self._retained_ns = 0
@@ -276,20 +283,27 @@ class ScanLoop:
     def run(self, stop: Event | None = None) -> None:
         if self.compiler is not None:
             self.compiler.start()  # ready before the first download, from the thread that stays
+        if self.idle is not None:
+            self.idle.start()
         try:
             self._run(stop)
         finally:
             self.downloads.pace.release()  # a compile parked on this loop must not hang on
+            if self.idle is not None:
+                self.idle.close()  # nor one waiting for steps no scan thread will run
         self.shutdown()
 
     def _run(self, stop: Event | None) -> None:
         period = self.config.period_ns
         schedule = Schedule(self.clock, period)
+        spin_ns = self.clock.spin_ns if isinstance(self.clock, MonotonicClock) else 0
         while (stop is None or not stop.is_set()) and (
                 self.config.max_scans is None
                 or self.runner.plc.scan_count < self.config.max_scans):
             deadline = schedule.deadline_ns
             self.downloads.pace.waiting(deadline)
+            if self.idle is not None and self.idle.pending:
+                self.idle.run(deadline - spin_ns)  # done before the clock's final spin
             reached = schedule.wait()
             self.downloads.pace.scanning()
             late = reached - deadline
@@ -368,6 +382,8 @@ class ScanLoop:
         if self.writer is not None:
             self.writer.publish(plc.image, self.status())
         self.runner.close()
+        if self.idle is not None:
+            self.idle.close()  # a download waiting for its last steps is told, not left hanging
         self.downloads.close()
         if self.compiler is not None:
             self.compiler.close()

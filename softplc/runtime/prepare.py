@@ -1,8 +1,9 @@
 """Downloads prepared off the scan: compiled and analysed in the compile process
-(runtime/compileproc.py; on the compile thread when there is none), then their net loaded,
-their engine and carry plan built and their devices opened on the scan process's compile
-thread (runtime/downloads.py), so that the scan only swaps; and the dry run, which says what
-a download would do and applies nothing.
+(runtime/compileproc.py; on the compile thread when there is none), then their net loaded
+and their engine and carry plan built a step at a time on the scan thread between scans
+(runtime/idlework.py; drained on the compile thread on a virtual clock), their devices opened
+on the compile thread (runtime/downloads.py), so that the scan only swaps; and the dry run,
+which says what a download would do and applies nothing.
 
 Owns: where a plain-text download resolves its files (the programs directory) and where a
 bundle is unpacked; the analysis gate (docs/analysis.md) and its size bound; refusal texts
@@ -28,6 +29,7 @@ from softplc.core.net import CompiledNet, NetState
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.scan import Plc
 from softplc.core.snapshot import CommandReply, CommandRequest
+from softplc.core.steps import Steps, drain
 from softplc.devices.driver import DeviceError, Driver
 from softplc.program import bundle as bundles
 from softplc.program import wire
@@ -97,11 +99,15 @@ class Preparer:
 
     def __init__(self, config: LoopConfig, running: Callable[[], CompiledNet | None],
                  running_specs: Callable[[], tuple[object, ...]],
-                 remote: Remote | None = None) -> None:
+                 remote: Remote | None = None,
+                 finish: Callable[[Steps[Prepared]], Prepared] = drain) -> None:
         self.config = config
         self._running = running
         self._running_specs = running_specs
         self.remote = remote  # compiles in another process; None: on the calling thread
+        # Runs the last part of a download (load, engine, carry plan) to its end: here, or
+        # on the scan thread between scans (runtime/idlework.py).
+        self._finish = finish
         self.bundle_roots: set[str] = set()  # unpacked bundles, stripped from messages
 
     def relative(self, message: str) -> str:
@@ -179,30 +185,34 @@ class Preparer:
         net = self.compile(req)
         return Built(wire.dumps(net), self.analyse(net), tuple(sorted(self.bundle_roots)))
 
-    def _compiled(self, req: CommandRequest) -> tuple[CompiledNet, dict[str, Any] | None]:
+    def _prepare_net(self, req: CommandRequest) -> Prepared:
         if self.remote is None:
             net = self.compile(req)
-            return net, self.analyse(net)
-        built = self.remote.build(req)
-        self.bundle_roots.update(built.bundle_roots)
-        # Loaded here, on the compile thread at the scan's pace: every expression compiled
-        # again from its text by the sandboxed compiler (~50 ms for 10,000 transitions).
-        return wire.loads(built.net), built.analysis
-
-    def _prepare_net(self, req: CommandRequest) -> Prepared:
-        net, analysis = self._compiled(req)
-        specs = tuple(net.io.drivers.values())
-        # Everything the swap needs, built here: the engine's tables and the carry plan
-        # against the net running now (the scan checks it is still that net).
-        running = self._running()
-        engine = Engine(net, NetState.initial(net))
-        engine.prime()  # the swap scan then re-checks only what the carried marking changes
-        prepared = Prepared(net, req, None, engine,
-                            online.plan(running, net) if running is not None
-                            and (running.name == net.name or req.dry_run) else None, analysis)
+            prepared = self._finish(self._finishing(req, net, self.analyse(net)))
+        else:
+            built = self.remote.build(req)
+            self.bundle_roots.update(built.bundle_roots)
+            prepared = self._finish(self._finishing(req, built.net, built.analysis))
+        specs = tuple(prepared.net.io.drivers.values())
         if specs != self._running_specs() and not req.dry_run:  # a dry run opens nothing
-            prepared.drivers = open_drivers(net.io, self.config.seed, None)
+            prepared.drivers = open_drivers(prepared.net.io, self.config.seed, None)
         return prepared
+
+    def _finishing(self, req: CommandRequest, net: CompiledNet | tuple[bytes, ...],
+                   analysis: dict[str, Any] | None) -> Steps[Prepared]:
+        """Everything the swap needs, a step at a time: the net loaded (when it came as bytes
+        from the compile process: every expression compiled again from its text by the
+        sandboxed compiler, ~50 ms for 10,000 transitions), the engine's tables primed on its
+        initial marking (the swap scan then re-checks only what the carried marking changes)
+        and the carry plan against the net running now (the scan checks it still is)."""
+        if isinstance(net, tuple):
+            net = yield from wire.loading(net)
+        engine = yield from Engine.stepwise(net, NetState.initial(net))
+        yield from engine.priming()
+        running = self._running()
+        plan = (yield from online.planning(running, net)) if running is not None \
+            and (running.name == net.name or req.dry_run) else None
+        return Prepared(net, req, None, engine, plan, analysis)
 
     def analyse(self, net: CompiledNet, gate: bool = True) -> dict[str, Any] | None:
         """The analysis gate (docs/analysis.md), off the scan. Refuses by raising

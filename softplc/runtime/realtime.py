@@ -18,10 +18,19 @@ from dataclasses import dataclass
 class Realtime:
     priority: int | None = None  # SCHED_FIFO 1..99; None: normal scheduling
     cpu: int | None = None  # pin the scan to this CPU; None: any CPU
+    # Wait for each slot without sleeping (runtime/clock.py): the scan's CPU never halts, so
+    # nothing has to wake it. For virtual machines, where waking a halted virtual CPU takes
+    # the hypervisor up to several ms; it costs that CPU, always busy.
+    busy_wait: bool = False
 
     def __post_init__(self) -> None:
         if self.priority is not None and not 1 <= self.priority <= 99:
             raise ValueError(f"a SCHED_FIFO priority is 1..99, got {self.priority}")
+        if self.priority is not None and self.busy_wait:
+            raise ValueError("--busy-wait with --rt-priority: a SCHED_FIFO scan that never "
+                             "sleeps keeps every normal process off its CPU (the kernel's "
+                             "real-time throttling then stops it for 50 ms a second); choose "
+                             "one")
         if self.cpu is not None and self.cpu not in os.sched_getaffinity(0):
             raise ValueError(f"CPU {self.cpu} is not available; this process may use "
                              f"{sorted(os.sched_getaffinity(0))}")
@@ -45,6 +54,8 @@ def apply(rt: Realtime) -> str:
             said.insert(0, f"SCHED_FIFO priority {rt.priority}")
         except OSError as exc:
             said.insert(0, f"normal scheduling (SCHED_FIFO refused: {exc.strerror})")
+    if rt.busy_wait:
+        said.append("busy wait")
     return ", ".join(said) or "normal scheduling"
 
 
@@ -91,7 +102,9 @@ def keep_off_scan_cpu(pid: int, rt: Realtime) -> None:
     so its work and the network stack's soft interrupts it causes stay off that CPU."""
     if rt.cpu is None:
         return
-    others = set(os.sched_getaffinity(0)) - {rt.cpu}
+    # Every CPU of the machine, not the caller's: the scan process itself (pinned to its
+    # CPU) starts the compile process. The kernel keeps a cpuset's limits.
+    others = set(range(os.cpu_count() or 1)) - {rt.cpu}
     if others:  # on failure (process gone, not allowed) it shares the CPU, as unpinned
         with contextlib.suppress(OSError):
             os.sched_setaffinity(pid, others)

@@ -89,7 +89,8 @@ class Supervisor:
             warm_start=getattr(args, "warm_start", "run"),
             on_stall=getattr(args, "on_stall", "fault"), verify=getattr(args, "verify", "warn"),
             stall_fault_ns=getattr(args, "stall_fault_after", 500_000_000),
-            realtime=Realtime(getattr(args, "rt_priority", None), getattr(args, "scan_cpu", None)))
+            realtime=Realtime(getattr(args, "rt_priority", None), getattr(args, "scan_cpu", None),
+                              getattr(args, "busy_wait", False)))
         comm_config = CommConfig(modbus=args.modbus, api=args.api, state_dir=args.state_dir,
                                  sizes=sizes, modbus_writes=getattr(args, "modbus_writes", "open"),
                                  opcua=getattr(args, "opcua", None), **modbus_limits(args))

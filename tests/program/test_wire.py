@@ -117,3 +117,26 @@ def test_mappings_of_the_net_are_read_only_after_the_trip() -> None:
             assert isinstance(getattr(arrived, field.name), MappingProxyType), field.name
         elif isinstance(value, Mapping):
             assert isinstance(getattr(arrived, field.name), Mapping), field.name
+
+
+def test_a_net_loads_a_piece_a_step_with_few_transitions_a_piece() -> None:
+    """The scan thread loads a download between scans (runtime/idlework.py): one piece per
+    step, and a piece of transitions (each a tree of objects, ~4.5 µs to rebuild) holds at
+    most OBJECT_CHUNK of them."""
+    net = compile_text(ring(1000), str(ROOT / "programs" / "ring.yaml"), ROOT)
+    pieces = wire.dumps(net)
+    scopes = pickle.loads(pieces[0])
+    sizes = [len(chunk) for name, chunk in (wire._load(p, scopes) for p in pieces[2:])
+             if name == "transitions"]
+    assert sum(sizes) == 1000 and max(sizes) == wire.OBJECT_CHUNK
+    loading = wire.loading(pieces)
+    steps = 0
+    while True:
+        try:
+            next(loading)
+        except StopIteration as done:
+            arrived = done.value
+            break
+        steps += 1
+    assert steps == len(pieces) - 1  # the head with its scopes, then each piece
+    assert_same_net(net, arrived)

@@ -21,6 +21,36 @@ def test_monotonic_wait_until_never_returns_before_the_deadline() -> None:
         assert clock.now_ns() >= reached
 
 
+def test_a_busy_wait_never_sleeps_yet_lets_other_threads_of_the_process_run() -> None:
+    """--busy-wait: the CPU stays busy (CPU time ~ wall time), the interpreter lock does not:
+    a helper thread of the process (the compile thread) gets through its work meanwhile."""
+    import threading
+    import time
+
+    clock = MonotonicClock(busy=True)
+    counted = [0]
+    stop = threading.Event()
+
+    def helper() -> None:
+        while not stop.is_set():
+            counted[0] += 1
+
+    thread = threading.Thread(target=helper)
+    thread.start()
+    try:
+        before_cpu, before = time.thread_time_ns(), clock.now_ns()
+        deadline = before + 200_000_000
+        counted[0] = 0
+        reached = clock.wait_until(deadline)
+        spun_ns = time.thread_time_ns() - before_cpu
+    finally:
+        stop.set()
+        thread.join(5)
+    assert reached >= deadline
+    assert counted[0] > 10_000  # the helper ran while this thread waited
+    assert spun_ns > 0.2 * (reached - before)  # not asleep: this thread kept its CPU busy
+
+
 def test_monotonic_wait_until_a_past_deadline_returns_at_once() -> None:
     clock = MonotonicClock()
     now = clock.now_ns()

@@ -7,11 +7,12 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import threading
+import time
 from multiprocessing.connection import Connection
 
 import pytest
 
-from softplc.runtime.realtime import Realtime, apply, background_thread
+from softplc.runtime.realtime import Realtime, apply, background_thread, keep_off_scan_cpu
 
 
 def probe(rt: Realtime, out: Connection) -> None:
@@ -63,8 +64,60 @@ def test_normal_scheduling_changes_nothing() -> None:
     assert got["said"] == "normal scheduling" and got["policy"] == os.SCHED_OTHER
 
 
+def test_a_busy_wait_is_said_and_refused_with_a_fifo_priority() -> None:
+    got = run_probe(Realtime(busy_wait=True))
+    assert got["said"] == "busy wait" and got["policy"] == os.SCHED_OTHER
+    with pytest.raises(ValueError, match="choose one"):
+        Realtime(priority=10, busy_wait=True)
+
+
+def pinned_starter(cpu: int, out: Connection) -> None:
+    """As the scan process does: pinned to its CPU, it starts the compile process."""
+    os.sched_setaffinity(0, {cpu})
+    ctx = mp.get_context("spawn")
+    child = ctx.Process(target=time.sleep, args=(5,))
+    child.start()
+    assert child.pid is not None
+    keep_off_scan_cpu(child.pid, Realtime(cpu=cpu))
+    out.send(sorted(os.sched_getaffinity(child.pid)))
+    child.kill()
+    child.join(5)
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs")
+def test_a_pinned_scan_process_keeps_its_children_off_its_cpu() -> None:
+    """The compile process, started by the pinned scan process, inherits its one CPU;
+    it must go to the others (found with --busy-wait --scan-cpu: the compile process sat
+    starved on the scan's CPU)."""
+    cpu = max(os.sched_getaffinity(0))
+    ctx = mp.get_context("spawn")
+    receiver, sender = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=pinned_starter, args=(cpu, sender))
+    proc.start()
+    try:
+        assert receiver.poll(30)
+        cpus = receiver.recv()
+    finally:
+        proc.join(10)
+    assert cpus and cpu not in cpus
+
+
 @pytest.mark.parametrize("kwargs", [{"priority": 0}, {"priority": 100},
                                     {"cpu": 10_000}])
 def test_bad_settings_are_refused_with_the_allowed_range(kwargs: dict[str, int]) -> None:
     with pytest.raises(ValueError, match=r"1..99|not available"):
         Realtime(**kwargs)
+
+
+def test_run_refuses_busy_wait_with_a_fifo_priority_before_starting_anything(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    from pathlib import Path
+
+    from softplc.cli import main
+    from softplc.runtime.runcmd import EXIT_USAGE
+
+    program = Path(__file__).resolve().parents[2] / "programs" / "transport.yaml"
+    code = main(["run", str(program), "--busy-wait", "--rt-priority", "10",
+                 "--modbus", "127.0.0.1:0", "--api", "127.0.0.1:0"])
+    assert code == EXIT_USAGE
+    assert "--busy-wait with --rt-priority" in capsys.readouterr().err

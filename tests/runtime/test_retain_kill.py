@@ -85,7 +85,11 @@ def _production(state_dir: str, conn: Connection, progress: Any, stop: Any) -> N
 def newest_valid(state: Path) -> tuple[str, dict[str, Any]] | None:
     """The test's own reading of the state dir: newest retain-*.json whose sha256 holds."""
     for path in sorted(state.glob("retain-*.json"), reverse=True):
-        head, _, body = path.read_bytes().partition(b"\n")
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:  # rotated away by the writer since the listing
+            continue
+        head, _, body = data.partition(b"\n")
         try:
             header = json.loads(head)
         except ValueError:

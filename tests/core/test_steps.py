@@ -1,0 +1,93 @@
+"""Work a step at a time (core/steps.py): the engine, its priming and the carry plan built
+stepwise are exactly what the plain calls build, in many short steps for a big net."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from softplc.core import online
+from softplc.core.firing import Engine
+from softplc.core.firing_base import TABLE_STEP
+from softplc.core.net import NetState
+from softplc.core.steps import STEP, drain
+from softplc.program.compiler import compile_file, compile_text
+
+ROOT = Path(__file__).resolve().parents[2]
+PROGRAMS = sorted((ROOT / "programs").glob("*.yaml"))
+
+
+def ring(transitions: int, spare: int = 0) -> str:
+    lines = ["program: ring", "io_image: ../io_images/transport.yaml", "places:",
+             "  p0: {tokens: 1}", *(f"  p{i}: {{}}" for i in range(1, transitions)),
+             *(f"  spare{i}: {{tokens: 2}}" for i in range(spare)), "transitions:"]
+    lines += [f"  t{i}: {{from: [p{i}], to: [p{(i + 1) % transitions}]"
+              + (", when: s1_i" if i % 3 == 0 else "") + (", priority: 2" if i % 5 == 0 else "")
+              + "}" for i in range(transitions)]
+    return "\n".join(lines) + "\n"
+
+
+def counted(steps: Any) -> tuple[Any, int]:
+    n = 0
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value, n
+        n += 1
+
+
+def same_engine(a: Engine, b: Engine) -> None:
+    names = [n for n in dir(a) if n.startswith("_") and not n.startswith("__")
+             and not callable(getattr(a, n))]
+    assert names
+    for name in names:
+        left, right = getattr(a, name), getattr(b, name)
+        if isinstance(left, np.ndarray):
+            assert np.array_equal(left, right), name
+        elif name == "_primed" and left is not None:
+            assert np.array_equal(left.marking, right.marking)
+            assert (left.ready, left.others) == (right.ready, right.others)
+        elif name not in ("_m", "_marr", "_rank_key"):
+            assert left == right, name
+    assert (a._rank_key is None) == (b._rank_key is None)
+
+
+def test_every_shipped_program_gets_the_same_engine_stepwise() -> None:
+    for path in PROGRAMS:
+        net = compile_file(path)
+        plain = Engine(net, NetState.initial(net))
+        plain.prime()
+        stepped = drain(Engine.stepwise(net, NetState.initial(net)))
+        drain(stepped.priming())
+        same_engine(plain, stepped)
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.integers(2, 700), st.integers(0, 3))
+def test_a_ring_built_stepwise_runs_as_the_plain_engine(transitions: int, spare: int) -> None:
+    net = compile_text(ring(transitions, spare), str(ROOT / "programs" / "ring.yaml"), ROOT)
+    plain = Engine(net, NetState.initial(net))
+    stepped, steps = counted(Engine.stepwise(net, NetState.initial(net)))
+    same_engine(plain, stepped)
+    assert steps >= transitions // TABLE_STEP
+    old = compile_text(ring(max(2, transitions // 2)), str(ROOT / "programs" / "ring.yaml"),
+                       ROOT)
+    a, (b, _) = online.plan(old, net), counted(online.planning(old, net))
+    assert a.transitions == b.transitions and a.coloured == b.coloured
+    for field in ("old_idx", "new_idx", "dropped", "fresh"):
+        assert np.array_equal(getattr(a, field), getattr(b, field)), field
+
+
+def test_a_big_net_is_built_in_short_steps() -> None:
+    net = compile_text(ring(5000), str(ROOT / "programs" / "ring.yaml"), ROOT)
+    _, table_steps = counted(Engine.stepwise(net, NetState.initial(net)))
+    engine = Engine(net, NetState.initial(net))
+    _, prime_steps = counted(engine.priming())
+    _, plan_steps = counted(online.planning(net, net))
+    assert table_steps >= 5000 // TABLE_STEP and prime_steps >= 5000 // STEP
+    assert plan_steps >= 3 * 5000 // STEP
