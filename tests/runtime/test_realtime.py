@@ -8,7 +8,9 @@ import multiprocessing as mp
 import os
 import threading
 import time
+from collections.abc import Callable
 from multiprocessing.connection import Connection
+from typing import Any
 
 import pytest
 
@@ -33,14 +35,19 @@ def probe(rt: Realtime, out: Connection) -> None:
 
 
 def run_probe(rt: Realtime) -> dict[str, object]:
+    result: dict[str, object] = in_child(probe, rt)
+    return result
+
+
+def in_child(target: Callable[..., object], *args: object) -> Any:
+    """`target(*args, out)` in a spawned child; what it sent on `out`."""
     ctx = mp.get_context("spawn")
     receiver, sender = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=probe, args=(rt, sender))
+    proc = ctx.Process(target=target, args=(*args, sender))
     proc.start()
     try:
         assert receiver.poll(30)
-        result: dict[str, object] = receiver.recv()
-        return result
+        return receiver.recv()
     finally:
         proc.join(10)
 
@@ -90,15 +97,7 @@ def test_a_pinned_scan_process_keeps_its_children_off_its_cpu() -> None:
     it must go to the others (found with --busy-wait --scan-cpu: the compile process sat
     starved on the scan's CPU)."""
     cpu = max(os.sched_getaffinity(0))
-    ctx = mp.get_context("spawn")
-    receiver, sender = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=pinned_starter, args=(cpu, sender))
-    proc.start()
-    try:
-        assert receiver.poll(30)
-        cpus = receiver.recv()
-    finally:
-        proc.join(10)
+    cpus = in_child(pinned_starter, cpu)
     assert cpus and cpu not in cpus
 
 
