@@ -158,7 +158,10 @@ def _online_tables(section: dict[str, Any]) -> list[str]:
     ]
     sleeping = section.get("sleeping") or {}
     return [
-        f"The scan waiting {section.get('wait', 'sleeping')} (`softplc run --busy-wait`):",
+        f"The scan waiting {section.get('wait', 'sleeping')}"
+        + (f", pinned to CPU {section['scan_cpu']} (`softplc run --busy-wait --scan-cpu "
+           f"{section['scan_cpu']}`, the rest of the runtime on the other CPUs):"
+           if section.get("scan_cpu") is not None else " (`softplc run --busy-wait`):"),
         "",
         *_table(["transitions", "request to first scan ms", "missed scans",
                  "missed in as long a window before", "missed by the swap scan",
@@ -173,7 +176,8 @@ def _online_tables(section: dict[str, Any]) -> list[str]:
           if (floor := section.get("floor")) else []),
         "",
         *([
-            "The same changes with the scan sleeping between slots (the default):",
+            "The same changes with the scan sleeping between slots, on any CPU (`softplc "
+            "run`'s defaults):",
             "",
             *_table(["transitions", "changes", "missed scans (worst)",
                      "missed before (worst)", "request to first scan ms (median)"],

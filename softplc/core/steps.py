@@ -20,8 +20,9 @@ _T = TypeVar("_T")
 
 Steps = Generator[None, None, _T]  # yields between steps, returns the result
 
-# Items per step where each costs ~0.1-0.3 µs (a table entry, a place): ~50-150 µs a step.
-STEP = 512
+# Items per step where each costs ~0.1-0.5 µs (a table entry, a place, an enabling check):
+# at most ~130 µs a step, well inside the scan thread's STEP_NS (runtime/idlework.py).
+STEP = 256
 
 
 def drain(steps: Generator[Any, None, _T]) -> _T:

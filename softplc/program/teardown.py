@@ -23,9 +23,13 @@ from softplc.core.steps import Steps, drain
 _LEAVES = (str, bytes, int, float, bool, type(None))
 
 
-_CHUNK = 256  # containers walked or freed per step
+_CHUNK = 64  # containers freed per step (a program object with its attributes: ~1-4 µs)
+_SLOTS = 20_000  # ... or containers of this many references in all
+_SIZED = (dict, list, tuple, set, frozenset)
+_FORGET = 1024  # seen ids dropped per step
+_TRIM = 16384  # emptied slots of the walk's list given back per step
 _SHARDS = 64
-_WALK_STEP = 1024  # objects looked at per step of the walk (~0.2 µs each)
+_WALK_STEP = 256  # objects looked at per step of the walk (~0.3-1 µs each)
 _PIECEWISE = [True]  # this process: is there a scan thread sharing the interpreter?
 
 
@@ -54,12 +58,18 @@ def burying(box: list[Any]) -> Steps[None]:
     seen: list[set[int]] = [set() for _ in range(_SHARDS)]
     while box:
         yield from _walk(box.pop(), order, seen)
-    for shard in seen:
+    while seen:
+        shard = seen.pop()  # emptied, then its table freed (64 at once: ~0.3 ms)
         while shard:
             _forget(shard)
             yield
-    for start in range(0, len(order), _CHUNK):
-        _release(order, start)
+        del shard
+    start = 0
+    while start < len(order):
+        start = _release(order, start)
+        yield
+    while order:  # the emptied list itself (~300,000 slots for 10,000 transitions)
+        del order[-_TRIM:]
         yield
 
 
@@ -76,9 +86,16 @@ def _walk(root: Any, order: list[Any], seen: list[set[int]]) -> Steps[None]:
     while i < len(order):
         children = _children(order[i])
         i += 1
+        work += 1
+        # The leaves of a big container are held here too, each freed in its own chunk: a
+        # dict of 10,000 names freed 0.6 ms of strings and ints with it in one go.
+        big = len(children) > _CHUNK
         for start in range(0, len(children), _WALK_STEP):
             for child in children[start:start + _WALK_STEP]:
-                if not isinstance(child, _LEAVES):
+                if isinstance(child, _LEAVES):
+                    if big:
+                        order.append(child)
+                else:
                     key = id(child)
                     shard = seen[(key >> 4) % _SHARDS]
                     if key not in shard:
@@ -88,17 +105,28 @@ def _walk(root: Any, order: list[Any], seen: list[set[int]]) -> Steps[None]:
             if work >= _WALK_STEP:  # a step: about this many objects looked at
                 work = 0
                 yield
-        work += 1
+        if work >= _WALK_STEP:  # a run of objects without children counts too
+            work = 0
+            yield
 
 
 def _forget(seen: set[int]) -> None:
-    for _ in range(min(_CHUNK, len(seen))):
+    for _ in range(min(_FORGET, len(seen))):
         seen.pop()
 
 
-def _release(order: list[Any], start: int) -> None:
-    for i in range(start, min(start + _CHUNK, len(order))):
+def _release(order: list[Any], start: int) -> int:
+    """Free containers from `start` on until _CHUNK of them, or containers of _SLOTS
+    references in all, are let go (each reference let go costs ~5 ns: a container of 10,000
+    ~50 µs); where the next step starts."""
+    i, stop, slots = start, min(start + _CHUNK, len(order)), 0
+    while i < stop and slots < _SLOTS:
+        held = order[i]
+        slots += len(held) + 1 if isinstance(held, _SIZED) else 1
+        del held
         order[i] = None  # one container's own memory: its children are still in `order`
+        i += 1
+    return i
 
 
 def _children(obj: Any) -> list[Any]:

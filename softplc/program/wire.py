@@ -125,6 +125,7 @@ def loading(pieces: tuple[bytes, ...]) -> Steps[CompiledNet]:
     """loads(), a piece a step (core/steps.py): the scan thread loads a download between
     scans."""
     scopes = pickle.loads(pieces[0])
+    yield
     net = _load(pieces[1], scopes)
     if not isinstance(net, CompiledNet):
         raise TypeError(f"expected a compiled net, got {type(net).__name__}")
@@ -145,4 +146,5 @@ def loading(pieces: tuple[bytes, ...]) -> Steps[CompiledNet]:
         else:
             fields[name] = MappingProxyType(joined) if isinstance(empty, MappingProxyType) \
                 else joined
+        yield
     return dataclasses.replace(net, **fields)

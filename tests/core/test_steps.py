@@ -65,6 +65,9 @@ def test_every_shipped_program_gets_the_same_engine_stepwise() -> None:
         stepped = drain(Engine.stepwise(net, NetState.initial(net)))
         drain(stepped.priming())
         same_engine(plain, stepped)
+        for other in PROGRAMS:  # a replacement (another name) or the same net again
+            before = compile_file(other)
+            same_plan_as_by_names(online.plan(before, net), before, net)
 
 
 @settings(max_examples=15, deadline=None)
@@ -77,10 +80,33 @@ def test_a_ring_built_stepwise_runs_as_the_plain_engine(transitions: int, spare:
     assert steps >= transitions // TABLE_STEP
     old = compile_text(ring(max(2, transitions // 2)), str(ROOT / "programs" / "ring.yaml"),
                        ROOT)
-    a, (b, _) = online.plan(old, net), counted(online.planning(old, net))
-    assert a.transitions == b.transitions and a.coloured == b.coloured
-    for field in ("old_idx", "new_idx", "dropped", "fresh"):
-        assert np.array_equal(getattr(a, field), getattr(b, field)), field
+    for before, after in ((old, net), (net, old)):  # places added, then dropped
+        a, (b, _) = online.plan(before, after), counted(online.planning(before, after))
+        assert a.transitions == b.transitions and a.coloured == b.coloured
+        for field in ("old_idx", "new_idx", "dropped", "fresh"):
+            assert np.array_equal(getattr(a, field), getattr(b, field)), field
+        same_plan_as_by_names(a, before, after)
+
+
+def same_plan_as_by_names(plan: online.CarryPlan, old: Any, new: Any) -> None:
+    """The carry plan against its rules spelled out plainly (core/online.py): a place is kept
+    when the new net has one of its name and colouredness, else dropped; the new places
+    nobody kept are fresh; transitions are matched by name."""
+    index = {name: q for q, name in enumerate(new.place_names)}
+    kept = [(p, index[name]) for p, name in enumerate(old.place_names)
+            if name in index and bool(old.coloured[p]) == bool(new.coloured[index[name]])]
+    assert plan.old_idx.tolist() == [p for p, _ in kept]
+    assert plan.new_idx.tolist() == [q for _, q in kept]
+    assert plan.dropped.tolist() == sorted(set(range(len(old.place_names)))
+                                           - {p for p, _ in kept})
+    assert plan.fresh.tolist() == sorted(set(range(len(new.place_names)))
+                                         - {q for _, q in kept})
+    assert plan.coloured == tuple((p, q) for p, q in kept if old.coloured[p])
+    names = {t.name: t.index for t in new.transitions}
+    assert plan.transitions == {t.index: names[t.name] for t in old.transitions
+                                if t.name in names}
+    assert all(a.dtype == np.int64 for a in (plan.old_idx, plan.new_idx, plan.dropped,
+                                             plan.fresh))
 
 
 def test_a_big_net_is_built_in_short_steps() -> None:

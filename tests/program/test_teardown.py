@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import gc
 import weakref
+from typing import ClassVar
 
 from softplc.program.teardown import bury
 from softplc.program.yamlref import YList, YMap
@@ -71,3 +72,57 @@ def test_where_no_scan_thread_waits_a_burial_frees_all_at_once() -> None:
         teardown._walk = original
         teardown.piecewise(True)
         gc.enable()
+
+
+
+class Leaf(int):
+    """A leaf the walk does not look into (an int) that says when it is freed."""
+
+    freed: ClassVar[list[int]] = []
+
+    def __del__(self) -> None:
+        Leaf.freed.append(int(self))
+
+
+def test_no_step_frees_a_big_container_with_all_its_leaves() -> None:
+    """A container of thousands of leaves (a net's names, its index dicts) is not freed with
+    all of them in one step: they are held and let go a chunk at a time."""
+    from softplc.program import teardown
+
+    gc.disable()
+    try:
+        Leaf.freed.clear()
+        box: list[object] = [[[Leaf(1000 * k + i) for i in range(1000)] for k in range(20)]]
+        per_step = []
+        for _ in teardown.burying(box):
+            per_step.append(len(Leaf.freed))
+            Leaf.freed.clear()
+        per_step.append(len(Leaf.freed))
+        assert box == [] and sum(per_step) == 20_000  # every leaf freed, each once
+        assert max(per_step) <= teardown._CHUNK
+    finally:
+        gc.enable()
+
+
+def test_a_run_of_objects_without_children_is_walked_in_steps() -> None:
+    """Empty containers (or leaves held for a big container) give the walk nothing to loop
+    over; they still count, so that a step ends after _WALK_STEP of them."""
+    from softplc.program import teardown
+
+    looked: list[int] = [0]
+    original = teardown._children
+
+    def counting(obj: object) -> list[object]:
+        looked[0] += 1
+        return original(obj)
+
+    teardown._children = counting  # type: ignore[assignment]
+    try:
+        box: list[object] = [[[] for _ in range(20_000)]]
+        per_step = []
+        for _ in teardown.burying(box):
+            per_step.append(looked[0])
+            looked[0] = 0
+        assert max(per_step) <= teardown._WALK_STEP + 1
+    finally:
+        teardown._children = original

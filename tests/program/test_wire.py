@@ -126,8 +126,8 @@ def test_a_net_loads_a_piece_a_step_with_few_transitions_a_piece() -> None:
     net = compile_text(ring(1000), str(ROOT / "programs" / "ring.yaml"), ROOT)
     pieces = wire.dumps(net)
     scopes = pickle.loads(pieces[0])
-    sizes = [len(chunk) for name, chunk in (wire._load(p, scopes) for p in pieces[2:])
-             if name == "transitions"]
+    loaded = [wire._load(p, scopes) for p in pieces[2:]]
+    sizes = [len(chunk) for name, chunk in loaded if name == "transitions"]
     assert sum(sizes) == 1000 and max(sizes) == wire.OBJECT_CHUNK
     loading = wire.loading(pieces)
     steps = 0
@@ -138,5 +138,6 @@ def test_a_net_loads_a_piece_a_step_with_few_transitions_a_piece() -> None:
             arrived = done.value
             break
         steps += 1
-    assert steps == len(pieces) - 1  # the head with its scopes, then each piece
+    # The scopes, the head, each piece, then each field joined from its pieces.
+    assert steps == len(pieces) + len({name for name, _ in loaded})
     assert_same_net(net, arrived)
