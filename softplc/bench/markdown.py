@@ -157,6 +157,7 @@ def _online_tables(section: dict[str, Any]) -> list[str]:
         for c in section.get("changes", [])
     ]
     sleeping = section.get("sleeping") or {}
+    sleeping_floor = sleeping.get("floor") or {}
     return [
         f"The scan waiting {section.get('wait', 'sleeping')}"
         + (f", pinned to CPU {section['scan_cpu']} (`softplc run --busy-wait --scan-cpu "
@@ -185,8 +186,8 @@ def _online_tables(section: dict[str, Any]) -> list[str]:
                       (v.get("request_to_first_scan_ms") or {}).get("median")]
                      for n, v in (sleeping.get("by_size") or {}).items()]),
             "",
-            f"Its empty loop, sleeping: {fmt((sleeping.get('floor') or {}).get('missed'))} "
-            f"slots missed in {fmt((sleeping.get('floor') or {}).get('seconds'))} s.",
+            f"Its empty loop, sleeping: {fmt(sleeping_floor.get('missed'))} "
+            f"slots missed in {fmt(sleeping_floor.get('seconds'))} s.",
             "",
         ] if sleeping else []),
     ]

@@ -48,8 +48,8 @@ def bury(box: list[Any]) -> None:
 
 
 def burying(box: list[Any]) -> Steps[None]:
-    """bury(), _CHUNK containers a step (core/steps.py): the scan thread frees a replaced
-    net between its scans."""
+    """bury(), a step at a time (core/steps.py; the sizes above): the scan thread frees a
+    replaced net between its scans."""
     if not _PIECEWISE[0]:
         box.clear()
         return

@@ -8,8 +8,8 @@ the scan process (pipe closed, or PR_SET_PDEATHSIG).
 Why a process: threads of the scan process share one interpreter lock with the scan. Paced
 between scans (runtime/downloads.py), a 10,000-transition compile took ~3 s of the scan
 process's time and still cost slots at 1 ms; here it takes ~0.8 s of another process's, and
-the scan process only loads the result (program/wire.py), paced, ~0.1 s. A program that
-crashes or exhausts the compiler takes this process down, never the scan.
+the scan thread only loads the result (program/wire.py), a step at a time between scans. A
+program that crashes or exhausts the compiler takes this process down, never the scan.
 Does not know: the scan, the lifecycle, what compiling means (runtime/prepare.py).
 """
 

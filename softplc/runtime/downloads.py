@@ -1,8 +1,9 @@
 """Downloads prepared off the scan: one worker thread in the scan process.
 
 Owns: preparing downloaded programs on a background thread in arrival order (the compile
-itself runs in the compile process, runtime/compileproc.py; this thread loads its result and
-builds the engine; on a virtual clock it compiles too), holding the
+itself runs in the compile process, runtime/compileproc.py, and the scan thread loads its
+result and builds the engine between scans, runtime/idlework.py, while this thread waits;
+on a virtual clock this thread does all of it), holding the
 commands that arrived after a download until it is decided (commands apply in the order they
 were sent), and keeping that thread out of the scan's way: a short GIL switch interval while
 a compile runs, so that a waking scan thread gets the interpreter back within a fraction of a

@@ -51,7 +51,8 @@ class IdleWork:
     def finish(self, steps: Steps[_T]) -> _T:
         """`steps` to their end: on the scan thread while the loop runs, else here (a loop
         scanned by hand, as tests do, never runs queued steps)."""
-        return self.complete(steps) if self.active else drain(steps)
+        # On the scan thread: this thread waits for the result without the interpreter lock.
+        return self.submit(steps).result() if self.active else drain(steps)
 
     def submit(self, steps: Steps[_T]) -> Future[_T]:
         future: Future[_T] = Future()
@@ -62,11 +63,6 @@ class IdleWork:
             else:
                 self._jobs.append((steps, future))
         return future
-
-    def complete(self, steps: Steps[_T]) -> _T:
-        """From another thread: `steps` run on the scan thread between scans; their result
-        (or their exception, raised here). Waits without the interpreter lock."""
-        return self.submit(steps).result()
 
     @property
     def pending(self) -> int:

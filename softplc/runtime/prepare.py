@@ -186,13 +186,15 @@ class Preparer:
         return Built(wire.dumps(net), self.analyse(net), tuple(sorted(self.bundle_roots)))
 
     def _prepare_net(self, req: CommandRequest) -> Prepared:
+        compiled: CompiledNet | tuple[bytes, ...]
         if self.remote is None:
-            net = self.compile(req)
-            prepared = self._finish(self._finishing(req, net, self.analyse(net)))
+            compiled = self.compile(req)
+            analysis = self.analyse(compiled)
         else:
             built = self.remote.build(req)
             self.bundle_roots.update(built.bundle_roots)
-            prepared = self._finish(self._finishing(req, built.net, built.analysis))
+            compiled, analysis = built.net, built.analysis
+        prepared = self._finish(self._finishing(req, compiled, analysis))
         specs = tuple(prepared.net.io.drivers.values())
         if specs != self._running_specs() and not req.dry_run:  # a dry run opens nothing
             prepared.drivers = open_drivers(prepared.net.io, self.config.seed, None)

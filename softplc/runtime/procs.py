@@ -14,6 +14,7 @@ import signal
 import threading
 from collections.abc import Callable
 from multiprocessing.context import BaseContext
+from pathlib import Path
 from typing import Protocol
 
 
@@ -32,8 +33,6 @@ def die_with_parent() -> None:
 def children(pid: int) -> list[int]:
     """The live (not zombie) processes whose parent is `pid`, from /proc (Linux): the scan
     process's compile process, for the memory bench and tests."""
-    from pathlib import Path
-
     found = []
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit():

@@ -70,7 +70,7 @@ def test_a_failing_step_goes_to_its_requester_and_the_next_job_runs() -> None:
     assert good.result(0) == 30
 
 
-def test_complete_waits_for_the_scan_thread_and_returns_its_result() -> None:
+def test_finish_waits_for_the_scan_thread_and_returns_its_result() -> None:
     work = IdleWork(time.monotonic_ns)
     stepped_on: set[str] = set()
 
