@@ -131,6 +131,9 @@ _SCHEMAS: Final[dict[str, Any]] = {
             "problems": {"type": "array", "items": {"type": "string"},
                          "description": "Every problem, as FILE:LINE: path: message."},
             "state": {"type": "string"},
+            "refusal": {"type": "string", "description": "Why a download was refused: "
+                        "program, analysis, device, compiler, boot or sizes.",
+                        "enum": ["program", "analysis", "device", "compiler", "boot", "sizes"]},
         },
     },
     "CommandResult": {

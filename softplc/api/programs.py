@@ -29,7 +29,6 @@ if TYPE_CHECKING:
     from softplc.api.server import ApiServer
 
 _NAME: Final = re.compile(r"[A-Za-z0-9._-]{1,128}")
-_REFUSED_PROGRAM: Final = "download refused"  # the scan's prefix for a program that failed
 # Characters a YAML stream may not hold (YAML 1.1 section 5.1, as PyYAML's reader checks).
 _NOT_YAML: Final = re.compile(
     "[^\x09\x0A\x0D\x20-\x7E\x85\xA0-\uD7FF\uE000-\uFFFD\U00010000-\U0010FFFF]")
@@ -50,13 +49,6 @@ def unprintable(text: str, name: str) -> list[str]:
         problems.append(f"{name}:{line}: character U+{ord(match.group()):04X} is not allowed "
                         "in YAML")
     return problems
-
-
-def program_problems(message: str) -> list[str]:
-    """Every problem line of a refused download ("download refused:\\nFILE:LINE: ...")."""
-    head, _, rest = message.partition("\n")
-    lines = [line.strip() for line in rest.splitlines() if line.strip()]
-    return lines or [head.removeprefix(f"{_REFUSED_PROGRAM}:").strip() or head]
 
 
 class _Routes:
@@ -97,11 +89,11 @@ class _Routes:
         return self._answer(reply)
 
     def _answer(self, reply: CommandReply | Record) -> web.Response:
-        if isinstance(reply, CommandReply) and not reply.ok and reply.message.startswith(
-                _REFUSED_PROGRAM):
+        if isinstance(reply, CommandReply) and reply.refusal is not None \
+                and reply.refusal.of_program:
             raise ApiProblem(422, reply.message.partition("\n")[0].rstrip(":"),
-                             program_problems(reply.message), state=reply.state.name,
-                             id=reply.id)
+                             list(reply.problems), state=reply.state.name, id=reply.id,
+                             refusal=reply.refusal.value)
         if isinstance(reply, CommandReply) and reply.ok and reply.detail is not None:
             return web.json_response({"ok": True, "message": reply.message, "id": reply.id,
                                       "state": reply.state.name, "plan": reply.detail})

@@ -12,6 +12,7 @@ computed from a `now_ns` the caller read).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Protocol
 
 from softplc.core.image import Address, ProcessImage
@@ -30,6 +31,7 @@ class Status:
     fault_code: int = 0  # a FaultCode (core/problems.py)
     period_us: int = 0
     forced: int = 0  # how many symbols are forced (docs/design.md section 10)
+    waiting_for_io: bool = False  # a device has not delivered its first input image (issue 26)
     # About the snapshot, not the PLC (so not part of equality): CLOCK_MONOTONIC when the scan
     # process published it (0: never), and a reader's verdict that it is older than the PLC's
     # cycle allows (the scan process is frozen or dead).
@@ -76,10 +78,35 @@ class CommandRequest:
     dry_run: bool = False  # a download answered with its plan, never applied
 
 
+class Refusal(Enum):
+    """Why a command was not applied, as data: the services choose their answer (an HTTP
+    status, an OPC UA status code) from it, never from the message's text."""
+
+    PROGRAM = "program"  # the download does not compile: problems at FILE:LINE
+    ANALYSIS = "analysis"  # the analysis gate refused it (--verify refuse)
+    DEVICE = "device"  # its devices cannot be opened
+    COMPILER = "compiler"  # the compile process died, ran out of time, or failed inside
+    BOOT = "boot"  # it cannot be kept as the boot program
+    SIZES = "sizes"  # its image sizes differ from the runtime's
+    WITHDRAWN = "withdrawn"  # a stop or kill sent after it came first
+    STATE = "state"  # the lifecycle table or the online-change rules refuse it in this state
+    EXPIRED = "expired"  # drained after its deadline, never applied
+
+    @property
+    def of_program(self) -> bool:
+        """A refusal of the downloaded program itself, not of the moment it came."""
+        return self in _PROGRAM_REFUSALS
+
+
+_PROGRAM_REFUSALS = frozenset({Refusal.PROGRAM, Refusal.ANALYSIS, Refusal.DEVICE,
+                               Refusal.COMPILER, Refusal.BOOT, Refusal.SIZES})
+
+
 @dataclass(frozen=True, slots=True)
 class CommandReply:
-    """`ok`: applied. Not ok: refused (the state unchanged), or `expired`: drained after its
-    deadline and never applied."""
+    """`ok`: applied. Not ok: refused (the state unchanged; `refusal` says why, `problems`
+    lists every problem of a refused program), or `expired`: drained after its deadline and
+    never applied."""
 
     id: int
     ok: bool
@@ -87,6 +114,8 @@ class CommandReply:
     state: PlcState
     expired: bool = False
     detail: dict[str, object] | None = None  # a dry run's plan (core/online.py describe)
+    refusal: Refusal | None = None
+    problems: tuple[str, ...] = ()
 
 
 class SnapshotSource(Protocol):

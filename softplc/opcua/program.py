@@ -27,7 +27,6 @@ from softplc.opcua.ids import numeric_id, status_code
 COMMAND_TIMEOUT_S: Final = 8.0  # as the HTTP API: below a client's usual 10 s
 DOWNLOAD_TIMEOUT_S: Final = 60.0  # a download compiles off the scan; a big net takes seconds
 MAX_PROGRAM_BYTES: Final = 1 << 20  # as the API's body limit
-_REFUSED_PROGRAM: Final = "download refused"
 _NAME: Final = re.compile(r"[A-Za-z0-9._-]{1,128}")
 # OPC UA method name -> softplc command (Part 10: Suspend = stop, Halt = kill).
 COMMANDS: Final = {"Start": Command.START, "Suspend": Command.STOP, "Resume": Command.RESUME,
@@ -154,11 +153,10 @@ def _reply_outcome(reply: CommandReply) -> Outcome:
     state = reply.state.name
     if reply.ok:
         return Outcome(ua.StatusCodes.Good, reply.message, state)
-    if reply.message.startswith(_REFUSED_PROGRAM):
-        head, _, rest = reply.message.partition("\n")
-        problems = tuple(line.strip() for line in rest.splitlines() if line.strip())
+    if reply.refusal is not None and reply.refusal.of_program:
+        head = reply.message.partition("\n")[0]
         return Outcome(ua.StatusCodes.BadInvalidArgument, head.rstrip(":"), state,
-                       problems or (head,))
+                       reply.problems or (head,))
     # The lifecycle table refused the command in this state (or the scan did, e.g. an
     # online change it cannot make): the program is in the wrong state for it.
     return Outcome(ua.StatusCodes.BadInvalidState, reply.message, state)

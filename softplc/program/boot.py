@@ -45,8 +45,15 @@ class BootProgram:
 
 def save(state_dir: str | Path, program: BootProgram) -> None:
     """Write atomically: a crash leaves the previous boot program or the new one, never half."""
+    commit(stage(state_dir, program))
+
+
+def stage(state_dir: str | Path, program: BootProgram) -> Path:
+    """Write `program` beside the boot program, flushed to the disk, not yet in force: what
+    can fail (a full or read-only disk) fails here. `commit` puts it in force, `unstage`
+    drops it."""
     directory = Path(state_dir)
-    directory.mkdir(parents=True, exist_ok=True)
+    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
     blob = json.dumps({"format": FORMAT, "filename": program.filename, "root": program.root,
                        "text": program.text, "program_hash": program.program_hash,
                        "bundle": None if program.bundle is None
@@ -57,10 +64,19 @@ def save(state_dir: str | Path, program: BootProgram) -> None:
             out.write(blob)
             out.flush()
             os.fsync(out.fileno())
-        os.replace(tmp, directory / BOOT_FILE)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    return Path(tmp)
+
+
+def commit(staged: Path) -> None:
+    """The staged program becomes the boot program: one rename, atomic."""
+    os.replace(staged, staged.parent / BOOT_FILE)
+
+
+def unstage(staged: Path) -> None:
+    staged.unlink(missing_ok=True)
 
 
 def load(state_dir: str | Path) -> BootProgram | None:

@@ -2,8 +2,9 @@
 kept as the next start's program (written off the scan).
 
 Owns: the command line's program or else the state directory's boot program; the boot
-program rewritten only when it changed; a disk that cannot take it shown (`problem`), never a
-stopped PLC. Storage itself: program/boot.py.
+program rewritten only when it changed; a download staged as the next boot program before it
+is decided (a disk that cannot take it refuses the download: BootNotKept) and put in force
+when it is accepted. Storage itself: program/boot.py.
 Does not know: the scan, the channel.
 """
 
@@ -20,8 +21,12 @@ from softplc.program import boot
 from softplc.program import bundle as bundles
 from softplc.program.compiler import compile_file, compile_text
 from softplc.runtime.config import LoopConfig
-from softplc.runtime.prepare import Preparer
+from softplc.runtime.prepare import DownloadRefused, Prepared, Preparer
 from softplc.runtime.runner import plant_conflict
+
+
+class BootNotKept(DownloadRefused):
+    """A download refused because it could not be kept as the boot program."""
 
 
 class BootKeeper:
@@ -34,6 +39,8 @@ class BootKeeper:
         self.source = config.program or "none"
         self.problem = ""
         self._writer: ThreadPoolExecutor | None = None
+        if config.state_dir is not None:
+            prep.keep = self.stage
 
     def program(self) -> tuple[CompiledNet | None, boot.BootProgram | None]:
         """The program to run: the command line's, else the boot program of the state dir.
@@ -70,23 +77,50 @@ class BootKeeper:
         self.source = program.describe()
         return net, program
 
-    def keep(self, req: CommandRequest, net: CompiledNet) -> None:
-        """The accepted download becomes the boot program (written off the scan)."""
-        if self.config.state_dir is None:
+    def stage(self, prepared: Prepared) -> None:
+        """On the download's helper thread, before the download is decided: the program
+        written beside the boot program, so that a download the PLC could not keep across a
+        restart is refused (BootNotKept) rather than answered ok and lost at the next start."""
+        program = self._boot_program(prepared.request, prepared.net)
+        if program is None or self.config.state_dir is None:
             return
-        if req.bundle is not None:
-            # Its text and folder are in the bundle, unpacked again when it boots.
-            program = boot.BootProgram(net.source, "", None, req.bundle, net.program_hash)
-        elif req.program_text is not None:
-            name = self._prep.download_name(req.program_path or "downloaded.yaml")
-            program = boot.BootProgram(name, req.program_text, self.config.root, None,
-                                       net.program_hash)
-        else:
+        try:
+            prepared.staged = boot.stage(self.config.state_dir, program)
+        except OSError as exc:
+            raise BootNotKept(
+                f"it cannot be kept as the boot program in {self.config.state_dir} "
+                f"({exc.strerror or exc}): a restart would run the older program; nothing "
+                "was changed") from None
+
+    def keep(self, prepared: Prepared) -> None:
+        """The accepted download becomes the boot program: its staged file put in force (one
+        rename, off the scan)."""
+        program = self._boot_program(prepared.request, prepared.net)
+        staged, prepared.staged = prepared.staged, None
+        if program is None or staged is None:
             return
         if self._writer is None:
             self._writer = ThreadPoolExecutor(1, thread_name_prefix="boot")
-        self._writer.submit(self._save, program)
+        self._writer.submit(self._commit, staged, program)
         self.source = program.describe()
+
+    def _boot_program(self, req: CommandRequest, net: CompiledNet) -> boot.BootProgram | None:
+        if req.bundle is not None:
+            # Its text and folder are in the bundle, unpacked again when it boots.
+            return boot.BootProgram(net.source, "", None, req.bundle, net.program_hash)
+        if req.program_text is not None:
+            name = self._prep.download_name(req.program_path or "downloaded.yaml")
+            return boot.BootProgram(name, req.program_text, self.config.root, None,
+                                    net.program_hash)
+        return None
+
+    def _commit(self, staged: Path, program: boot.BootProgram) -> None:
+        try:
+            boot.commit(staged)
+            self.problem = ""
+        except OSError as exc:  # the staged file was written: only a rename failed
+            self.problem = (f"{program.describe()} not saved in {self.config.state_dir}: "
+                            f"{exc.strerror or exc}")
 
     def _save(self, program: boot.BootProgram, unless_same: bool = False) -> None:
         """Keep `program` as the boot program. A full or read-only disk never stops the PLC:

@@ -6,9 +6,10 @@ download at a time over a private pipe, a compile that dies or runs past COMPILE
 turned into a refused download (the next download starts a new process), and its end with
 the scan process (pipe closed, or PR_SET_PDEATHSIG).
 Why a process: threads of the scan process share one interpreter lock with the scan. Paced
-between scans (runtime/downloads.py), a 10,000-transition compile took ~3 s of the scan
-process's time and still cost slots at 1 ms; here it takes ~0.8 s of another process's, and
-the scan thread only loads the result (program/wire.py), a step at a time between scans. A
+between scans on a thread of the scan process (as it once was), a 10,000-transition compile
+took ~3 s of the scan process's time and still cost slots at 1 ms; here it takes ~0.8 s of
+another process's, and the scan thread only loads the result (program/wire.py), a step at a
+time between scans (runtime/download.py). A
 program that crashes or exhausts the compiler takes this process down, never the scan.
 Does not know: the scan, the lifecycle, what compiling means (runtime/prepare.py).
 """
@@ -79,7 +80,8 @@ def idle(pid: int) -> None:
 
 
 class CompileProcess:
-    """The scan process's side: `build()` on the compile thread; `start()` ahead of the first
+    """The scan process's side: `build()` on the download helper thread (runtime/download.py,
+    the one blocking exchange of a download); `start()` ahead of the first
     download (from the thread that stays: PR_SET_PDEATHSIG follows the thread that spawned
     it); `close()` on the way out."""
 

@@ -3,9 +3,9 @@
 Owns: absolute deadlines on the monotonic clock, skipped slots counted as overruns, the
 cycle supervision (a whole scan longer than period x watchdog, or a cycle that starts that
 late: a stall), measured here and judged by the pure scan; commands and HMI writes drained
-at the scan boundary, expired commands refused unapplied; prepared downloads handed to the
-scan (compiled off it: prepare.py, compileproc.py; loaded and built between scans on this
-thread, idlework.py), so the scan only swaps; the snapshot published after every scan;
+at the scan boundary, expired commands refused unapplied; downloads stepped between scans
+on this thread (download.py: the job table), so the scan only swaps; the snapshot published
+after every scan;
 retain captures at scan boundaries; the cold or warm start; safe outputs, confirmed by the
 devices, on every way out.
 The boot program: bootkeeper.py; the process around the loop: scanproc.py.
@@ -17,15 +17,15 @@ from __future__ import annotations
 import sys
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from softplc.core.firing import Engine
+from softplc.core.judge import CycleWatchdog
 from softplc.core.lifecycle import Command, PlcState
-from softplc.core.problems import FaultCode, ProgramError
+from softplc.core.problems import FaultCode
 from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
-from softplc.core.snapshot import CommandReply, CommandRequest, Status
-from softplc.core.steps import drain
+from softplc.core.snapshot import CommandReply, CommandRequest, Refusal, Status
 from softplc.runtime import netview, statusdoc, warmstart
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.bootkeeper import BootKeeper
@@ -33,28 +33,18 @@ from softplc.runtime.channel import Channel
 from softplc.runtime.clock import Clock, MonotonicClock, Schedule
 from softplc.runtime.compileproc import CompileProcess
 from softplc.runtime.config import LoopConfig as LoopConfig  # importable from here too
-from softplc.runtime.downloads import DownloadQueue, ScanPace
-from softplc.runtime.idlework import IdleWork
-from softplc.runtime.prepare import (
-    AnalysisRefused,
-    Prepared,
-    Preparer,
-    describe_error,
-    dry_run,
-)
+from softplc.runtime.download import Downloads, refusal_of
+from softplc.runtime.prepare import Prepared, Preparer, dry_run
 from softplc.runtime.procs import Flag as Event
 from softplc.runtime.retain import (
     RetainWriter,
     capture,
 )
 from softplc.runtime.runner import ScanRunner, open_drivers
+from softplc.runtime.scanwatch import HangWatch
 from softplc.runtime.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
 from softplc.runtime.trace import TraceWriter
-
-# A compile parks this long before the clock's final spin begins: time to reach its next
-# Python call (a piece of a regex search, a numpy call) and let go of the interpreter.
-PACE_MARGIN_NS = 150_000
 
 
 class ScanLoop:
@@ -68,6 +58,10 @@ class ScanLoop:
         self.board = board
         self.board_every = max(1, 50_000_000 // config.period_ns)  # about every 50 ms
         self.budget_ns = int(config.period_ns * config.watchdog)
+        self.watchdog = CycleWatchdog(
+            self.budget_ns, config.watchdog_sensitivity, config.watchdog_hard_ns,
+            config.stall_fault_ns if config.on_stall == "fault" else 0)
+        self.hang = HangWatch(self.watchdog.hard_ns, self._hung)  # started on a real clock
         self.events: deque[dict[str, Any]] = deque(maxlen=256)
         self.event_seq = 0
         self.start_mode = "cold"
@@ -82,17 +76,15 @@ class ScanLoop:
         self.runner = ScanRunner(Plc.empty(), [],
                                  TraceWriter(config.trace) if config.trace else None)
         self.pending: list[ProgramCommand] = []
-        # Downloads compile in a process of their own beside a real-time loop; on a virtual
-        # clock (tests, simulation) on the compile thread.
+        # Downloads compile in a process of their own beside a real-time loop, and are
+        # stepped on this thread between scans (download.py); on a virtual clock (tests,
+        # simulation) all of it here, at the scan boundary: deterministic.
         real = isinstance(self.clock, MonotonicClock)
         self.compiler = CompileProcess(config) if real else None
-        # What a download still needs once compiled (its net loaded, its engine, its carry
-        # plan) is built on this thread between scans, a step at a time; on a virtual clock
-        # on the compile thread.
-        self.idle = IdleWork(time.monotonic_ns) if real else None
         self.prep = Preparer(config, lambda: self.runner.plc.net, lambda: self._driver_specs,
-                             self.compiler, self.idle.finish if self.idle else drain)
-        self.downloads = DownloadQueue(self.prep.prepare, pace=self._pace(), idle=self.idle)
+                             self.compiler)
+        self.downloads = Downloads(self.prep, threaded=real)
+        self._paced = False  # run() steps downloads between scans; by hand: at the boundary
         self._driver_specs: tuple[object, ...] = ()
         self.retain: RetainWriter | None = None
         self._retained_ns = 0
@@ -108,13 +100,6 @@ class ScanLoop:
         warmstart.begin(self, net)
         if config.restarts:
             self._event(f"plc_restarted:{config.restarts}", 0)
-
-    def _pace(self) -> ScanPace:
-        """Compiles run between scans, parked from before the clock's final spin until the
-        slot is done; on a virtual clock (tests) they run freely."""
-        if isinstance(self.clock, MonotonicClock):
-            return ScanPace(time.monotonic_ns, self.clock.spin_ns + PACE_MARGIN_NS)
-        return ScanPace()
 
     # -- retain -----------------------------------------------------------------------------
 
@@ -133,49 +118,46 @@ class ScanLoop:
     # -- commands ---------------------------------------------------------------------------
 
     def _due_commands(self) -> list[ProgramCommand]:
-        """The drained commands whose turn has come, in arrival order: downloads compiled
-        (off the scan, runtime/downloads.py) or refused with every problem listed; commands
-        past their deadline refused unapplied (their sender has told its user so)."""
+        """The drained commands whose turn has come, in arrival order: downloads ready (off
+        the scan, download.py) or refused with every problem listed; commands past their
+        deadline refused unapplied (their sender has told its user so)."""
         commands = []
         for item in self.downloads.take():
-            req = item.request
-            prepared = item.net if isinstance(item.net, Prepared) else (
-                Prepared(item.net, req) if item.net is not None else None)
+            req, prepared = item.request, item.prepared
             if req.deadline_ns and time.monotonic_ns() > req.deadline_ns:
                 late_ms = (time.monotonic_ns() - req.deadline_ns) / 1e6
                 self._reply(CommandReply(
                     req.id, False, f"{req.command.value} expired: not applied (its deadline "
                     f"passed {late_ms:.0f} ms before the scan could take it)",
-                    self.runner.plc.state, expired=True))
+                    self.runner.plc.state, expired=True, refusal=Refusal.EXPIRED))
                 if prepared is not None:
                     prepared.discard()
                 continue
             if req.command is not Command.DOWNLOAD:
                 commands.append(ProgramCommand(req.command, online=req.online, id=req.id,
                                                symbol=req.symbol, value=req.value))
-            elif isinstance(item.error, AnalysisRefused):
-                self._refuse(req, "download refused by the analysis gate (--verify refuse):\n"
-                             + "\n".join(item.error.findings))
-            elif isinstance(item.error, ProgramError):
-                self._refuse(req, f"download refused:\n{self.prep.relative(str(item.error))}")
-            elif item.error is not None:  # a device that cannot open, or a compiler bug
-                self._refuse(req, "download refused: "
-                             + self.prep.relative(describe_error(item.error)))
-            elif prepared is not None and prepared.net.io.sizes != self.config.sizes:
+            elif item.error is not None or prepared is None:
+                kind, message, problems = refusal_of(
+                    item.error or RuntimeError("no program"), self.prep.relative)
+                self._refuse(req, message, kind, problems)
+            elif prepared.net.io.sizes != self.config.sizes:
                 prepared.discard()
-                self._refuse(req, "download refused: the program's image sizes "
-                             f"{prepared.net.io.sizes} differ from the runtime's")
-            elif prepared is not None and req.dry_run:
+                why = (f"the program's image sizes {prepared.net.io.sizes} differ from the "
+                       "runtime's")
+                self._refuse(req, f"download refused: {why}", Refusal.SIZES, (why,))
+            elif req.dry_run:
                 self._reply(dry_run(self.runner.plc, prepared, self.config.sizes))
-            elif prepared is not None:
+            else:
                 self._prepared[req.id] = prepared
                 commands.append(ProgramCommand(
                     Command.DOWNLOAD, prepared.net, req.online, req.id, replace=req.replace,
                     engine=prepared.engine, plan=prepared.plan))
         return commands
 
-    def _refuse(self, req: CommandRequest, message: str) -> None:
-        self._reply(CommandReply(req.id, False, message, self.runner.plc.state))
+    def _refuse(self, req: CommandRequest, message: str, kind: Refusal,
+                problems: tuple[str, ...]) -> None:
+        self._reply(CommandReply(req.id, False, message, self.runner.plc.state,
+                                 refusal=kind, problems=problems))
 
     def _reply(self, reply: CommandReply) -> None:
         if reply.id == 0 or self.channel is None:
@@ -194,7 +176,7 @@ class ScanLoop:
                 prepared.discard()
         if accepted is not None:
             self.swap_drivers(accepted)
-            self.boot.keep(accepted.request, accepted.net)
+            self.boot.keep(accepted)
             self.analysis = accepted.analysis
             if accepted.analysis and accepted.analysis["findings"]:
                 replies = [CommandReply(r.id, r.ok, f"{r.message}; {accepted.analysis['summary']}"
@@ -231,6 +213,8 @@ class ScanLoop:
         requests, writes = self.channel.drain() if self.channel else ([], [])
         if requests:
             self.downloads.put(requests)
+        if not self._paced and self.downloads.busy:  # scanned by hand (tests): no "between"
+            self.downloads.work(None, self.clock.now_ns)
         commands = self.pending + self._due_commands()
         self.pending = []
         was_running = self.runner.plc.state is PlcState.RUNNING
@@ -280,42 +264,44 @@ class ScanLoop:
     def status(self) -> Status:
         return statusdoc.status(self)
 
-    def run(self, stop: Event | None = None) -> None:
+    def run(self, stop: Event | None = None, safe: Callable[[], object] = lambda: None) -> None:
         if self.compiler is not None:
             self.compiler.start()  # ready before the first download, from the thread that stays
-        if self.idle is not None:
-            self.idle.start()
+        self._paced = True
         try:
             self._run(stop)
         finally:
-            self.downloads.pace.release()  # a compile parked on this loop must not hang on
-            if self.idle is not None:
-                self.idle.close()  # nor one waiting for steps no scan thread will run
-        self.shutdown()
+            self._paced = False
+        self.shutdown(safe)
 
     def _run(self, stop: Event | None) -> None:
         period = self.config.period_ns
         schedule = Schedule(self.clock, period)
         spin_ns = self.clock.spin_ns if isinstance(self.clock, MonotonicClock) else 0
-        while (stop is None or not stop.is_set()) and (
-                self.config.max_scans is None
-                or self.runner.plc.scan_count < self.config.max_scans):
-            deadline = schedule.deadline_ns
-            self.downloads.pace.waiting(deadline)
-            if self.idle is not None and self.idle.pending:
-                self.idle.run(deadline - spin_ns)  # done before the clock's final spin
-            reached = schedule.wait()
-            self.downloads.pace.scanning()
-            late = reached - deadline
-            observed = self._stall(late) if late > self.budget_ns else NOTHING_OBSERVED
-            handled_commands = self._guarded_scan(reached, observed)
-            self._publish(reached)
-            done = self.clock.now_ns()
-            exec_ns = done - reached  # the whole scan: I/O, round, publish, retain, board
-            if (exec_ns > self.budget_ns and not handled_commands
-                    and self.runner.plc.state is PlcState.RUNNING):
-                self._watchdog(exec_ns, done)
-            self.stats.record(exec_ns, late, skipped=schedule.advance(done))
+        if isinstance(self.clock, MonotonicClock):
+            self.hang.start()
+        try:
+            while (stop is None or not stop.is_set()) and (
+                    self.config.max_scans is None
+                    or self.runner.plc.scan_count < self.config.max_scans):
+                deadline = schedule.deadline_ns
+                if self.downloads.busy:  # steps done before the clock's final spin, on its time
+                    self.downloads.work(deadline - spin_ns, self.clock.now_ns)
+                reached = schedule.wait()
+                late = reached - deadline
+                observed = self._stall(late) if late > self.budget_ns else NOTHING_OBSERVED
+                self.hang.begin(reached)
+                handled_commands = self._guarded_scan(reached, observed)
+                if self.hang.end():  # faulted meanwhile: what the scan wrote goes safe again
+                    self._confirm_safe(self.clock.now_ns())
+                self._publish(reached)
+                done = self.clock.now_ns()
+                exec_ns = done - reached  # the whole scan: I/O, round, publish, retain, board
+                if exec_ns > self.budget_ns or self.watchdog.over:
+                    self._watchdog(exec_ns, done, watched=not handled_commands)
+                self.stats.record(exec_ns, late, skipped=schedule.advance(done))
+        finally:
+            self.hang.close()
 
     def _stall(self, late_ns: int) -> Observed:
         """A cycle that started more than the watchdog budget late: the process was paused or
@@ -323,11 +309,8 @@ class ScanLoop:
         self.stalls += 1
         self.longest_gap_ns = max(self.longest_gap_ns, late_ns)
         self._event(f"stall:{late_ns // 1_000_000}ms", self.clock.now_ns())
-        if self.config.on_stall != "fault" or late_ns < max(self.config.stall_fault_ns,
-                                                             self.budget_ns):
-            return NOTHING_OBSERVED
-        return Observed(stall=f"cycle started {late_ns / 1e6:.0f} ms late (budget "
-                        f"{self.budget_ns / 1e6:g} ms): inputs and outputs were frozen meanwhile")
+        reason = self.watchdog.stall(late_ns)
+        return Observed(stall=reason) if reason else NOTHING_OBSERVED
 
     def _guarded_scan(self, now_ns: int, observed: Observed) -> bool:
         """scan_once, and whatever it raises outside the pure scan (the channel, the download
@@ -363,15 +346,29 @@ class ScanLoop:
         self._confirm_safe(now_ns)
         self._event("plc_fault:internal", now_ns)
 
-    def _watchdog(self, exec_ns: int, now_ns: int) -> None:
-        reason = (f"scan {self.runner.plc.scan_count - 1} took {exec_ns / 1e6:.1f} ms "
-                  f"(budget {self.budget_ns / 1e6:g} ms = period x watchdog)")
+    def _watchdog(self, exec_ns: int, now_ns: int, watched: bool) -> None:
+        """CycleWatchdog's rule; a scan that handled commands (a download) is not counted."""
+        plc = self.runner.plc
+        if reason := self.watchdog.check(plc.scan_count - 1, exec_ns,
+                                         plc.state is PlcState.RUNNING, watched):
+            for name in self.runner.judge_now(Observed(overrun=reason), now_ns):
+                self._event(name, now_ns)
+
+    def _hung(self, elapsed_ns: int) -> None:
+        """On the watchdog thread, the scan thread still in one scan: fault and status now."""
+        plc, now_ns = self.runner.plc, self.clock.now_ns()
+        self._event(f"scan_hung:{elapsed_ns // 1_000_000}ms", now_ns)
+        reason = self.watchdog.hung(plc.scan_count, elapsed_ns)
         for name in self.runner.judge_now(Observed(overrun=reason), now_ns):
             self._event(name, now_ns)
+        if self.writer is not None:
+            self.writer.publish(plc.image, self.status())
+        if self.board is not None:
+            self.board.publish(self.document())
 
-    def shutdown(self) -> None:
-        """Outputs to their safe values, written through the drivers and confirmed; the final
-        retain snapshot written synchronously (and said); then close."""
+    def shutdown(self, safe: Callable[[], object] = lambda: None) -> None:
+        """Outputs to their safe values, written through the drivers and confirmed (then said:
+        `safe`); the final retain snapshot written synchronously (and said); then close."""
         self.summary = self.stats.summary()
         plc = self.runner.plc
         now_ns = self.clock.now_ns()
@@ -381,9 +378,8 @@ class ScanLoop:
         self._confirm_safe(now_ns, timeout_s=0.5)
         if self.writer is not None:
             self.writer.publish(plc.image, self.status())
+        safe()
         self.runner.close()
-        if self.idle is not None:
-            self.idle.close()  # a download waiting for its last steps is told, not left hanging
         self.downloads.close()
         if self.compiler is not None:
             self.compiler.close()

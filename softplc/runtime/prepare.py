@@ -1,8 +1,7 @@
-"""Downloads prepared off the scan: compiled and analysed in the compile process
-(runtime/compileproc.py; on the compile thread when there is none), then their net loaded
-and their engine and carry plan built a step at a time on the scan thread between scans
-(runtime/idlework.py; drained on the compile thread on a virtual clock), their devices opened
-on the compile thread (runtime/downloads.py), so that the scan only swaps; and the dry run,
+"""What each stage of a download does (the job that steps them: runtime/download.py):
+compile and analyse (in the compile process, runtime/compileproc.py, or here on a virtual
+clock), load the net and build its engine and carry plan a step at a time (`finishing`), open
+new devices and stage the boot program (`opening`, the part that blocks); and the dry run,
 which says what a download would do and applies nothing.
 
 Owns: where a plain-text download resolves its files (the programs directory) and where a
@@ -13,7 +12,6 @@ Does not know: the scan loop, the channel, the clock.
 
 from __future__ import annotations
 
-import gc
 import os
 import tempfile
 from collections.abc import Callable
@@ -29,10 +27,10 @@ from softplc.core.net import CompiledNet, NetState
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.scan import Plc
 from softplc.core.snapshot import CommandReply, CommandRequest
-from softplc.core.steps import Steps, drain
+from softplc.core.steps import Steps
 from softplc.devices.driver import DeviceError, Driver
+from softplc.program import boot, wire
 from softplc.program import bundle as bundles
-from softplc.program import wire
 from softplc.program.compiler import compile_file, compile_text
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.runner import open_drivers
@@ -51,7 +49,11 @@ class AnalysisRefused(Exception):
         return AnalysisRefused, (self.findings,)
 
 
-class CompilerFailed(Exception):
+class DownloadRefused(Exception):
+    """A download refused for a reason its message says whole (not its program's problems)."""
+
+
+class CompilerFailed(DownloadRefused):
     """The compile process failed a download for another reason than its program: it died,
     ran past its time, or the compiler raised an internal error."""
 
@@ -85,29 +87,31 @@ class Prepared:
     engine: Engine | None = None  # the engine's tables for `net`
     plan: online.CarryPlan | None = None  # the marking's carry-over from the running net
     analysis: dict[str, Any] | None = None  # the gate's summary and findings
+    staged: Path | None = None  # the next boot program, written, not yet in force
 
     def discard(self) -> None:
         for driver in self.drivers or ():
             driver.close()
         self.drivers = None
+        if self.staged is not None:
+            boot.unstage(self.staged)
+            self.staged = None
 
 
 class Preparer:
     """Prepares downloads for one scan loop. `running` gives the net the PLC runs now and
-    `running_specs` the driver specs open now (both read on the compile thread: a stale
-    answer only costs a carry plan rebuilt on the scan, or devices opened for nothing)."""
+    `running_specs` the driver specs open now (both read on the scan thread, between scans)."""
 
     def __init__(self, config: LoopConfig, running: Callable[[], CompiledNet | None],
                  running_specs: Callable[[], tuple[object, ...]],
-                 remote: Remote | None = None,
-                 finish: Callable[[Steps[Prepared]], Prepared] = drain) -> None:
+                 remote: Remote | None = None) -> None:
         self.config = config
         self._running = running
         self._running_specs = running_specs
         self.remote = remote  # compiles in another process; None: on the calling thread
-        # Runs the last part of a download (load, engine, carry plan) to its end: here, or
-        # on the scan thread between scans (runtime/idlework.py).
-        self._finish = finish
+        # Stages an accepted download as the next boot program (runtime/bootkeeper.py), on the
+        # download's helper thread; raises OSError when it cannot be kept.
+        self.keep: Callable[[Prepared], None] | None = None
         self.bundle_roots: set[str] = set()  # unpacked bundles, stripped from messages
 
     def relative(self, message: str) -> str:
@@ -165,42 +169,34 @@ class Preparer:
         self.bundle_roots.add(str(directory.resolve()))
         return compile_file(program, directory.resolve())
 
-    def prepare(self, req: CommandRequest) -> Prepared:
-        """On the compile thread: compile, then open the devices the new io image declares if
-        they are not the running ones, so that a program whose devices cannot be opened is
-        refused before anything changes (the reconfiguration of the seed paper, checked).
-
-        The cyclic collector is off meanwhile: a compile allocates enough to trigger full
-        collections, each holding the GIL for tens of ms over the whole heap (the scan thread
-        then misses its slots); what the compile built is frozen at the end instead."""
-        gc.disable()
-        try:
-            return self._prepare_net(req)
-        finally:
-            gc.freeze()
-            gc.enable()
-
     def build(self, req: CommandRequest) -> Built:
         """Compile and analyse: what the compile process does for each download."""
         net = self.compile(req)
         return Built(wire.dumps(net), self.analyse(net), tuple(sorted(self.bundle_roots)))
 
-    def _prepare_net(self, req: CommandRequest) -> Prepared:
-        compiled: CompiledNet | tuple[bytes, ...]
-        if self.remote is None:
-            compiled = self.compile(req)
-            analysis = self.analyse(compiled)
-        else:
-            built = self.remote.build(req)
-            self.bundle_roots.update(built.bundle_roots)
-            compiled, analysis = built.net, built.analysis
-        prepared = self._finish(self._finishing(req, compiled, analysis))
+    def opening(self, prepared: Prepared) -> Callable[[], None] | None:
+        """What must block before `prepared` can be swapped in, as one piece of work for the
+        download's helper thread: the devices its io image declares opened when they are not
+        the running ones, so that a program whose devices cannot be opened is refused before
+        anything changes (the reconfiguration of the seed paper, checked), and the program
+        staged as the next boot program (`keep`), so that a download the PLC could not keep
+        across a restart is refused too. None: nothing to do (a dry run opens nothing)."""
+        if prepared.request.dry_run:
+            return None
         specs = tuple(prepared.net.io.drivers.values())
-        if specs != self._running_specs() and not req.dry_run:  # a dry run opens nothing
-            prepared.drivers = open_drivers(prepared.net.io, self.config.seed, None)
-        return prepared
+        new_devices = specs != self._running_specs()
+        keep = self.keep
+        if not new_devices and keep is None:
+            return None
 
-    def _finishing(self, req: CommandRequest, net: CompiledNet | tuple[bytes, ...],
+        def work() -> None:
+            if keep is not None:
+                keep(prepared)
+            if new_devices:
+                prepared.drivers = open_drivers(prepared.net.io, self.config.seed, None)
+        return work
+
+    def finishing(self, req: CommandRequest, net: CompiledNet | tuple[bytes, ...],
                    analysis: dict[str, Any] | None) -> Steps[Prepared]:
         """Everything the swap needs, a step at a time: the net loaded (when it came as bytes
         from the compile process: every expression compiled again from its text by the
@@ -297,7 +293,7 @@ def plc_marking(net: CompiledNet) -> dict[str, int]:
 
 def describe_error(error: BaseException) -> str:
     """A refused download's reason in one line: a device, or an internal compiler error."""
-    if isinstance(error, CompilerFailed):
+    if isinstance(error, DownloadRefused):
         return str(error)
     if isinstance(error, DeviceError | ValueError | OSError):
         return f"its devices cannot be opened: {error}"

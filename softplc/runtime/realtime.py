@@ -76,27 +76,6 @@ def background_thread() -> None:
         pass  # still the process's own policy: only as good as the scan's
 
 
-def compile_thread() -> None:
-    """In the scan process's compile thread: one step below the scan's FIFO priority, on any
-    CPU; at normal scheduling, as any background thread.
-
-    Why not normal scheduling, like the other helpers: this thread holds the interpreter lock
-    the scan needs. It lets go of it before every deadline (runtime/downloads.py, ScanPace),
-    but at normal priority any busy process may preempt it wherever it holds the lock, and
-    the FIFO scan then waits for a thread the kernel does not run (a priority inversion).
-    Just below the scan, nothing but the scan preempts it, and the scan only at its
-    deadline."""
-    try:
-        if os.sched_getscheduler(0) == os.SCHED_FIFO:
-            priority = max(1, os.sched_getparam(0).sched_priority - 1)
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-            os.sched_setaffinity(0, range(os.cpu_count() or 1))
-            return
-    except OSError:
-        pass
-    background_thread()
-
-
 def keep_off_scan_cpu(pid: int, rt: Realtime) -> None:
     """Another process of the runtime (communication, HMI load): on every CPU but the scan's,
     so its work and the network stack's soft interrupts it causes stay off that CPU."""

@@ -20,6 +20,7 @@ from softplc.program import wire
 from softplc.program.compiler import compile_file
 from softplc.runtime.compileproc import CompileProcess
 from softplc.runtime.config import LoopConfig
+from softplc.runtime.download import STEP_NS, Decided, Downloads, Stage
 from softplc.runtime.prepare import CompilerFailed, Preparer
 from tests.support import wait_until
 
@@ -130,8 +131,23 @@ def test_the_preparer_loads_builds_and_primes_what_the_process_compiled(
     prep = Preparer(config, lambda: running, lambda: tuple(running.io.drivers.values()),
                     compiler)
     text = (ROOT / "programs" / "transport.yaml").read_text().replace("hold", "hold", 1)
-    prepared = prep.prepare(CommandRequest(7, Command.DOWNLOAD, program_text=text,
-                                           program_path="transport.yaml", online=True))
+    downloads = Downloads(prep)
+    downloads.put([CommandRequest(7, Command.DOWNLOAD, program_text=text,
+                                  program_path="transport.yaml", online=True)])
+    stages = set()
+    decided: list[Decided] = []
+    deadline = time.monotonic() + 60
+    while not decided and time.monotonic() < deadline:
+        stages.add(downloads.stage(7))
+        # As the loop does between scans: a step or a few, then the scan's turn.
+        downloads.work(time.monotonic_ns() + STEP_NS + 100_000, time.monotonic_ns)
+        decided = downloads.take()
+        time.sleep(0.001)
+    downloads.close()
+    assert stages >= {Stage.COMPILING, Stage.LOADING}, stages
+    (item,) = decided
+    assert item.error is None and item.prepared is not None, item.error
+    prepared = item.prepared
     assert prepared.net.program_hash == running.program_hash
     assert prepared.engine is not None and prepared.engine.net is prepared.net
     assert prepared.plan is not None and prepared.plan.old is running
