@@ -1,13 +1,15 @@
-"""Command line: `softplc check|run|simulate|replay|download|start|stop|resume|reset|kill|
-force|unforce|status|bench`.
+"""Command line: `softplc COMMAND`, the commands listed by `softplc --help`.
 
-Owns: argument parsing, exit codes, what a person sees. Does not know: how any of it works.
+Owns: argument parsing, exit codes, what a person sees, and a console that may go away (a
+closed stdout or stderr, `softplc status | head -1`, ends no command and prints no traceback).
+Does not know: how any of it works.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -20,6 +22,12 @@ from softplc.program.spec import TOP_KEYS
 from softplc.program.yamlload import load_yaml
 
 PROGRAM_KEYS = TOP_KEYS - {"description", "events"}  # only a program or subnet has these
+DESCRIPTION = (
+    "softplc: a soft PLC whose control programs are Petri nets. Check a program and its "
+    "devices, simulate it on a plant model in virtual time, analyse its state space, run it "
+    "(a scan process with a Modbus TCP slave, an HTTP API and page, OPC UA), replay a trace, "
+    "and drive a running PLC (download, start, stop, force, status, ...). "
+    "`softplc COMMAND --help` gives a command's options.")
 
 
 def _report_problems(path: str, problems: Sequence[Problem]) -> None:
@@ -196,7 +204,7 @@ def _endpoint(text: str) -> tuple[str, int] | None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="softplc", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="softplc", description=DESCRIPTION)
     sub = parser.add_subparsers(dest="command", required=True)
     check = sub.add_parser("check", help="validate and compile a program (or check a symbols "
                            "file), its drivers' plants and channels; opens nothing")
@@ -265,7 +273,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seed", type=int, default=0,
                      help="seed of the plant's random arrivals (default: %(default)s)")
     run.add_argument("--watchdog", type=float, default=10.0,
-                     help="fault when a scan runs longer than period x this (default: %(default)s)")
+                     help="a scan longer than period x this is over budget; "
+                     "--watchdog-sensitivity of them in a row fault (default: %(default)s)")
+    run.add_argument("--watchdog-sensitivity", type=_count, default=3, metavar="N",
+                     help="scans over budget in a row that fault the PLC; 1: the first "
+                     "(default: %(default)s)")
+    run.add_argument("--watchdog-hard", type=_timeout, default=3_000_000_000,
+                     help="one scan this long (and over budget), or one that has not ended "
+                     "after this long, faults alone (default: 3s)")
     run.add_argument("--verify", choices=("refuse", "warn", "off"), default="warn",
                      help="analysis gate on every download (docs/analysis.md): refuse nets with "
                      "an unbounded place, a deadlock, a dead transition or an output conflict; "
@@ -274,9 +289,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="a scan cycle that starts period x watchdog late is a stall (counted, "
                      "an event); one that is also --stall-fault-after late (process paused, VM "
                      "pause): fault with safe outputs, or go on (default: %(default)s)")
-    run.add_argument("--stall-fault-after", type=_duration, default=500_000_000,
+    run.add_argument("--stall-fault-after", type=_duration, default=3_000_000_000,
                      help="how late a cycle must start for --on-stall fault to fault "
-                     "(default: 500ms; at least period x watchdog)")
+                     "(default: 3s; at least period x watchdog)")
     run.add_argument("--duration", type=_duration, help="stop after this long (default: Ctrl-C)")
     run.add_argument("--quiet", action="store_true", help="no live status line (default: off)")
     run.set_defaults(func=cmd_run)
@@ -332,10 +347,43 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Console:
+    """sys.stdout or sys.stderr that a closed pipe (`| head -1`) silences instead of raising:
+    the command finishes, a running PLC goes on, the interpreter's last flush hits /dev/null."""
+
+    def __init__(self, stream: object) -> None:
+        self._stream, self._gone = stream, False
+
+    def _quietly(self, call: str, *args: str) -> object:
+        try:
+            return None if self._gone else getattr(self._stream, call)(*args)
+        except BrokenPipeError:
+            self._gone, null = True, os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, self._stream.fileno())  # type: ignore[attr-defined]
+            os.close(null)
+            return None
+
+    def write(self, text: str) -> object:
+        return self._quietly("write", text) or len(text)
+
+    def flush(self) -> None:
+        self._quietly("flush")
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._stream, name)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    result: int = args.func(args)
-    return result
+    streams = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = _Console(sys.stdout), _Console(sys.stderr)
+    try:
+        args = build_parser().parse_args(argv)  # --help and usage errors: SystemExit
+        result: int = args.func(args)
+        return result
+    finally:
+        sys.stdout.flush()  # a closed pipe is found here, not in the interpreter's exit
+        sys.stderr.flush()
+        sys.stdout, sys.stderr = streams
 
 
 if __name__ == "__main__":

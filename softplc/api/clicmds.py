@@ -261,9 +261,12 @@ def format_status(status: dict[str, Any]) -> str:
     timing = status.get("timing") or {}
     program = status.get("program") or "(none)"
     digest = status.get("program_hash") or ""
+    fault = (f" (fault code {status['fault_code']}, {status.get('fault_name') or '?'})"
+             if status.get("fault_code") else "")
     lines = [
-        f"state       {status.get('state', '?')}"
-        + (f" (fault code {status['fault_code']})" if status.get("fault_code") else ""),
+        f"state       {status.get('state', '?')}{fault}",
+        *([f"fault       {status['fault_reason']}"] if fault and status.get("fault_reason")
+          else []),
         f"program     {program}" + (f"  hash {digest[:12]}" if digest else ""),
         f"start mode  {status.get('start_mode', '?')}"
         + (f" ({status['start_reason']})" if status.get("start_reason") else ""),
@@ -283,6 +286,7 @@ def format_status(status: dict[str, Any]) -> str:
     lines += [f"  {place:<24} {tokens}" + ("  " + ", ".join(
         json.dumps(r, sort_keys=True) for r in records[place]) if records.get(place) else "")
         for place, tokens in sorted(marked.items())]
+    lines += _firings(status.get("net_live") or {})
     forced = status.get("forced") or {}
     lines.append("forced" + ("      (nothing)" if not forced else ""))
     lines += [f"  {name:<24} {value}  FORCED" for name, value in sorted(forced.items())]
@@ -293,6 +297,22 @@ def format_status(status: dict[str, Any]) -> str:
     if failure := (status.get("compile_process") or {}).get("last_failure"):
         lines.append(f"compiler    {failure}")  # a refused download's reason, kept
     return "\n".join(lines)
+
+
+def _firings(live: dict[str, Any]) -> list[str]:
+    """Timed firings in progress (`duration`: tokens consumed, production due), with the
+    time left; a net too large for the board only gives their number."""
+    busy = live.get("busy") or {}
+    if not isinstance(busy, dict):
+        return [f"firing      {busy} timed firing(s) in progress"]
+    return [f"firing      {name}: {_ms(times.get('remaining_ms'))} left of "
+            f"{_ms(times.get('duration_ms'))}" for name, times in sorted(busy.items())]
+
+
+def _ms(value: Any) -> str:
+    if not isinstance(value, int | float):
+        return "?"
+    return f"{value / 1000:.3g} s" if value >= 1000 else f"{value:g} ms"
 
 
 def _us(value: Any) -> str:

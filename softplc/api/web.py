@@ -160,11 +160,13 @@ def live_frame(document: dict[str, Any], status: Any, image: Any,
     frame: dict[str, Any] = {
         "wall_ms": int(time.time() * 1000),
         "state": document.get("state"), "scan_count": document.get("scan_count", 0),
+        "board_scan_count": document.get("scan_count", 0),  # the scan of marking and net_live
         "program": document.get("program"), "program_hash": document.get("program_hash"),
         "start_mode": document.get("start_mode"), "start_reason": document.get("start_reason"),
         "fault_reason": document.get("fault_reason", ""), "period_us": document.get("period_us"),
         "marking": document.get("marking") or {}, "net_live": document.get("net_live") or {},
         "forced": document.get("forced") or {}, "values": values, "events": events,
+        "waiting_for_devices": document.get("waiting_for_devices") or [],  # issue 26
         "timing": {k: timing.get(k) for k in (
             "exec_median_us", "exec_p99_us", "exec_max_us", "lateness_median_us",
             "lateness_p99_us", "lateness_max_us", "overruns")},

@@ -20,6 +20,11 @@ class EventMemory:
     last: dict[str, int] = field(default_factory=dict)
     armed: dict[str, bool] = field(default_factory=dict)
 
+    def rearm(self) -> None:
+        """A start (resume, auto-recovery, warm restart): every threshold is armed again, so
+        one still past it occurs in the first firing round."""
+        self.armed.clear()
+
 
 def _occurred(spec: EventSpec, value: int, before: int | None, memory: EventMemory) -> bool:
     if spec.kind is EventKind.RISING:
@@ -30,9 +35,8 @@ def _occurred(spec: EventSpec, value: int, before: int | None, memory: EventMemo
         return before is not None and before != value
     above = spec.kind is EventKind.ABOVE
     crossed = value > spec.threshold if above else value < spec.threshold
-    if before is None:  # first evaluation only records: already beyond is not a crossing
-        memory.armed[spec.name] = not crossed
-        return False
+    # A threshold starts armed, so a value already past it at the first evaluation occurs:
+    # an alarm that is already true when the program starts is an alarm (issue 26).
     armed = memory.armed.get(spec.name, True)
     if armed and crossed:
         memory.armed[spec.name] = False
@@ -47,7 +51,7 @@ def _occurred(spec: EventSpec, value: int, before: int | None, memory: EventMemo
 def evaluate(specs: Iterable[EventSpec], symbols: Mapping[str, Symbol],
              image: ProcessImage, memory: EventMemory) -> tuple[str, ...]:
     """The names of the conditions that occur in this scan, in declaration order. The first
-    evaluation only records values: an edge needs two scans."""
+    evaluation records values: an edge needs two scans; a threshold already past occurs."""
     occurred = []
     values: dict[str, int] = {}
     for spec in specs:

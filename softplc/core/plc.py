@@ -19,7 +19,7 @@ import numpy as np
 from softplc.core import events as event_conditions
 from softplc.core import online
 from softplc.core.expr import Value
-from softplc.core.faults import DeviceMonitor
+from softplc.core.faults import DeviceMonitor, Verdict
 from softplc.core.firing import Engine
 from softplc.core.forcing import Force, ForceRefused, Forces
 from softplc.core.image import AREAS, Area, ProcessImage
@@ -28,7 +28,7 @@ from softplc.core.net import Busy, CompiledNet, NetState
 from softplc.core.online import CarryPlan
 from softplc.core.problems import FaultCode
 from softplc.core.snapshot import HmiWrite
-from softplc.core.symbols import Direction, FaultPolicy
+from softplc.core.symbols import Direction, DriverSpec, FaultPolicy
 
 if TYPE_CHECKING:
     from softplc.core.scan import ScanResult
@@ -109,6 +109,14 @@ class Plc:
     # The result of a scan in which nothing happened, shared by such scans (ScanResult is
     # immutable; its empty marking_changes is never written to).
     quiet_result: ScanResult | None = None
+    # Start-up (docs/faults.md): the drivers the runtime has open (None: no device layer, the
+    # caller's inputs are the image), the devices not delivered yet, a RUNNING PLC's wait for
+    # them (since when, and the program's outputs: safe values go out meanwhile).
+    open_devices: Mapping[str, DriverSpec | None] | None = None
+    waiting_io: tuple[str, ...] = ()
+    io_wait: tuple[int, np.ndarray, np.ndarray] | None = None
+    first_round: bool = True  # the next firing round is the first since a start (first_scan)
+    _io_ready: tuple[object, object, object] | None = None  # awaited() found none for these
 
     @classmethod
     def empty(cls, image: ProcessImage | None = None) -> Plc:
@@ -135,6 +143,7 @@ class Plc:
         if cmd.command is Command.FORCE or cmd.command is Command.UNFORCE:
             return self._force(cmd)
         target = next_state(self.state, cmd.command)
+        self.end_io_wait(now_ns)  # a command ends a wait as it stands; the scan re-decides
         if cmd.command is Command.DOWNLOAD:
             if cmd.net is None:
                 raise CommandRejected(self.state, cmd.command, "download without a program")
@@ -147,6 +156,9 @@ class Plc:
             self.forces.release(None)  # a cold start drops every force (docs/design.md section 10)
         elif cmd.command is Command.RESUME:
             self._thaw(now_ns)
+            self.events.rearm()
+        if target is PlcState.RUNNING:
+            self.first_round = True
         if target is not PlcState.RUNNING and self.state is PlcState.RUNNING:
             self.stopped_at_ns = now_ns
             self.held = (self.image.qx.copy(), self.image.qw.copy())
@@ -219,12 +231,56 @@ class Plc:
         """Timers were frozen at stop: shift them by the time spent stopped."""
         if self.engine is None or self.stopped_at_ns is None:
             return
-        shift = now_ns - self.stopped_at_ns
+        self._shift_timers(now_ns - self.stopped_at_ns)
+        self.stopped_at_ns = None
+
+    def _shift_timers(self, shift: int) -> None:
+        if self.engine is None or not shift:
+            return
         st = self.engine.state
         st.enabled_since = {t: since + shift for t, since in st.enabled_since.items()}
         st.busy = {t: Busy(b.end_ns + shift, b.produce) for t, b in st.busy.items()}
         self.engine.invalidate()
-        self.stopped_at_ns = None
+
+    # -- start-up: waiting for the first input image (docs/faults.md, start-up) ---------------
+
+    def awaited(self, answering: Mapping[str, bool]) -> tuple[str, ...]:
+        """The devices whose first input image the program still waits for: drivers its io
+        image declares that the runtime has not opened as declared, and observed devices that
+        never answered and whose fault policy has not decided yet (a FAULT verdict faults)."""
+        ready, opened = self._io_ready, self.open_devices
+        if ready and ready[0] is self.net and ready[1] is opened and ready[2] is answering:
+            return ()  # the steady scan: a device that answered once has delivered
+        waiting: list[str] = []
+        if self.net is not None and opened is not None:
+            waiting += [name for name, spec in self.net.io.drivers.items()
+                        if name not in opened or opened[name] not in (None, spec)]
+        watches = self.devices.watches
+        for name in answering:
+            watch = watches.get(name)
+            if watch is not None and not watch.answered and watch.verdict is not Verdict.FAULT:
+                waiting.append(name)
+        self._io_ready = None if waiting else (self.net, opened, answering)
+        return tuple(waiting)
+
+    def wait_for_io(self, now_ns: int) -> None:
+        """RUNNING without every device's first input image: no round, timers frozen, safe
+        outputs; the program's outputs are kept for when the wait ends."""
+        if self.io_wait is None:
+            self.io_wait = (now_ns, self.image.qx.copy(), self.image.qw.copy())
+        self.drive_safe()
+
+    def end_io_wait(self, now_ns: int | None) -> None:
+        """Every device delivered, or a command or fault: timers continue with the time they
+        had left, the program's outputs come back (without `now_ns` nothing is kept)."""
+        if self.io_wait is None:
+            return
+        since, qx, qw = self.io_wait
+        self.io_wait = None
+        if now_ns is not None:
+            self._shift_timers(now_ns - since)
+            np.copyto(self.image.qx, qx)
+            np.copyto(self.image.qw, qw)
 
     def _online_change(self, cmd: ProgramCommand) -> str:
         """A download while RUNNING (docs/programs.md, online change; core/online.py)."""
@@ -263,6 +319,7 @@ class Plc:
                 "(--replace), or stop first"))
         self._load(net, NetState.initial(net), cmd.engine)
         self.drive_safe()  # outputs the new program does not drive must not stay on
+        self.first_round = True
         why = "replacement" if same_devices else "replacement with new devices (reconfiguration)"
         return (f"online {why}: {old.name} -> {net.name} ({net.program_hash[:12]}), "
                 "initial marking")
@@ -274,6 +331,7 @@ class Plc:
         With `now_ns`, timers freeze and the outputs are kept as at a stop, so that recover()
         can continue where the program was; without it nothing is kept for later."""
         if self.state is PlcState.RUNNING:
+            self.end_io_wait(now_ns)
             self.stopped_at_ns = now_ns
             self.held = None if now_ns is None else (self.image.qx.copy(), self.image.qw.copy())
         if self.state in (PlcState.RUNNING, PlcState.STOPPED):
@@ -293,6 +351,8 @@ class Plc:
         np.copyto(self.image.qw, self.held[1])
         self.held = None
         self.state, self.fault_code, self.fault_reason = PlcState.RUNNING, FAULT_NONE, ""
+        self.first_round = True
+        self.events.rearm()
         return True
 
     # -- image ------------------------------------------------------------------------------

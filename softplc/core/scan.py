@@ -1,8 +1,9 @@
 """The PLC: one scan as a function of (state, input image, now_ns, commands).
 
 Owns: the order of a scan (docs/design.md section 1): apply commands and HMI writes at the scan
-boundary; latch inputs; evaluate event conditions; one firing round when RUNNING; write the
-output image (safe values unless RUNNING); a scan that raises faults the PLC instead.
+boundary; latch inputs; the start-up gate (no round before every device's first input image);
+evaluate event conditions; one firing round when RUNNING; write the output image (safe values
+unless RUNNING); a scan that raises faults the PLC instead.
 Does not know: clocks, processes, sockets, YAML (programs arrive compiled).
 
 The PLC's memory and program handling (lifecycle, online change, frozen timers) live in
@@ -12,7 +13,7 @@ importable from here.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,7 +31,8 @@ from softplc.core.plc import (
     ScanContext,
 )
 from softplc.core.problems import FaultCode, PlcFault
-from softplc.core.snapshot import CommandReply, HmiWrite
+from softplc.core.snapshot import CommandReply, HmiWrite, Refusal
+from softplc.core.symbols import FIRST_SCAN
 
 __all__ = ["FAULT_DEVICE", "FAULT_NONE", "FAULT_WATCHDOG", "NOTHING_OBSERVED", "Observed", "Plc",
            "ProgramCommand", "ScanContext", "ScanResult", "judge", "scan"]
@@ -64,7 +66,8 @@ def scan(plc: Plc, inputs: ProcessImage, now_ns: int,
     killed = bool(commands) and any(c.command is Command.KILL and r.ok
                                     for c, r in zip(commands, replies, strict=True))
     try:
-        result = _scan_body(plc, inputs, now_ns, commands, hmi, replies, killed)
+        result = _scan_body(plc, inputs, now_ns, commands, hmi, replies, killed,
+                            observed.answering)
     except PlcFault as exc:
         result = _faulted(plc, inputs, now_ns, replies, exc.code, exc.reason)
     except Exception as exc:  # a bug of softplc or of a program path we did not foresee
@@ -87,11 +90,13 @@ def _apply_commands(plc: Plc, commands: Sequence[ProgramCommand],
             message = plc.apply(cmd, now_ns)
             replies.append(CommandReply(cmd.id, True, message, plc.state))
         except CommandRejected as exc:
-            replies.append(CommandReply(cmd.id, False, exc.reason, plc.state))
+            replies.append(CommandReply(cmd.id, False, exc.reason, plc.state,
+                                        refusal=Refusal.STATE))
         except Exception as exc:  # a swap that failed half-way: the PLC must not go on with it
             reason = f"{cmd.command.value} failed: {type(exc).__name__}: {exc}"
             plc.fault(FaultCode.INTERNAL, None, reason)
-            replies.append(CommandReply(cmd.id, False, reason, plc.state))
+            replies.append(CommandReply(cmd.id, False, reason, plc.state,
+                                        refusal=Refusal.STATE))
     return replies
 
 
@@ -116,7 +121,8 @@ def _faulted(plc: Plc, inputs: ProcessImage, now_ns: int, replies: list[CommandR
 
 def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
                commands: Sequence[ProgramCommand], hmi: Sequence[HmiWrite],
-               replies: list[CommandReply], killed: bool) -> ScanResult:
+               replies: list[CommandReply], killed: bool,
+               answering: Mapping[str, bool]) -> ScanResult:
     if hmi and not killed:
         plc.apply_hmi(hmi)
         if plc.engine is not None and any(w.address.area is not Area.INPUT for w in hmi):
@@ -127,13 +133,26 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
     fired: tuple[str, ...] = ()
     completed: tuple[str, ...] = ()
     changes: dict[str, int] = {}
-    if plc.net is not None:
+    running = plc.state is PlcState.RUNNING and plc.engine is not None and plc.net is not None
+    # The start-up gate (issue 26): a device whose first input image has not arrived left
+    # zeros in the image, not values; nothing may act on them, event conditions included.
+    waiting = plc.waiting_io = plc.awaited(answering)
+    if waiting and running:
+        plc.wait_for_io(now_ns)
+    elif plc.io_wait is not None:
+        plc.end_io_wait(now_ns)
+    if plc.net is not None and not waiting:
+        if running and plc.first_round:
+            plc.events.rearm()  # a threshold already past at a start is an event
         occurred = event_conditions.evaluate(plc.net.io.events.values(), plc.net.io.symbols,
                                              plc.image, plc.events)
-    if plc.state is PlcState.RUNNING and plc.engine is not None and plc.net is not None:
+    if running and not waiting:
+        assert plc.engine is not None and plc.net is not None
         # The steady scan allocates no sets: empty ones are shared (issue 15.5).
         now_events = (frozenset(occurred) | plc.last_events if occurred or plc.last_events
                       else _NO_EVENTS)
+        if plc.first_round:  # IEC's first-scan flag, read like an event (docs/programs.md)
+            now_events, plc.first_round = now_events | _FIRST_SCAN, False
         plc.forces.unapply_outputs(plc.image)  # forcing: the program sees its own values
         ctx = plc.context
         if (ctx is None or ctx.image is not plc.image or ctx.prev is not plc.prev
@@ -191,3 +210,4 @@ def _same_outputs(a: ProcessImage, b: ProcessImage) -> bool:
 
 
 _NO_EVENTS: frozenset[str] = frozenset()
+_FIRST_SCAN: frozenset[str] = frozenset({FIRST_SCAN})

@@ -78,6 +78,11 @@ class DriverSpec:
     policy: FaultPolicy = FaultPolicy()
 
 
+FIRST_SCAN = "first_scan"
+"""The system bit a guard or action can read like an event: true in the first firing round
+after a start (cold or warm), false after (IEC 61131's first-scan flag; docs/programs.md)."""
+
+
 class EventKind(enum.Enum):
     RISING = "rising"
     FALLING = "falling"

@@ -64,6 +64,10 @@ class Driver(Protocol):
     `image` to the device and waits for the device's acknowledgement: True when confirmed,
     False (problem() says why) when not within the bound. It never raises for a device that
     does not answer.
+
+    A driver whose device delivers inputs asynchronously also has `delivered() -> bool`: True
+    once read_inputs has copied one input image from the device since open(). The start-up
+    gate needs it (docs/faults.md, start-up); without it a read that answers has delivered.
     """
 
     name: str

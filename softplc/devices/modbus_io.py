@@ -21,8 +21,9 @@ closed), it writes on a fresh connection of its own within the rest. close() let
 thread flush the latest unacknowledged outputs before it ends, and writes them directly if
 the thread cannot: a stop never drops the safe write.
 
-Health: OK when connected and the last cycle succeeded; DEGRADED when connected but the last
-cycle failed or none has completed on this connection yet; DOWN when not connected (never,
+Health: OK when connected and the last cycle succeeded (or, after a good one, only the last
+failed: SILENT_AFTER in modbus_link.py); DEGRADED when connected but SILENT_AFTER cycles in a
+row failed or none has completed on this connection yet; DOWN when not connected (never,
 lost, closed). DROP_AFTER failed cycles in a row (stale for at most that many cycles) drop
 the connection; reconnects back off from reconnect_min_s, doubling up to reconnect_max_s."""
 
@@ -95,6 +96,7 @@ class ModbusIoDriver:
         if foreign:
             raise ValueError(f"driver {spec.name!r}: symbols {foreign} belong to another driver")
         self.name = spec.name
+        self.spec = spec  # what the runtime opened, for the start-up gate (docs/faults.md)
         self.plan = plan_channels(symbols)
         self.params = ModbusParams.from_spec(spec, self.plan)
         self._read_index = [np.array(b.image_index, dtype=np.intp) for b in self.plan.reads]
@@ -106,6 +108,7 @@ class ModbusIoDriver:
         self._last_ok_ns: int | None = None
         self._stale_scans = 0
         self._wrote_since_read = False
+        self._delivered = False  # read_inputs copied one completed cycle's inputs since open()
 
     @property
     def _loop(self) -> asyncio.AbstractEventLoop | None:
@@ -116,7 +119,9 @@ class ModbusIoDriver:
         if self._link.thread is not None:
             return
         quiet_pymodbus()
-        self._shared.closing = False
+        with self._shared.lock:  # inputs of an earlier opening are not this one's first image
+            self._shared.closing, self._shared.inputs = False, None
+        self._delivered = False
         self._link.start()
 
     def close(self) -> None:
@@ -161,6 +166,12 @@ class ModbusIoDriver:
             return
         for block, index, values in zip(self.plan.reads, self._read_index, inputs, strict=True):
             (image.ix if block.table.is_bit else image.iw)[index] = values
+        self._delivered = True
+
+    def delivered(self) -> bool:
+        """Has read_inputs copied the inputs of one completed cycle since open()? Health alone
+        cannot say: a cycle may complete between this scan's copy and its health() call."""
+        return self._delivered
 
     def write_outputs(self, image: ProcessImage, now_ns: int) -> None:
         self._hand_over(image, safe=False)

@@ -29,6 +29,10 @@ from softplc.devices.modbus_requests import ERRORS, read_block, write_block, wri
 log = logging.getLogger("softplc.devices.modbus_io")  # one logger for the whole driver
 
 DROP_AFTER = 3  # failed cycles in a row on one connection before it is dropped
+# Failed cycles in a row before an answering device counts as silent (health DEGRADED, which
+# the device fault policy judges): one timed-out request is a slow reply (a busy host, issue
+# 26), two are a device that stopped answering, silent within 2 x timeout_s (docs/faults.md).
+SILENT_AFTER = 2
 _CANCEL_ROUNDS = 50
 
 Outputs = tuple[list[Any], ...]
@@ -288,7 +292,8 @@ class IoLink:
             first = shared.failures == 0
             shared.failures += 1
             shared.cycles_failed += cycle
-            shared.last_cycle_ok = False
+            shared.last_cycle_ok = (shared.last_cycle_ok and cycle
+                                    and shared.failures < SILENT_AFTER)
             shared.last_error = error
         if first:
             log.warning("modbus driver %s: %s", self.name, error)

@@ -23,6 +23,7 @@ class SimDriver:
     def __init__(self, spec: DriverSpec, symbols: Sequence[Symbol], plant: Plant | None = None,
                  seed: int = 0) -> None:
         self.name = spec.name
+        self.spec = spec  # what the runtime opened, for the start-up gate (docs/faults.md)
         if plant is None:
             plant_name = spec.params.get("plant")
             if not isinstance(plant_name, str):
@@ -42,6 +43,7 @@ class SimDriver:
         # but the image keeps its last inputs and the actuators their last commands.
         self.offline = False
         self._open = False
+        self._delivered = False  # an input image read from the plant since open()
         self._image: ProcessImage | None = None  # the image _in_slots points into
         self._in_slots: list[tuple[Any, int, bool, str]] = []
         self._out_image: ProcessImage | None = None  # the image _out_slots points into
@@ -61,6 +63,7 @@ class SimDriver:
 
     def open(self) -> None:
         self._open = True
+        self._delivered = False
 
     def close(self) -> None:
         self._open = False
@@ -76,6 +79,7 @@ class SimDriver:
         for arr, index, bit, channel in self._in_slots:
             value = sensors[channel]
             arr[index] = bool(value) if bit else int(value) & WORD_MAX
+        self._delivered = True
 
     def write_outputs(self, image: ProcessImage, now_ns: int) -> None:
         if self.offline:
@@ -117,6 +121,10 @@ class SimDriver:
 
     def health(self) -> Health:
         return Health.OK if self._open and not self.offline else Health.DOWN
+
+    def delivered(self) -> bool:
+        """Has read_inputs put one input image from the plant into the image since open()?"""
+        return self._delivered
 
     def problem(self) -> str:
         if not self._open:

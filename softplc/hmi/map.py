@@ -52,9 +52,11 @@ STATUS_OVERRUNS = 10  # u32
 STATUS_PERIOD_US = 12  # u32
 STATUS_PROGRAM_HASH = 14  # first 64 bits of the sha256, 4 registers, high word first
 STATUS_FORCED = 18  # how many symbols are forced (0: none), saturates at 65535
-STATUS_FLAGS = 19  # bit 0: stale (the scan process has not published for too long)
+STATUS_FLAGS = 19  # bit 0: stale (the scan process has not published for too long);
+# bit 1: waiting for I/O (a device has not delivered its first input image: no firing round)
 STATUS_WORDS = 20
 FLAG_STALE = 1
+FLAG_WAITING_IO = 2
 
 U32_MAX = 0xFFFFFFFF
 
@@ -91,7 +93,8 @@ def status_registers(status: Status) -> list[int]:
     ):
         words += _u32(value)
     return words + _hash_words(status.program_hash) + [
-        min(max(status.forced, 0), WORD_MAX), FLAG_STALE if status.stale else 0]
+        min(max(status.forced, 0), WORD_MAX),
+        (FLAG_STALE if status.stale else 0) | (FLAG_WAITING_IO if status.waiting_for_io else 0)]
 
 
 @dataclass(frozen=True, slots=True)

@@ -84,6 +84,7 @@ class OpcUaIoDriver:
             raise ValueError(f"driver {spec.name!r}: params {sorted(PARAMS)} (url required), "
                              f"unknown {unknown}")
         self.name = spec.name
+        self.spec = spec  # what the runtime opened, for the start-up gate (docs/faults.md)
         self.params = dict(spec.params)
         self.bindings = parse_bindings(spec, symbols)
         self._lock = threading.Lock()
@@ -91,6 +92,7 @@ class OpcUaIoDriver:
         self._outputs: dict[str, int] = {}  # symbol -> value (scan writes)
         self._calls: dict[str, str] = {}  # output symbol -> "", "done", "failed"
         self._cycles = 0
+        self._delivered = False  # read_inputs copied one completed cycle's inputs since open()
         self._ok = False
         self._connected = False
         self._error = ""
@@ -106,6 +108,8 @@ class OpcUaIoDriver:
         if self._thread is not None:
             return
         logging.getLogger("asyncua").setLevel(logging.CRITICAL)  # our logger says what matters
+        with self._lock:  # inputs of an earlier opening are not this one's first image
+            self._inputs, self._cycles, self._delivered = {}, 0, False
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._main, name=f"opcua-io-{self.name}",
                                         daemon=True)
@@ -128,11 +132,18 @@ class OpcUaIoDriver:
         with self._lock:
             values = dict(self._inputs)
             calls = dict(self._calls)
+            cycled = self._cycles > 0
         for b in self.bindings:
             if b.kind == "var" and b.symbol.direction is Direction.IN and b.symbol.name in values:
                 image.set(b.symbol.address, values[b.symbol.name])
             elif b.kind in ("done", "failed"):
                 image.set(b.symbol.address, int(calls.get(b.target) == b.kind))
+        self._delivered = self._delivered or cycled
+
+    def delivered(self) -> bool:
+        """Has read_inputs copied the inputs of one completed cycle since open()? (Health
+        alone cannot say: a cycle may complete between the copy and health().)"""
+        return self._delivered
 
     def write_outputs(self, image: ProcessImage, now_ns: int) -> None:
         outputs = {b.symbol.name: image.get(b.symbol.address) for b in self.bindings

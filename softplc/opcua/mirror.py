@@ -24,7 +24,8 @@ from softplc.opcua.space import PartState, Space, SymbolNode, part10_state
 
 _STATUS_TYPES: Final = {"State": ua.VariantType.String, "ProgramHash": ua.VariantType.String,
                         "Program": ua.VariantType.String, "FaultReason": ua.VariantType.String,
-                        "ScanCount": ua.VariantType.UInt64, "FaultCode": ua.VariantType.UInt16}
+                        "ScanCount": ua.VariantType.UInt64, "FaultCode": ua.VariantType.UInt16,
+                        "WaitingForIo": ua.VariantType.Boolean}
 
 
 class Mirror:
@@ -95,7 +96,8 @@ class Mirror:
                             ("LastExecUs", status.last_exec_us),
                             ("MaxExecUs", status.max_exec_us),
                             ("P99LatenessUs", status.p99_lateness_us),
-                            ("Overruns", status.overruns), ("FaultCode", status.fault_code)):
+                            ("Overruns", status.overruns), ("FaultCode", status.fault_code),
+                            ("WaitingForIo", status.waiting_for_io)):
             await self.set(nodes[name].nodeid, _status_variant(name, value))
 
     async def board_values(self, document: dict[str, Any]) -> None:
@@ -169,4 +171,6 @@ def _status_variant(name: str, value: object) -> ua.Variant:
     vtype = _STATUS_TYPES.get(name, ua.VariantType.UInt32)
     if vtype is ua.VariantType.String:
         return ua.Variant(str(value), vtype)
+    if vtype is ua.VariantType.Boolean:
+        return ua.Variant(bool(value), vtype)
     return ua.Variant(int(value) if isinstance(value, int) else 0, vtype)

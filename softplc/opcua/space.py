@@ -97,6 +97,7 @@ STATUS_VARIABLES: Final[Mapping[str, tuple[ua.VariantType, Any]]] = {
     "FaultReason": (ua.VariantType.String, ""),
     "Restarts": (ua.VariantType.UInt32, 0),
     "LastEventSeq": (ua.VariantType.UInt32, 0),
+    "WaitingForIo": (ua.VariantType.Boolean, False),  # docs/faults.md, start-up
 }
 
 

@@ -29,7 +29,7 @@ from softplc.core.net import (
     Transition,
 )
 from softplc.core.problems import Problem, ProgramError
-from softplc.core.symbols import Direction, IoImage, SymType
+from softplc.core.symbols import FIRST_SCAN, Direction, IoImage, SymType
 from softplc.core.values import MAX_FIELDS, field_name_problem
 from softplc.program import fields as token_fields
 from softplc.program.io_image import load_io_image
@@ -73,6 +73,7 @@ class _Compiler:
             names[sym.name] = NameKind.BOOL if sym.type is SymType.BOOL else NameKind.WORD
         for ev in [*io.events, *self.events]:
             names[ev] = NameKind.EVENT
+        names.setdefault(FIRST_SCAN, NameKind.EVENT)  # the system bit; a declared name wins
         self.names = names
         self.scope = Scope(names)  # shared by every expression that binds no token
         self.limits: Limits = DEFAULT.with_overrides({k: v for k, (v, _) in spec.limits.items()})

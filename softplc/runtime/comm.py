@@ -1,9 +1,10 @@
-"""The communication process: Modbus TCP slave and HTTP API on one asyncio loop.
+"""The communication process: Modbus TCP slave, HTTP API and OPC UA on one asyncio loop.
 
-Owns: starting both services against the published snapshot (shared memory) and the command
-channel, and stopping them; which Modbus writes are allowed (`modbus_writes`: open, the
-running program's HMI-writable symbols, or none). A crash here never stops the scan: it is
-another process.
+Owns: starting the services against the published snapshot (shared memory) and the command
+channel, and stopping them together within STOP_SERVICES_S, then ending the process at once
+(the supervisor stops it after the scan's outputs are safe); which Modbus writes are
+allowed (`modbus_writes`: open, the running program's HMI-writable symbols, or none). A
+crash here never stops the scan: it is another process.
 Does not know: the scan loop's internals, Modbus framing, the register map's layout.
 """
 
@@ -13,6 +14,7 @@ import asyncio
 import logging
 import os
 import signal
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -40,6 +42,8 @@ log = logging.getLogger("softplc.comm")
 ModbusWrites = Literal["open", "symbols", "none"]
 MODBUS_WRITES: Final[tuple[str, ...]] = get_args(ModbusWrites)
 RECHECK_S: Final = 0.001  # one program check per write request, not per written address
+# All services stop together, bounded: the supervisor kills what runs 2 s after a signal.
+STOP_SERVICES_S: Final = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -163,10 +167,24 @@ async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name
         while not stop.is_set() and os.getppid() == parent:
             await asyncio.sleep(0.1)
     finally:
-        for service in reversed(services):
-            await service.stop()
+        await _stop_services(services)
         mapping.close()
         board.close()
+
+
+async def _stop_services(services: list[_Service]) -> None:
+    """Every service at once (each lets its clients go), within STOP_SERVICES_S; one that
+    takes longer is logged and abandoned: the process ends next anyway."""
+    stops = {asyncio.ensure_future(service.stop()): service for service in services}
+    if not stops:
+        return
+    done, late = await asyncio.wait(stops, timeout=STOP_SERVICES_S)
+    for task in late:
+        log.warning("%s did not stop within %g s", type(stops[task]).__name__, STOP_SERVICES_S)
+        task.cancel()
+    for task in done:
+        if task.exception() is not None:
+            log.error("%s failed to stop: %r", type(stops[task]).__name__, task.exception())
 
 
 async def _start_opcua(config: CommConfig, channel: Channel, reader: SnapshotSource,
@@ -190,9 +208,29 @@ async def _start_opcua(config: CommConfig, channel: Channel, reader: SnapshotSou
 
 def comm_process_main(config: CommConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: Event, stop: Event) -> None:
-    from softplc.runtime.procs import die_with_parent, once
+    from softplc.runtime.procs import die_with_parent, exit_now, once
+
+    serving = _Serving(ready)
+
+    def on_stop() -> None:
+        stop.set()
+        if not serving.is_set():  # starting: asyncua's start (seconds) would hold the stop up
+            exit_now(0)  # the services already serving close with the process
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, once(stop.set))  # re-entering set() deadlocks (procs.once)
+    signal.signal(signal.SIGTERM, once(on_stop))  # re-entering set() deadlocks (procs.once)
     die_with_parent()
-    asyncio.run(_serve(config, channel, shm_name, board_name, ready, stop))
+    asyncio.run(_serve(config, channel, shm_name, board_name, serving, stop))
+    exit_now(0)  # the services are closed; freeing asyncua's address space took up to 2.4 s
+
+
+class _Serving(threading.Event):
+    """The ready signal to the supervisor, remembered here: a stop before it ends at once."""
+
+    def __init__(self, ready: Event) -> None:
+        super().__init__()
+        self._ready = ready
+
+    def set(self) -> None:
+        super().set()
+        self._ready.set()

@@ -1,8 +1,9 @@
 """The real-time scan loop: the scan process of docs/design.md section 7.
 
 Owns: absolute deadlines on the monotonic clock, skipped slots counted as overruns, the
-cycle supervision (a whole scan longer than period x watchdog, or a cycle that starts that
-late: a stall), measured here and judged by the pure scan; commands and HMI writes drained
+cycle supervision (scans over period x watchdog, a cycle that starts that late: a stall),
+measured here and judged by the PLC (core/judge.py's CycleWatchdog; a scan that never ends:
+scanwatch.py); commands and HMI writes drained
 at the scan boundary, expired commands refused unapplied; downloads stepped between scans
 on this thread (download.py: the job table), so the scan only swaps; the snapshot published
 after every scan;
@@ -194,8 +195,8 @@ class ScanLoop:
             return
         specs = tuple(net.io.drivers.values())
         if specs == self._driver_specs:
-            if prepared is not None:
-                prepared.discard()  # opened for nothing: another download changed the devices
+            if prepared is not None:  # opened for nothing: another download changed them
+                prepared.close_drivers()
             return
         self._driver_specs = specs
         drivers = prepared.drivers if prepared is not None else None

@@ -89,10 +89,15 @@ class Prepared:
     analysis: dict[str, Any] | None = None  # the gate's summary and findings
     staged: Path | None = None  # the next boot program, written, not yet in force
 
-    def discard(self) -> None:
+    def close_drivers(self) -> None:
+        """Its devices closed: opened for nothing (another download changed the devices)."""
         for driver in self.drivers or ():
             driver.close()
         self.drivers = None
+
+    def discard(self) -> None:
+        """Not applied: its devices closed, its staged boot program removed."""
+        self.close_drivers()
         if self.staged is not None:
             boot.unstage(self.staged)
             self.staged = None

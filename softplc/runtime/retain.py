@@ -51,6 +51,7 @@ from softplc.runtime.retain_store import (
     check_state_dir,
     from_bytes,
     lock_state_dir,
+    secure_state_dir,
     to_bytes,
 )
 
@@ -58,7 +59,7 @@ __all__ = ["FORMAT", "KEEP", "LOCK_FILE", "PREFIX", "SUFFIX", "Capture", "Contin
            "FileOps", "FinalWrite", "Loaded", "RetainStore", "RetainValueError", "RetainWriter",
            "SnapshotInvalid", "Stage", "StartDecision", "StateDirBusy", "WriteFailed", "capture",
            "check_state_dir", "decide", "encode", "from_bytes", "load_plant", "lock_state_dir",
-           "restore", "to_bytes"]
+           "restore", "secure_state_dir", "to_bytes"]
 
 
 class ContinuedClock:
@@ -244,7 +245,8 @@ class RetainWriter:
 
     def info(self) -> dict[str, Any]:
         final = self.final
-        return {"dir": str(self.store.directory), "writes": self.writes, "last": self.last_path,
+        return {"dir": str(self.store.directory), "dir_note": self.store.dir_note,
+                "writes": self.writes, "last": self.last_path,
                 "last_write_us": self.last_write_us, "max_write_us": self.max_write_us,
                 "errors": self.errors, "last_error": self.last_error,
                 "errors_by_stage": dict(self.errors_by_stage),

@@ -4,8 +4,9 @@ Owns: the snapshot file format (a header line with format version, length and sh
 JSON payload), the checked write (every write's count, fsync, close, rename and the directory's
 fsync; a short write is continued, a write of 0 bytes or any OSError fails it), the read-back
 of the new file before any older one is deleted, keeping the last KEEP valid snapshots,
-removing temporaries (at open and after a failed write), the state-directory lock, and the
-file layer (FileOps) through which all of it goes, so a test can inject faults.
+removing temporaries (at open and after a failed write), the state directory's lock and its
+mode (0700), and the file layer (FileOps) through which all of it goes, so a test can inject
+faults.
 Does not know: what a payload means (runtime/retain.py), threads, scan timing.
 """
 
@@ -18,6 +19,7 @@ import fcntl
 import hashlib
 import json
 import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -146,6 +148,7 @@ class RetainStore:
         self.seq = max((_seq(p) for p in self.files()), default=0)
         self.temps_removed = 0
         self.cleanup_errors = 0
+        self.dir_note = ""  # why the directory is not private (0700), if it is not
 
     @classmethod
     def open(cls, directory: Path | str, keep: int = KEEP,
@@ -153,9 +156,10 @@ class RetainStore:
         """Lock `directory` (created if missing) and remove temp files of a killed writer.
         Raises StateDirBusy if a live process holds it; a dead one's lock is gone with it."""
         path = Path(directory)
-        path.mkdir(parents=True, exist_ok=True, mode=0o700)
+        note = secure_state_dir(path)
         fd = lock_state_dir(path)
         store = cls(path, fd, keep, ops)
+        store.dir_note = note
         store.remove_temporaries()
         return store
 
@@ -350,8 +354,36 @@ def lock_state_dir(directory: Path) -> int:
     return fd
 
 
-def check_state_dir(directory: Path | str) -> None:
-    """Raise StateDirBusy if another live runtime uses `directory` (lock taken and released)."""
+def secure_state_dir(directory: Path) -> str:
+    """Create `directory` with mode 0700, or tighten an existing one of this user's to 0700:
+    it holds the API token and the program's state (docs/retain.md). Returns "" when it is
+    private, else why not (shown in status and on stderr). Raises OSError if it cannot be
+    created."""
+    directory.mkdir(parents=True, exist_ok=True, mode=0o700)
+    info = directory.stat()
+    mode = stat.S_IMODE(info.st_mode)
+    if not mode & 0o077:
+        return ""
+    if info.st_uid != os.geteuid():
+        return (f"state directory {directory} is mode {mode:04o} and owned by uid "
+                f"{info.st_uid}, not by this user (uid {os.geteuid()}): not tightened to "
+                "0700; others may read its API token and snapshots")
+    try:
+        os.chmod(directory, 0o700)
+    except OSError as exc:
+        return (f"state directory {directory} is mode {mode:04o} and could not be tightened "
+                f"to 0700 ({_why(exc)}); others may read its API token and snapshots")
+    return ""
+
+
+def check_state_dir(directory: Path | str) -> str:
+    """Raise StateDirBusy if another live runtime uses `directory` (lock taken and released).
+    Creates it private (secure_state_dir) and returns the note if it is not; a directory
+    that cannot be created is left to the caller's own check."""
     path = Path(directory)
-    if path.is_dir():
-        os.close(lock_state_dir(path))
+    try:
+        note = secure_state_dir(path)
+    except OSError:
+        return ""
+    os.close(lock_state_dir(path))
+    return note

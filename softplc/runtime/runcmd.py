@@ -13,6 +13,7 @@ died more than SCAN_RESTARTS times within RESTART_WINDOW_S.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import signal
 import socket
@@ -82,6 +83,10 @@ def _startup_problem(args: argparse.Namespace) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if not (args.watchdog > 0 and math.isfinite(args.watchdog)):  # its budget: period x this
+        print(f"softplc: --watchdog must be a number above 0, got {args.watchdog:g}",
+              file=sys.stderr)
+        return EXIT_USAGE
     if args.program:
         try:
             compile_file(args.program)
@@ -112,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     try:
-        supervisor.start()
+        supervisor.start(stopping=lambda: stopping)
     except RuntimeError as exc:
         print(f"softplc: {exc}", file=sys.stderr)
         supervisor.stop()

@@ -8,7 +8,7 @@ Does not know: which clock drives it, processes, sockets.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import Any
 
 from softplc.core.faults import DeviceMonitor
@@ -25,7 +25,7 @@ from softplc.core.scan import (
     scan,
 )
 from softplc.core.snapshot import HmiWrite
-from softplc.core.symbols import IoImage
+from softplc.core.symbols import DriverSpec, IoImage
 from softplc.devices.driver import Diagnosed, Driver, Health, go_safe_all
 from softplc.runtime.trace import TraceWriter, image_digest, input_changes
 
@@ -97,11 +97,13 @@ class ScanRunner:
         self._steady = NOTHING_OBSERVED  # every device answering, as last observed
         self._state_seen: PlcState | None = None  # the state whose name _state_name is
         self._state_name = ""
+        self._open = opened(self.drivers)  # the PLC's view of them (its start-up gate)
 
     def set_drivers(self, drivers: Sequence[Driver]) -> None:
         for driver in self.drivers:
             driver.close()
         self.drivers = list(drivers)
+        self._open = opened(self.drivers)
         self._steady = NOTHING_OBSERVED  # other devices: their first answers are judged anew
         self.devices.forget()
         self.inputs = ProcessImage(self.plc.image.sizes)
@@ -150,6 +152,8 @@ class ScanRunner:
                 self._raised[driver.name] = f"read raised {type(exc).__name__}: {exc}"
         if self.drivers:
             observed = self._observe(observed)
+        if self.plc.open_devices is not self._open:  # a Plc put in by a warm start, a test
+            self.plc.open_devices = self._open
         result = scan(self.plc, self.inputs, now_ns, commands, hmi, observed)
         self._write(result.outputs, now_ns)
         for name in result.fired:
@@ -195,7 +199,7 @@ class ScanRunner:
                 return steady
         if raised:
             self._raised = {}
-        answering = {d.name: d.health() is Health.OK and d.name not in raised
+        answering = {d.name: d.health() is Health.OK and d.name not in raised and delivered(d)
                      for d in self.drivers}
         if not observed.overrun and not observed.stall and answering == self._steady.answering:
             return self._steady  # every device answers: the Observed of the last such scan
@@ -221,8 +225,11 @@ class ScanRunner:
         extra = self._extra(result) if trace.writes_file else None
         inputs = self._input_changes()
         digest = self._output_digest(result)
-        steady_obs = self._noted is None and (observed is self._steady
-                                              or observed is NOTHING_OBSERVED)
+        # Devices the scan waited for that it could not observe: not open yet (issue 26).
+        unopened = [n for n in self.plc.waiting_io if n not in observed.answering] \
+            if self.plc.waiting_io else []
+        steady_obs = self._noted is None and not unopened and (observed is self._steady or (
+            observed is NOTHING_OBSERVED and not self._declared()))
         if (steady_obs and not extra and not inputs and not commands and not hmi
                 and not result.fired and not result.completed and not result.marking_changes
                 and not result.events):
@@ -233,7 +240,9 @@ class ScanRunner:
             return
         record: dict[str, Any] = {"k": self.plc.scan_count - 1, "t": now_ns,
                                   "in": inputs, "out": digest, "state": self.plc.state.name}
-        obs = _observation(observed, self._noted)
+        obs = _observation(observed, self._noted, self._declared())
+        if unopened:
+            obs["wait"] = unopened
         self._noted = None
         if obs:
             record["obs"] = obs
@@ -250,6 +259,11 @@ class ScanRunner:
         if result.events:
             record["ev"] = list(result.events)
         trace.record(record, None, extra)
+
+    def _declared(self) -> Collection[str]:
+        """The drivers the PLC's program declares: the devices replay assumes observed."""
+        net = self.plc.net
+        return () if net is None else net.io.drivers
 
     def _input_changes(self) -> dict[str, dict[str, int]]:
         """The inputs that differ from the last traced scan's, which this scan's become."""
@@ -277,13 +291,17 @@ class ScanRunner:
             self.trace.close()
 
 
-def _observation(observed: Observed, noted: Observed | None) -> dict[str, Any]:
-    """The judged measurements of one scan as a trace entry ({} in the steady state)."""
+def _observation(observed: Observed, noted: Observed | None,
+                 declared: Collection[str]) -> dict[str, Any]:
+    """The judged measurements of one scan as a trace entry ({} in the steady state). The
+    devices observed are named unless they are the program's declared drivers (what replay
+    assumes): the scan of a download runs before its devices are opened (issue 26.6)."""
     obs: dict[str, Any] = {}
     silent = {name: observed.why.get(name, "") for name, ok in observed.answering.items()
               if not ok}
     if silent:
         obs["dev"] = silent
+    if silent or list(observed.answering) != list(declared):
         obs["devs"] = sorted(observed.answering)
     for source in (noted, observed):
         if source is not None and source.overrun:
@@ -293,10 +311,27 @@ def _observation(observed: Observed, noted: Observed | None) -> dict[str, Any]:
     return obs
 
 
+def opened(drivers: Sequence[Driver]) -> dict[str, DriverSpec | None]:
+    """Name -> the spec each driver was opened from (None: a driver that does not say, such
+    as simulate's script inputs): what the PLC's start-up gate compares its io image with."""
+    return {d.name: spec if isinstance(spec := getattr(d, "spec", None), DriverSpec) else None
+            for d in drivers}
+
+
+def delivered(driver: Driver) -> bool:
+    """A driver's first input image has reached the image (docs/faults.md, start-up); a
+    driver without delivered() delivers in every read it answers."""
+    check = getattr(driver, "delivered", None)
+    return check is None or bool(check())
+
+
 def observed_from(obs: dict[str, Any], drivers: Sequence[str]) -> Observed:
     """The Observed a trace entry stands for (replay); `drivers` answer unless listed."""
-    silent = obs.get("dev", {})
-    names = obs.get("devs") or list(drivers)
+    silent = dict(obs.get("dev", {}))
+    names = list(obs.get("devs", drivers))  # []: none observed
+    for name in obs.get("wait", ()):  # not open yet: the scan waited for its first image
+        silent.setdefault(name, "not open yet")
+        names += [] if name in names else [name]
     answering = {name: name not in silent for name in names}
     return Observed(answering, silent, obs.get("overrun", ""), obs.get("stall", ""))
 

@@ -1,5 +1,6 @@
 """The scan process's entry point: signals, the watch on the supervisor, shared memory
-attached, the loop built and run, everything let go at the end.
+attached, the loop built and run, "safe" said to the supervisor once the devices confirmed
+the safe outputs at a stop, everything let go at the end.
 
 Owns: the scan process's exit codes (0 stopped, 3 state directory busy, 4 cannot start).
 Does not know: what a scan does (runtime/loop.py).
@@ -21,16 +22,17 @@ from softplc.runtime.channel import Channel
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.loop import ScanLoop
 from softplc.runtime.procs import Flag as Event
+from softplc.runtime.procs import ReadySignal
 from softplc.runtime.realtime import apply
 from softplc.runtime.retain import StateDirBusy
 from softplc.runtime.shm import SnapshotWriter
 
 
 def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board_name: str,
-                      ready: Event, stop: Event) -> None:
+                      ready: ReadySignal, stop: Event) -> None:
     """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`.
     Exit codes: 0 stopped, 3 state directory busy, 4 cannot start (program, devices)."""
-    from softplc.runtime.procs import die_with_parent, once, supervisor_pid
+    from softplc.runtime.procs import die_with_parent, exit_now, once, supervisor_pid
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, once(stop.set))
@@ -59,7 +61,8 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
         gc.collect()  # before the first scan, not during one; then keep what start-up built
         gc.freeze()  # out of every later collection (real-time practice, see Preparer.prepare)
         ready.set()
-        loop.run(stop)
+        loop.run(stop, safe=lambda: ready.say(ReadySignal.SAFE))
+    exit_now(0)  # outputs safe, retain written, segments let go: nothing left to tear down
 
 
 @contextlib.contextmanager

@@ -25,9 +25,9 @@ program order; that is the platform this targets. Weakly ordered CPUs (ARM) woul
 that Python cannot express.
 
 Layout, native byte order: header (64 bytes: magic, version, header size, bits, words, total
-size, latest, the two slot counters), then two slots of: status (10 int64, the last two the
-number of forced symbols and the CLOCK_MONOTONIC time of the publish, + 64-byte program
-hash), %IX %QX %MX as one byte per bit, %IW %QW %MW as uint16.
+size, latest, the two slot counters), then two slots of: status (11 int64, the last three the
+number of forced symbols, the CLOCK_MONOTONIC time of the publish and waiting for I/O, +
+64-byte program hash), %IX %QX %MX as one byte per bit, %IW %QW %MW as uint16.
 """
 
 from __future__ import annotations
@@ -52,11 +52,11 @@ from softplc.core.snapshot import Snapshot, SnapshotUnavailable, Status
 from softplc.runtime.shmcopy import SlotCopies
 
 MAGIC: Final = b"SPLCSNAP"
-VERSION: Final = 3  # 2: status carries published_ns; 3: and `forced`
+VERSION: Final = 4  # 2: status carries published_ns; 3: and `forced`; 4: `waiting_for_io`
 _HEADER = struct.Struct("=8sIIIIQ")  # magic, version, header bytes, bits, words, total bytes
 _HEADER_BYTES: Final = 64
 _CONTROL_OFFSET: Final = 32  # uint64 latest, slot 0 counter, slot 1 counter
-_STATUS = struct.Struct("=10q64s")
+_STATUS = struct.Struct("=11q64s")
 _HASH_BYTES: Final = 64
 _BIT_AREAS: Final = ("ix", "qx", "mx")
 _WORD_AREAS: Final = ("iw", "qw", "mw")
@@ -108,13 +108,14 @@ def _pack_status(status: Status, published_ns: int = 0) -> bytes:
         status.period_us,
         status.forced,
         published_ns,
+        int(status.waiting_for_io),
         program_hash,
     )
 
 
 def _unpack_status(raw: npt.NDArray[np.uint8]) -> Status:
     (state, scans, last_exec, max_exec, p99_late, overruns, fault, period, forced, published,
-     program_hash) = _STATUS.unpack_from(raw.data)
+     waiting, program_hash) = _STATUS.unpack_from(raw.data)
     return Status(
         state=_STATES[state],
         scan_count=scans,
@@ -127,6 +128,7 @@ def _unpack_status(raw: npt.NDArray[np.uint8]) -> Status:
         period_us=period,
         forced=forced,
         published_ns=published,
+        waiting_for_io=bool(waiting),
     )
 
 
@@ -217,6 +219,16 @@ class SnapshotWriter:
     def seq(self) -> int:
         """Number of the last publish; 0 before the first."""
         return self._seq
+
+    def published_scan_count(self) -> int | None:
+        """The scan count of the last publish in the segment, by this writer or by a scan
+        process before it (the supervisor's segment outlives them); None before any publish.
+        A new scan process continues from it, so the count readers see never goes back."""
+        if self._seq == 0:
+            return None
+        at = self._slot_at[self._seq & 1]
+        scans: int = _STATUS.unpack_from(self._buf(), at)[1]
+        return scans
 
     def publish(self, image: ProcessImage, status: Status) -> int:
         """Copy `image` and `status` in as one snapshot; return its sequence number (1, 2, ...)."""

@@ -45,6 +45,8 @@ def document(loop: ScanLoop) -> dict[str, Any]:
         "restarts": loop.config.restarts, "restart_reason": loop.config.restart_reason,
         "scan_pid": os.getpid(),
         "on_stall": loop.config.on_stall, "watchdog_ms": loop.budget_ns / 1e6,
+        "watchdog_sensitivity": loop.watchdog.sensitivity,
+        "watchdog_hard_ms": loop.watchdog.hard_ns / 1e6,
         "stall_fault_ms": max(loop.config.stall_fault_ns, loop.budget_ns) / 1e6,
         "internal_errors": loop.internal_errors, "analysis": loop.analysis,
         "boot_problem": loop.boot.problem,
@@ -60,6 +62,9 @@ def document(loop: ScanLoop) -> dict[str, Any]:
         "net": netview.structure(net) if net else None,
         "net_live": netview.live(net, plc.engine.state if plc.engine else None,
                                  loop.clock.now_ns(), loop.runner.fired_counts),
+        # Start-up (docs/faults.md): devices whose first input image has not arrived; while
+        # any has not, a RUNNING PLC runs no firing round and its outputs stay safe.
+        "waiting_for_io": bool(plc.waiting_io), "waiting_for_devices": list(plc.waiting_io),
     }
 
 def status(loop: ScanLoop) -> Status:
@@ -69,7 +74,7 @@ def status(loop: ScanLoop) -> Status:
                   loop.stats.max_exec_ns // 1000, int(loop.summary.lateness_p99_us),
                   loop.stats.overruns,
                   plc.net.program_hash if plc.net else "", int(plc.fault_code),
-                  loop.config.period_ns // 1000, len(plc.forces))
+                  loop.config.period_ns // 1000, len(plc.forces), bool(plc.waiting_io))
 
 
 def _records(net: CompiledNet | None, state: NetState | None) -> dict[str, list[Any]]:

@@ -5,7 +5,9 @@ Owns: process start order; the shared-memory segments (they outlive a scan proce
 communication side keeps serving across a restart); restarting a dead scan process warm from
 the newest retain snapshot and the boot program, with backoff, at most SCAN_RESTARTS times in
 RESTART_WINDOW_S, then giving up (GaveUp); restarting a dead communication process within the
-same kind of budget; stopping everything within STOP_S in every state.
+same kind of budget; stopping everything within STOP_S in every state, also while a child is
+still starting: the scan process first (outputs safe, confirmed by the devices), then the
+communication process, so no service goes away while an output is still on.
 Does not know: what a scan does, what a snapshot holds, the console and exit codes
 (runcmd.py), what killed runs leave in /dev/shm (leftovers.py).
 """
@@ -40,6 +42,10 @@ RESTART_WINDOW_S: Final = 60.0
 BACKOFF_S: Final = (0.0, 0.5, 1.0, 2.0, 4.0)  # by restarts within BACKOFF_WINDOW_S
 BACKOFF_WINDOW_S: Final = 10.0  # a scan process that ran this long restarts without delay
 STOP_S: Final = 2.0  # SIGTERM/SIGINT: every process gone within this (then SIGKILL)
+# At a stop, how long the supervisor waits for the scan's "safe" before it stops the
+# communication process anyway: the confirmed safe write is bounded by 0.5 s
+# (ScanLoop.shutdown), plus the scan in progress.
+SAFE_WAIT_S: Final = 1.0
 
 
 class GaveUp(RuntimeError):
@@ -65,6 +71,8 @@ class Supervisor:
         self.scan_main, self.scan_args = scan_main, scan_args
         self.scan: Any = None
         self.comm: Any = None
+        self._scan_says: ReadySignal | None = None  # "ready", then "safe" at a stop
+        self._stopping: Callable[[], bool] = lambda: False
         self.clock = clock
         self.scan_restarts: deque[float] = deque()  # when, within the window
         self.comm_restarts: deque[float] = deque()
@@ -88,7 +96,9 @@ class Supervisor:
             retain_interval_ns=getattr(args, "retain_interval", 1_000_000_000),
             warm_start=getattr(args, "warm_start", "run"),
             on_stall=getattr(args, "on_stall", "fault"), verify=getattr(args, "verify", "warn"),
-            stall_fault_ns=getattr(args, "stall_fault_after", 500_000_000),
+            stall_fault_ns=getattr(args, "stall_fault_after", 3_000_000_000),
+            watchdog_sensitivity=getattr(args, "watchdog_sensitivity", 3),
+            watchdog_hard_ns=getattr(args, "watchdog_hard", 3_000_000_000),
             realtime=Realtime(getattr(args, "rt_priority", None), getattr(args, "scan_cpu", None),
                               getattr(args, "busy_wait", False)))
         comm_config = CommConfig(modbus=args.modbus, api=args.api, state_dir=args.state_dir,
@@ -96,13 +106,19 @@ class Supervisor:
                                  opcua=getattr(args, "opcua", None), **modbus_limits(args))
         return cls(loop_config, comm_config)
 
-    def start(self, timeout_s: float = 30.0) -> None:
+    def start(self, timeout_s: float = 30.0,
+              stopping: Callable[[], bool] = lambda: False) -> None:
+        """Both processes, each waited for until it serves. Once `stopping()` (a signal came)
+        it waits no longer: the caller's stop() follows, and a scan process already driving
+        outputs must not stay on for the seconds the services take to start (OPC UA)."""
+        self._stopping = stopping
         # The segments belong to the supervisor: they outlive a scan process, so the
         # communication process keeps its mapping (and says "stale") across a restart.
         self.segment = SnapshotWriter.create(self.loop_config.sizes, self.shm_name)
         self.board = StatusBoard.create(self.board_name)
         self.start_scan(self.loop_config, timeout_s)
-        self.start_comm(timeout_s)
+        if not stopping():
+            self.start_comm(timeout_s)
         record_semaphores(self.tag)
 
     def start_scan(self, config: LoopConfig, timeout_s: float = 30.0) -> None:
@@ -112,9 +128,10 @@ class Supervisor:
             args=(config, self.channel, self.shm_name, self.board_name, ready,
                   self.stop_scan, *self.scan_args))
         self.scan.start()
+        self._scan_says = ready
         self.stop_scan.bind(self.scan.pid)
         deadline = time.monotonic() + timeout_s
-        while not ready.wait(0.05):
+        while not ready.wait(0.05) and not self._stopping():
             if not self.scan.is_alive():
                 raise RuntimeError(f"the scan process exited ({self.scan.exitcode}) at start")
             if time.monotonic() > deadline:
@@ -133,7 +150,7 @@ class Supervisor:
         self.stop_comm.bind(self.comm.pid)
         keep_off_scan_cpu(self.comm.pid, self.loop_config.realtime)
         deadline = time.monotonic() + timeout_s
-        while not ready.wait(0.05):
+        while not ready.wait(0.05) and not self._stopping():
             if not self.comm.is_alive() or time.monotonic() > deadline:
                 raise RuntimeError("the communication process did not start (is a port in use? "
                                    f"Modbus {self.comm_config.modbus}, API {self.comm_config.api})")
@@ -207,11 +224,14 @@ class Supervisor:
         return f"communication process exited ({code}); restarted"
 
     def stop(self, timeout_s: float = STOP_S) -> None:
-        """Both processes told at once; the scan drives outputs safe (confirmed by the devices)
-        before it exits. Whatever still runs after `timeout_s` is killed."""
-        self.stop_comm.set()
-        self.stop_scan.set()  # the scan process drives outputs safe before it exits
+        """The scan process first: it drives outputs safe and has the devices confirm it, then
+        says "safe"; only then the communication process, so clients see the PLC until its
+        outputs are safe (and its teardown takes no CPU from the safe write). Whatever still
+        runs after `timeout_s` is killed."""
         deadline = time.monotonic() + timeout_s
+        self.stop_scan.set()
+        self._await_safe(min(deadline, time.monotonic() + SAFE_WAIT_S))
+        self.stop_comm.set()
         for proc in (self.scan, self.comm):
             if proc is not None:
                 proc.join(max(0.0, deadline - time.monotonic()))
@@ -229,6 +249,15 @@ class Supervisor:
             self.segment = None
         with contextlib.suppress(OSError):
             Path(f"/dev/shm/{self.tag}_sems").unlink()
+
+    def _await_safe(self, until: float) -> None:
+        """Until the scan process said "safe", ended, or `until` (a scan main that says
+        nothing, the benchmark's, ends after its safe write)."""
+        says = self._scan_says
+        while says is not None and self.scan is not None and self.scan.is_alive():
+            left = until - time.monotonic()
+            if left <= 0 or says.heard(ReadySignal.SAFE, min(left, 0.02)):
+                return
 
     def status(self) -> dict[str, Any]:
         if self.board is None:

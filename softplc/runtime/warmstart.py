@@ -9,6 +9,7 @@ Does not know: how snapshots are stored and chosen (runtime/retain.py).
 
 from __future__ import annotations
 
+import sys
 from typing import TYPE_CHECKING
 
 from softplc.core.lifecycle import Command
@@ -34,6 +35,8 @@ def begin(loop: ScanLoop, net: CompiledNet | None) -> None:
     decision = StartDecision("cold", loop.start_reason)
     if loop.config.state_dir is not None:
         store = RetainStore.open(loop.config.state_dir)  # StateDirBusy: another runtime has it
+        if store.dir_note:  # in status too (retain.dir_note); said where the operator looks
+            print(f"softplc: warning: {store.dir_note}", file=sys.stderr, flush=True)
         decision = decide(store, net)
         loop.retain = RetainWriter(store)
     loop.start_mode, loop.start_reason = decision.mode, decision.reason
@@ -41,6 +44,18 @@ def begin(loop: ScanLoop, net: CompiledNet | None) -> None:
         warm(loop, net, decision.snapshot)
     elif net is not None:
         cold(loop, net)
+    continue_count(loop)
+
+
+def continue_count(loop: ScanLoop) -> None:
+    """The scan count never goes back: a scan process started after another one died goes on
+    from the count that one last published (the supervisor's snapshot segment outlives it),
+    not from the retain snapshot's, up to a retain interval older (issue 26.5). Only the
+    count moves: no timer, output or marking depends on it, so a trace still replays."""
+    published = loop.writer.published_scan_count() if loop.writer is not None else None
+    if published is not None:
+        plc = loop.runner.plc
+        plc.scan_count = max(plc.scan_count, published + 1)
 
 
 def cold(loop: ScanLoop, net: CompiledNet) -> None:

@@ -130,8 +130,10 @@ class ServerThread:
 
 
 def make_server(plc: Plc, state_dir: Path, **kwargs: Any) -> ServerThread:
+    # A command's deadline: generous, because the test's scan thread shares a loaded
+    # machine (a command that expires before the scan takes it fails the test that sent it).
     server = ApiServer(plc.channel, plc.reader, plc.board, port=0, state_dir=state_dir,
-                       command_timeout_s=kwargs.pop("command_timeout_s", 5.0), **kwargs)
+                       command_timeout_s=kwargs.pop("command_timeout_s", 30.0), **kwargs)
     return ServerThread(server)
 
 

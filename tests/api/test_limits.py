@@ -35,6 +35,7 @@ class Served:
     def __init__(self, limits: HttpLimits) -> None:
         self.bounds = HttpBounds(limits)
         self.release = threading.Event()
+        self.inside = 0  # requests that reached /wait's handler
         self.loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self.loop.run_forever, daemon=True)
         self._thread.start()
@@ -58,6 +59,7 @@ class Served:
         return web.Response(text="ok")
 
     async def _wait(self, request: web.Request) -> web.Response:
+        self.inside += 1
         await asyncio.to_thread(self.release.wait, 10)
         return web.Response(text="released")
 
@@ -170,8 +172,7 @@ def test_at_the_cap_an_idle_connection_is_evicted_and_a_busy_one_never() -> None
         # Three connections inside /wait: the next one is refused with a 503, not evicting.
         third = stack.enter_context(connect(server.port))
         third.sendall(b"GET /wait HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
-        assert wait_until(lambda: server.bounds.connection_count == 3)
-        time.sleep(0.1)  # third's request is inside the app
+        assert wait_until(lambda: server.inside == 3)  # third's request is inside the app
         with connect(server.port) as refused:
             reply = read_all(refused)
         assert reply == REFUSAL and parse(reply)[0] == 503

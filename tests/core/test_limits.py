@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from softplc.core.firing import Engine
+from softplc.core.engine import Engine
 from softplc.core.net import NetState
 from softplc.core.problems import FaultCode, PlcFault
 from tests.core.helpers import Ctx, compile_program

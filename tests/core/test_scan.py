@@ -397,15 +397,18 @@ def test_the_image_follows_the_io_file_sizes(tmp_path: Path) -> None:
     assert bench.get("q") == 1 and np.flatnonzero(bench.plc.image.qx).tolist() == [31]
 
 
-def test_threshold_events_need_a_crossing(tmp_path: Path) -> None:
+def test_threshold_events_already_past_at_the_start_occur_once(tmp_path: Path) -> None:
+    # Issue 26: an alarm already true when the program starts is an alarm (it was "needs a
+    # crossing" before, which missed a high level at start); it re-arms by hysteresis only.
     (tmp_path / "io.yaml").write_text(
         'symbols:\n  w: {address: "%IW0"}\n  q: {address: "%QX0.0"}\n'
         "events:\n  high: {above: w, threshold: 100, hysteresis: 10}\n"
         "  low: {below: w, threshold: 50}\n", encoding="utf-8")
     net = compile_text("io_image: io.yaml\nplaces:\n  p: {tokens: 1, outputs: [q]}\n",
                        str(tmp_path / "ev.yaml"))
-    bench = Bench(net)  # w == 0 from the start: below 50, but it never crossed
-    assert bench.last.events == ()
+    bench = Bench(net)  # w == 0 from the start: already below 50
+    assert bench.last.events == ("low",)
+    assert bench.scan(10).events == ()  # still below: not again until it re-arms
 
 
 def test_threshold_events_with_hysteresis(tmp_path: Path) -> None:

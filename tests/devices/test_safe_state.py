@@ -6,6 +6,7 @@ tests read the coil right after, without waiting. Every wait is bounded by a dea
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -95,18 +96,19 @@ def test_go_safe_returns_once_the_device_holds_the_safe_values(
 
 def test_go_safe_cuts_a_reconnect_backoff_short(
         device: RemoteIoDevice, make_driver: Callable[..., ModbusIoDriver]) -> None:
-    drv = make_driver(spec(device.port, reconnect_min_s=3.0, reconnect_max_s=5.0))
+    backoff_s = 20.0  # far longer than the test: a reconnect within it is go_safe's doing
+    drv = make_driver(spec(device.port, reconnect_min_s=backoff_s, reconnect_max_s=backoff_s))
     plc = lamp_on(device, drv)
     device.stop()
     assert plc.until(lambda: drv.stats().consecutive_failures >= 1, timeout_s=3.0)
-    device.start()  # the driver now sleeps at least 3 s before its next connect attempt
+    failed = time.monotonic()
+    device.start()  # the driver now sleeps at least backoff_s before its next connect attempt
     device.set(1, 0, [True])  # the restarted module comes back with the lamp on
-    t0 = time.monotonic()
     assert drv.go_safe(safe_image(plc), 1.0)
     assert not device.coil(0)
-    # The I/O thread itself reconnected, long before its backoff would have ended.
-    assert wait_until(lambda: drv.stats().connected, timeout_s=1.0, step_s=0.002)
-    assert time.monotonic() - t0 < 2.0
+    # The I/O thread itself reconnected, before its backoff would have ended.
+    assert wait_until(lambda: drv.stats().connected, timeout_s=5.0, step_s=0.002)
+    assert time.monotonic() - failed < backoff_s
 
 
 def test_go_safe_with_a_wedged_io_thread_writes_on_a_fresh_connection(
@@ -114,15 +116,18 @@ def test_go_safe_with_a_wedged_io_thread_writes_on_a_fresh_connection(
     drv = make_driver(spec(device.port))
     plc = lamp_on(device, drv)
     assert drv._loop is not None
-    drv._loop.call_soon_threadsafe(time.sleep, 1.5)  # the I/O thread's loop is stuck
-    time.sleep(0.05)
+    wedge, wedged = threading.Event(), threading.Event()
+    drv._loop.call_soon_threadsafe(lambda: (wedged.set(), wedge.wait(30)))  # the loop is stuck
+    assert wedged.wait(5)
     plc.image.qx[0] = True
     drv.write_outputs(plc.image, plc.now_ns)  # lamp-on queued behind the wedge
-    t0 = time.monotonic()
     assert drv.go_safe(safe_image(plc), 0.6)
-    assert time.monotonic() - t0 < 0.8
-    assert not device.coil(0)
-    time.sleep(1.7)  # the thread comes back: it must not send the stale lamp-on
+    assert not device.coil(0) and not wedge.is_set()  # written while the thread was stuck
+    wedge.set()  # the thread comes back: it must not send the stale lamp-on
+    came_back = threading.Event()
+    drv._loop.call_soon_threadsafe(came_back.set)
+    assert came_back.wait(5)
+    time.sleep(0.2)  # time for a stale write to land, if one were sent (about 1 ms here)
     assert not device.coil(0)
 
 

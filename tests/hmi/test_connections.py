@@ -137,13 +137,14 @@ def test_mbpoll_reads_coils_at_the_first_try_among_220_idle_and_slow(source: Ima
 def test_a_client_polling_once_a_minute_yields_its_slot_when_others_need_it(
     source: ImageSource,
 ) -> None:
-    # Scaled down: a 0.3 s live window stands for the default 10 s, a 0.5 s gap for a minute.
+    # Scaled down: a 1 s live window stands for the default 10 s, a 1.2 s gap for a minute
+    # (the window leaves a loaded machine time for the steps that need hmi still live).
     slave = ModbusSlave(
-        source, source.sink, sizes=source.image.sizes, port=0, max_connections=2, live_window_s=0.3
+        source, source.sink, sizes=source.image.sizes, port=0, max_connections=2, live_window_s=1.0
     )
     with run_in_thread(slave) as handle, connect(handle.port) as rare, connect(handle.port) as hmi:
         assert request(rare, VALID_READ) == bytes.fromhex("04020000")
-        time.sleep(0.5)
+        time.sleep(1.2)  # rare's last traffic is older than the live window (a lower bound)
         assert request(hmi, VALID_READ) == bytes.fromhex("04020000")
         with connect(handle.port) as newcomer:
             assert request(newcomer, VALID_READ) == bytes.fromhex("04020000")

@@ -314,8 +314,11 @@ def test_the_last_accepted_program_boots_after_a_stop(tmp_path: Path, runs: list
     runs.append(first)
     eventually_reachable(lambda: first.status()["scan_count"] > 20, 30, "scans")
     assert first.api.download(ROOT / "programs" / "drilling.yaml", online=True)["ok"]
-    eventually_reachable(lambda: first.status()["program"] == "drilling", 30, "drilling running")
-    time.sleep(1.5)  # a retain snapshot of drilling
+    running = eventually_reachable(lambda: (s := first.status())["program"] == "drilling" and s,
+                                   30, "drilling running")
+    writes = running["retain"]["writes"]  # a retain snapshot of drilling: one written after
+    eventually_reachable(lambda: first.status()["retain"]["writes"] > writes, 30,
+                         "a retain snapshot of drilling")
     assert first.stop(signal.SIGINT) == 0
     second = Run(ROOT, "", state)
     runs.append(second)

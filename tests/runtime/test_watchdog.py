@@ -1,7 +1,8 @@
 """Watchdog: a scan that runs past period x watchdog faults the PLC, with safe outputs written
 through the drivers before the next scan. The real ScanLoop on the real clock, bounded by
 max_scans; the slow scans are many times the budget so that a loaded machine cannot make a
-normal scan look slow or a slow one look normal."""
+normal scan look slow or a slow one look normal. Sensitivity 1 here (the first scan over budget
+faults); the default sensitivity and the hard limit: test_watchdog_sensitivity.py."""
 
 from __future__ import annotations
 
@@ -86,7 +87,8 @@ def run_loop(tmp_path: Path, program: str, driver: SlowDriver, period_ns: int,
     (tmp_path / "prog.yaml").write_text(program, encoding="utf-8")
     trace = tmp_path / "trace.jsonl"
     config = LoopConfig(program=str(tmp_path / "prog.yaml"), start=True, period_ns=period_ns,
-                        watchdog=watchdog, max_scans=scans, trace=str(trace))
+                        watchdog=watchdog, watchdog_sensitivity=1, max_scans=scans,
+                        trace=str(trace))
     loop = ScanLoop(config, None, None)
     loop.runner.set_drivers([driver])  # the io image declares none: the loop keeps this one
     loop.run()

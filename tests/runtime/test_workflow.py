@@ -1,11 +1,14 @@
-"""The program workflow (issue 16) with real processes: a program in a nested folder with its
+"""The program workflow (issue 16) with a real server process: a program in a nested folder with its
 own io image and subnets passes `check`, is downloaded as a bundle to a `softplc run`
 started in another directory, runs, is shown before an online change (`--dry-run`), and
 `softplc upload` gets it back byte for byte."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -15,15 +18,27 @@ from pathlib import Path
 
 import pytest
 
-from tests.support import free_port
+from softplc.api.client import ApiClient, ApiError
+from softplc.cli import main
+from tests.support import eventually, free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 FILES = ("deep/sub/c.yaml", "deep/nets/conveyor.yaml", "io/transport.yaml")
 
 
 def softplc(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "softplc.cli", *args], cwd=cwd,
-                          capture_output=True, text=True, timeout=60)
+    """A `softplc` command, run in this process in `cwd` (the console script's main(): a
+    process start per command would cost seconds on a loaded machine, the server is the
+    real process under test)."""
+    out, err = io.StringIO(), io.StringIO()
+    here = os.getcwd()
+    os.chdir(cwd)
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = main(list(args))
+    finally:
+        os.chdir(here)
+    return subprocess.CompletedProcess(["softplc", *args], code, out.getvalue(), err.getvalue())
 
 
 @pytest.fixture
@@ -58,10 +73,10 @@ def server(tmp_path: Path) -> Iterator[str]:
     url = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 40  # two processes spawning on a loaded machine
-        while softplc("status", "--api", url, "--timeout", "2", cwd=where).returncode != 0:
+        while not answers(url):
             assert proc.poll() is None, proc.communicate()
             assert time.monotonic() < deadline, "softplc run did not answer"
-            time.sleep(0.3)
+            time.sleep(0.1)
         yield url
     finally:
         proc.terminate()
@@ -72,10 +87,28 @@ def server(tmp_path: Path) -> Iterator[str]:
             proc.wait(10)
 
 
+def answers(url: str) -> bool:
+    try:
+        ApiClient(url, timeout_s=2).status()
+    except (ApiError, OSError):
+        return False
+    return True
+
+
 def status(url: str, cwd: Path) -> dict[str, object]:
     done = softplc("status", "--api", url, "--json", cwd=cwd)
     assert done.returncode == 0, done.stderr
     answer: dict[str, object] = json.loads(done.stdout)
+    return answer
+
+
+def settled(url: str) -> dict[str, object]:
+    """The status once the board (marking, program) is newer than what has been answered so
+    far: the snapshot's scan count follows every scan, the board every ~50 ms."""
+    client = ApiClient(url, timeout_s=5)
+    now = int(client.status()["scan_count"])
+    answer: dict[str, object] = eventually(
+        lambda: (s := client.status())["board_scan_count"] > now and s, 10, "a newer board")
     return answer
 
 
@@ -87,10 +120,11 @@ def test_a_nested_program_goes_to_a_remote_plc_runs_and_comes_back_byte_for_byte
     assert down.returncode == 0, down.stderr
     started = softplc("start", "--api", server, cwd=project)
     assert started.returncode == 0, started.stderr
+    settled(server)
     first = status(server, project)
     assert first["state"] == "RUNNING" and first["program"] == "transport"
-    time.sleep(0.5)
-    assert int(status(server, project)["scan_count"]) > int(first["scan_count"])  # type: ignore[call-overload]
+    eventually(lambda: int(status(server, project)["scan_count"])  # type: ignore[call-overload]
+               > int(first["scan_count"]), 10, "it scans")  # type: ignore[call-overload]
 
     out = tmp_path / "back"
     up = softplc("upload", "-o", str(out), "--api", server, cwd=project)
@@ -104,7 +138,7 @@ def test_a_nested_program_goes_to_a_remote_plc_runs_and_comes_back_byte_for_byte
 def test_dry_run_shows_the_plan_and_applies_nothing(project: Path, server: str) -> None:
     assert softplc("download", "deep/sub/c.yaml", "--api", server, cwd=project).returncode == 0
     assert softplc("start", "--api", server, cwd=project).returncode == 0
-    before = status(server, project)
+    before = settled(server)
     changed = (project / "deep/sub/c.yaml").read_text(encoding="utf-8").replace(
         "places:\n", "places:\n  spare: {tokens: 2}\n", 1)
     (project / "deep/sub/c.yaml").write_text(changed, encoding="utf-8")
@@ -115,13 +149,13 @@ def test_dry_run_shows_the_plan_and_applies_nothing(project: Path, server: str) 
     assert "new places (start with their declared tokens):\n  spare" in out
     assert "c1.idle" in out and "would be ACCEPTED" in out
     assert '{"count": 0}' in out  # the coloured place's record
-    after = status(server, project)
+    after = settled(server)
     assert after["program_hash"] == before["program_hash"]  # nothing applied
     assert "spare" not in after["marking"]  # type: ignore[operator]
 
     applied = softplc("download", "deep/sub/c.yaml", "--online", "--api", server, cwd=project)
     assert applied.returncode == 0, applied.stderr
-    assert status(server, project)["marking"]["spare"] == 2  # type: ignore[index]
+    assert settled(server)["marking"]["spare"] == 2  # type: ignore[index]
 
 
 def test_another_program_needs_replace_and_the_dry_run_says_so(
@@ -135,8 +169,8 @@ def test_another_program_needs_replace_and_the_dry_run_says_so(
     assert dry.returncode == 1 and "would be REFUSED" in dry.stdout and "--replace" in dry.stdout
     refused = softplc("download", str(other), "--online", "--api", server, cwd=project)
     assert refused.returncode == 1 and "--replace" in refused.stderr
-    assert status(server, project)["program"] == "transport"
+    assert settled(server)["program"] == "transport"
     replaced = softplc("download", str(other), "--online", "--replace", "--api", server,
                        cwd=project)
     assert replaced.returncode == 0, replaced.stderr
-    assert status(server, project)["program"] == "other"
+    assert settled(server)["program"] == "other"

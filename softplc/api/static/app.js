@@ -5,8 +5,9 @@
 "use strict";
 
 const API = "/api/v1";
-const page = { cy: null, netHash: null, frames: 0, lastFrame: null, counts: {},
-               symbols: [], rows: {}, plot: null, series: [[], [], [], []], events: 0 };
+const page = { cy: null, netHash: undefined, netWanted: undefined, netLoading: false,
+               netBuilds: 0, frames: 0, lastFrame: null, counts: {}, symbols: [], rows: {},
+               plot: null, series: [[], [], [], []], events: 0 };
 window.softplc = page;  // for people poking around (and the browser tests)
 
 const $ = (sel) => document.querySelector(sel);
@@ -126,14 +127,15 @@ function shortName(name, instance) {
 }
 
 function buildNet(net) {
+  if (page.cy) { page.cy.destroy(); page.cy = null; }
+  if (net.error || !net.nodes) {
+    $("#net-summary").textContent = net.error || (net.too_large ?
+      `${net.places} places, ${net.transitions} transitions: too large to draw` : "no net");
+    return;
+  }
   const elements = [];
   for (const inst of net.subnets || []) {
     elements.push({ data: { id: "i:" + inst, label: inst }, classes: "instance" });
-  }
-  if (net.too_large) {
-    $("#net-summary").textContent =
-      `${net.places} places, ${net.transitions} transitions: too large to draw`;
-    return;
   }
   for (const p of net.nodes.places) {
     elements.push({ data: { id: nodeId(p.name), name: p.name, kind: "place",
@@ -153,7 +155,7 @@ function buildNet(net) {
     elements.push({ data: { id: "a" + i, source: nodeId(from), target: nodeId(to),
                             weight: weight > 1 ? String(weight) : "" }, classes: kind });
   });
-  if (page.cy) page.cy.destroy();
+  page.netBuilds += 1;  // once per program: the browser tests count them
   page.cy = cytoscape({ container: $("#net"), elements, style: NET_STYLE, wheelSensitivity: 0.3,
                         minZoom: 0.2, maxZoom: 3 });
   page.cy.layout({ name: "dagre", rankDir: "LR", nodeSep: 30, rankSep: 55, edgeSep: 10 }).run();
@@ -232,18 +234,54 @@ function updateNet(frame) {
   page.counts = counts;
 }
 
-async function loadNet(hash) {
-  const answer = await api("GET", "/net");
-  if (!answer.ok) {
-    if (page.cy) { page.cy.destroy(); page.cy = null; }
-    $("#net-summary").textContent = answer.data.error || "";
-    page.netHash = hash;
-    return;
-  }
-  page.netHash = hash;
-  page.symbols = answer.data.symbols || [];
-  buildNet(answer.data);
+/* One load of the net at a time, whatever the frames' rate: a frame only says which program
+   it wants (its hash); the loader fetches /net until what is drawn is that program. A failed
+   or lagging answer (a busy board: 503; a board that does not show the new program yet) keeps
+   what is drawn and retries; only "no program" with no program wanted clears the net. */
+const NET_RETRY_MS = 300;
+
+function wantNet(hash) {
+  page.netWanted = hash ?? null;
+  if (!page.netLoading && page.netWanted !== page.netHash) loadNet();
+}
+
+function showNoNet(message) {
+  if (page.cy) { page.cy.destroy(); page.cy = null; }
+  page.symbols = [];
   buildImage();
+  $("#net-summary").textContent = message;
+}
+
+async function fetchNetOnce(wanted) {
+  let answer;
+  try { answer = await api("GET", "/net"); } catch (e) { answer = { ok: false, data: {} }; }
+  const hash = answer.ok ? answer.data.program_hash ?? wanted : undefined;
+  if (answer.ok && hash !== page.netHash) {
+    page.netHash = hash;  // set first: a net that cannot be drawn is not fetched again
+    page.symbols = answer.data.symbols || [];
+    buildImage();
+    buildNet(answer.data);
+  } else if (!answer.ok && answer.status === 404 && wanted === null) {
+    showNoNet(answer.data.error || "no program loaded");
+    page.netHash = null;
+  } else if (!answer.ok && !page.cy) {
+    $("#net-summary").textContent = (answer.data.error || "net unavailable") + ", retrying";
+  }
+}
+
+async function loadNet() {
+  page.netLoading = true;
+  try {
+    while (page.netWanted !== page.netHash) {
+      const wanted = page.netWanted;
+      await fetchNetOnce(wanted);
+      if (page.netWanted !== page.netHash && page.netWanted === wanted) {
+        await new Promise((resolve) => setTimeout(resolve, NET_RETRY_MS));
+      }
+    }
+  } finally {
+    page.netLoading = false;
+  }
 }
 
 /* -- process image ----------------------------------------------------------------------- */
@@ -390,6 +428,9 @@ function updateHeader(frame) {
   const forced = Object.keys(frame.forced || {}).length;
   text($("#forced-count"), `${forced} forced`);
   $("#forced-count").classList.toggle("hidden", forced === 0);
+  const waiting = frame.waiting_for_devices || [];  // start-up: no firing round, outputs safe
+  text($("#waiting-io"), `waiting for I/O: ${waiting.join(", ")}`);
+  $("#waiting-io").classList.toggle("hidden", waiting.length === 0);
   const fault = $("#fault");
   fault.classList.toggle("hidden", !frame.fault_reason);
   text(fault, frame.fault_reason ? "FAULT: " + frame.fault_reason : "");
@@ -397,7 +438,7 @@ function updateHeader(frame) {
 
 function onFrame(frame) {
   page.frames += 1;
-  if (frame.program_hash !== page.netHash) loadNet(frame.program_hash);
+  wantNet(frame.program_hash);
   updateHeader(frame);
   updateNet(frame);
   updateImage(frame);

@@ -1,0 +1,101 @@
+"""A round's output writes: Moore (place- and busy-driven) outputs and transition actions.
+
+Owns: which place-driven outputs a round rewrites (only those whose places changed, or all
+after an outside write), pulses, and the actions of fired transitions in step order (set,
+reset, pulse, write, emit), their run-time errors as diagnostics.
+Does not know: the image the writes go to (core/scan.py applies them), selection, timing.
+"""
+
+from __future__ import annotations
+
+from softplc.core.engine.bindings import NO_TOKENS, Bound
+from softplc.core.engine.diagnostics import Diagnostics
+from softplc.core.engine.live import Live
+from softplc.core.engine.produce import Envs
+from softplc.core.engine.tables import Tables
+from softplc.core.expr import EvalContext
+from softplc.core.net import ActionKind, CompiledNet, Transition
+
+Writes = list[tuple[str, int]]
+
+
+class Outputs:
+    """The writes of each round; `pending` rewrites every place-driven output once."""
+
+    __slots__ = ("_diag", "_live", "_net", "_pulsed", "_remoore", "_tables", "pending")
+
+    def __init__(self, net: CompiledNet, tables: Tables, live: Live, diag: Diagnostics) -> None:
+        self._net, self._tables, self._live, self._diag = net, tables, live, diag
+        self._pulsed: set[str] = set()
+        self._remoore: set[str] = set()  # place-driven outputs an action overwrote
+        self.pending = True  # rewrite every place-driven output this round
+
+    def quiet(self) -> bool:
+        """Nothing to write unless something fires: no pulse to end, no output to restore."""
+        return not self._pulsed and not self._remoore and not self.pending
+
+    def round(self, selected: list[int], changed: set[int], busy_changed: set[int],
+              ctx: EvalContext, envs: Envs) -> tuple[Writes, list[str]]:
+        """Moore writes from the new marking, then the actions in step order."""
+        # Nothing to rewrite unless a changed place drives an output: the common round.
+        writes = [] if (not self._pulsed and not busy_changed and not self._remoore
+                        and not self.pending and self._tables.output_places.isdisjoint(changed)
+                        ) else self._moore(changed, busy_changed)
+        emitted: list[str] = []
+        if self._tables.any_actions:
+            ts = self._net.transitions
+            for ti in selected:
+                if ts[ti].actions:
+                    self._actions(ts[ti], Bound(ctx, envs.get(ti, NO_TOKENS)), writes, emitted)
+        return writes, emitted
+
+    def _moore(self, changed: set[int], busy_changed: set[int]) -> Writes:
+        net, st = self._net, self._live.state
+        writes: Writes = []
+        symbols: set[str] = set()
+        for sym in sorted(self._pulsed):
+            if sym in net.moore_drivers or sym in net.busy_drivers:
+                symbols.add(sym)
+            else:
+                writes.append((sym, 0))
+        self._pulsed = set()
+        for p in changed:
+            symbols.update(s for s, _ in net.place_outputs.get(p, ()))
+        for ti in busy_changed:
+            symbols.update(s for s, _ in net.transitions[ti].busy_outputs)
+        symbols.update(self._remoore)
+        self._remoore = set()
+        if self.pending:
+            symbols.update(net.moore_drivers)
+            symbols.update(net.busy_drivers)
+            self.pending = False
+        for sym in sorted(symbols):
+            value = 0
+            for p, v in net.moore_drivers.get(sym, ()):
+                if st.marking[p] > 0:
+                    value = value or v
+            for ti, v in net.busy_drivers.get(sym, ()):
+                if ti in st.busy:
+                    value = value or v
+            writes.append((sym, value))
+        return writes
+
+    def _actions(self, t: Transition, ctx: Bound, writes: Writes, emitted: list[str]) -> None:
+        for act in t.actions:
+            if act.kind is ActionKind.EMIT:
+                emitted.append(act.target)
+            elif act.kind is ActionKind.WRITE and act.value is not None:
+                try:
+                    value = act.value(ctx)
+                    if isinstance(value, str):  # int('12') would silently turn text into 12
+                        raise TypeError("text cannot be written to a symbol")
+                    writes.append((act.target, int(value)))
+                except (KeyError, TypeError, ValueError, ArithmeticError) as exc:
+                    self._diag.report(
+                        f"{t.name}: {act.target} = {act.value.text!r} failed ({exc})")
+            else:
+                writes.append((act.target, 0 if act.kind is ActionKind.RESET else 1))
+                if act.kind is ActionKind.PULSE:
+                    self._pulsed.add(act.target)
+            if act.target in self._net.moore_drivers or act.target in self._net.busy_drivers:
+                self._remoore.add(act.target)  # the marking drives it again next round

@@ -1,0 +1,56 @@
+"""Session-wide: pytest exits as soon as it has printed its summary.
+
+Owns: the end of the session. What a test left running (a non-daemon thread, a thread-pool
+worker blocked in a call, a multiprocessing child) may not keep the interpreter alive after
+the summary: children are terminated, threads get GRACE_S to end, then the process exits
+with pytest's own status, naming on stderr what it left behind so that the test that
+leaked it can be found.
+Does not know: any test's subject.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import sys
+import threading
+import time
+from typing import Final
+
+import pytest
+
+GRACE_S: Final = 2.0
+_exit_status: list[int] = [0]
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    _exit_status[0] = int(exitstatus)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """After the summary: end what tests left running, or leave without waiting for it."""
+    children = multiprocessing.active_children()
+    for child in children:
+        child.terminate()
+    for child in children:
+        child.join(1.0)
+        if child.is_alive():
+            child.kill()
+            child.join(1.0)
+    deadline = time.monotonic() + GRACE_S
+    left = [t for t in threading.enumerate()
+            if t is not threading.main_thread() and not t.daemon and t.is_alive()]
+    for thread in left:
+        thread.join(max(deadline - time.monotonic(), 0.0))
+    left = [t for t in left if t.is_alive()]
+    if children or left:
+        names = ", ".join([f"process {c.name}" for c in children] +
+                          [f"thread {t.name}" for t in left])
+        sys.stderr.write(f"\nleft running by the tests: {names}\n")
+    if left:  # the interpreter would wait for them at exit: do not
+        sys.stdout.flush()
+        sys.stderr.write("exiting without waiting for them\n")
+        sys.stderr.flush()
+        os._exit(_exit_status[0])
