@@ -298,7 +298,7 @@ def _get(results: dict[str, Any], *path: str) -> Any:
 
 def explain(results: dict[str, Any]) -> list[str]:
     """Why each missed target was missed, from this run's own figures, and what would close
-    it. Written with the measurements of docs/realtime.md and runtime/downloads.py."""
+    it. Written with the measurements of docs/realtime.md and runtime/download.py."""
     missed = {t["key"] for t in results["targets"] if t["met"] is False}
     notes: list[str] = []
     floor = _get(results, "scan", "configs", "floor_1ms") or {}
@@ -333,7 +333,7 @@ def explain(results: dict[str, Any]) -> list[str]:
             "(runtime/compileproc.py, SCHED_IDLE, off the scan's interpreter); the scan "
             "thread itself loads the net it sends (program/wire.py, a piece a step), builds "
             "the engine's tables primed on the new marking and the carry plan, and later "
-            "frees the replaced net, a step at a time between scans (runtime/idlework.py); "
+            "frees the replaced net, a step at a time between scans (runtime/download.py); "
             "the swap scan only carries the marking over (at most "
             f"{fmt(swap_max)} ms here; {swap_missed} slots missed by swap scans). Over all "
             f"changes {during} slots were missed from request to first scan, against "

@@ -106,7 +106,7 @@ def _evaluate(request: dict[str, Any], record: ScanRecord, period_ns: int) -> di
 
 def split_cost_ms(old_transitions: int, new_transitions: int) -> dict[str, float]:
     """Where an online change's time goes, measured in this process: compiling the new net
-    (text to CompiledNet, on the scan process's compile thread) and the swap scan alone (what
+    (text to CompiledNet, in the compile process) and the swap scan alone (what
     the scan does with the compiled net, its engine tables and carry plan prebuilt)."""
     filename = str(ROOT / "programs" / FILE_NAME)
     old = compile_text(ring_program(old_transitions, 0), filename, ROOT)

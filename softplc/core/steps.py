@@ -5,7 +5,7 @@ Owns: the `Steps` type, `drain` (run them all, here and now) and `STEP` (how man
 step handles where the items are cheap).
 Why: an online change's last part (loading the compiled net, building and priming its
 engine, planning the carry-over, freeing the replaced net) runs on the scan thread itself,
-between scans, a step at a time (runtime/idlework.py), so that no second thread of the scan
+between scans, a step at a time (runtime/download.py), so that no second thread of the scan
 process holds the interpreter lock when a slot comes. The same generators, drained, are the
 plain functions: one implementation either way.
 Does not know: threads, clocks, the scan.
@@ -21,7 +21,7 @@ _T = TypeVar("_T")
 Steps = Generator[None, None, _T]  # yields between steps, returns the result
 
 # Items per step where each costs ~0.1-0.5 µs (a table entry, a place, an enabling check):
-# at most ~130 µs a step, well inside the scan thread's STEP_NS (runtime/idlework.py).
+# at most ~130 µs a step, well inside the scan thread's STEP_NS (runtime/download.py).
 STEP = 256
 
 

@@ -5,7 +5,7 @@ parsed program) and lets them go one container per Python step, roots first.
 Why: freeing a tree in one go is a single decref cascade that no other thread can interrupt;
 for a 10,000-transition program the parsed document took 5.5 ms and the parsed program
 7-12 ms, while a scan thread waited for the interpreter lock at 1 ms (an online change runs
-its compile beside the scan: runtime/downloads.py). Each container held here is freed when
+its compile beside the scan, as it once did). Each container held here is freed when
 its slot is cleared: its children are still held further on, so nothing cascades. Objects
 also referenced from elsewhere (the compiled net keeps some) are simply not freed: nothing is
 ever modified.
@@ -30,29 +30,31 @@ _FORGET = 1024  # seen ids dropped per step
 _TRIM = 16384  # emptied slots of the walk's list given back per step
 _SHARDS = 64
 _WALK_STEP = 256  # objects looked at per step of the walk (~0.3-1 µs each)
-_PIECEWISE = [True]  # this process: is there a scan thread sharing the interpreter?
+# This process: does a scan thread share the interpreter while it compiles? Off by default:
+# the compile process, `check`, `simulate` and `analyze` free at once (nobody waits there; a
+# piecewise burial is ~40 % of a 10,000-transition compile).
+_PIECEWISE = [False]
 
 
 def piecewise(on: bool) -> None:
-    """For the whole process: bury() a container at a time (on: a scan thread shares this
-    interpreter), or at once (off: the compile process, where nobody waits; a piecewise burial
-    is ~40 % of a 10,000-transition compile)."""
+    """For the whole process: bury() a container at a time (on), or at once (off)."""
     _PIECEWISE[0] = on
 
 
 def bury(box: list[Any]) -> None:
-    """Empty `box` and let go of what it held, a container at a time. The caller hands over
-    its last references in the box (a reference passed as an argument would stay on the
-    caller's stack until the call returns, and the cascade would come then)."""
-    drain(burying(box))
+    """Empty `box` and let go of what it held: a container at a time where piecewise() is on,
+    else at once. The caller hands over its last references in the box (a reference passed as
+    an argument would stay on the caller's stack until the call returns, and the cascade
+    would come then)."""
+    if _PIECEWISE[0]:
+        drain(burying(box))
+    else:
+        box.clear()
 
 
 def burying(box: list[Any]) -> Steps[None]:
-    """bury(), a step at a time (core/steps.py; the sizes above): the scan thread frees a
-    replaced net between its scans."""
-    if not _PIECEWISE[0]:
-        box.clear()
-        return
+    """A container at a time, whatever piecewise() says (core/steps.py; the sizes above): the
+    scan thread frees a replaced net between its scans (runtime/download.py)."""
     order: list[Any] = []
     # Ids seen, in shards: one set of ~100,000 ids took 3 ms to grow and 4 ms to free.
     seen: list[set[int]] = [set() for _ in range(_SHARDS)]

@@ -8,7 +8,7 @@ allowlist checks.
 Why pickle: the scan process must end with Python objects; rebuilding them from pickle's
 opcodes is the cheapest way there (10,000 transitions: ~50 ms, gc off, against ~320 ms to
 compile the YAML), and it goes a piece at a time (`loading`), so the scan thread loads a
-download between its scans (runtime/idlework.py).
+download between its scans (runtime/download.py).
 Trust: the bytes come from the runtime's own compile process over a private pipe, never from
 a client; `loads` is not for bytes of unknown origin.
 Does not know: files, processes, the scan.

@@ -900,6 +900,33 @@ transitions:
     assert engine.state.marking_by_name(net) == {"x": 1, "y": 1}
 
 
+def test_a_reservation_restarts_the_enabling_delay_of_a_transition_it_blocks(
+        tmp_path: Path) -> None:
+    """`fast` is enabled at 0; `slow` starting its duration fills x's room at once, so `fast`
+    is disabled from then on and its delay starts over when room is made (at 20, seen at 30),
+    as a fresh evaluation of every round would have it."""
+    net = compile_program(tmp_path, """
+places:
+  p: {tokens: 1}
+  q: {tokens: 1}
+  x: {tokens: 1, capacity: 2}
+  y: {}
+transitions:
+  slow: {from: [p], to: [x], duration: 20ns, priority: 1}
+  fast: {from: [q], to: [x], delay: 25ns}
+  out: {from: [x], to: [y], when: b}
+""")
+    engine = Engine(net)
+    fired = []
+    previous = {"b": 0}
+    for now in range(0, 70, 10):
+        values = {"b": int(now == 20)}
+        changed = [n for n in values if values[n] != previous[n]]
+        fired.append(fired_names(net, engine.fire_round(Ctx(values, previous), now, changed)))
+        previous = values
+    assert fired == [["slow"], [], ["out"], [], [], [], ["fast"]]
+
+
 def test_two_coloured_transitions_take_different_tokens_in_one_round(tmp_path: Path) -> None:
     net = compile_program(tmp_path, """
 places:

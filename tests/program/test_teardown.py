@@ -7,7 +7,8 @@ import gc
 import weakref
 from typing import ClassVar
 
-from softplc.program.teardown import bury
+from softplc.core.steps import drain
+from softplc.program.teardown import bury, burying
 from softplc.program.yamlref import YList, YMap
 
 
@@ -33,7 +34,7 @@ def test_everything_buried_is_freed_and_the_box_is_emptied() -> None:
                    *(weakref.ref(p) for p in root["places"][::97])]
         box = [root]
         del root
-        bury(box)
+        drain(burying(box))
         assert box == []
         assert [w() for w in watched] == [None] * len(watched)
     finally:
@@ -46,14 +47,14 @@ def test_what_others_still_hold_is_kept_whole() -> None:
     kept_places = root["places"]
     box = [root]
     del root
-    bury(box)
+    drain(burying(box))
     assert kept == {"tokens": 42, "name": "p42"} and kept.lines == {"tokens": 42}
     assert len(kept_places) == 100 and kept_places[99]["name"] == "p99"
 
 
 def test_where_no_scan_thread_waits_a_burial_frees_all_at_once() -> None:
-    """The compile process (runtime/compileproc.py) turns the piecewise burial off: the same
-    result, without walking the tree (there, freeing in one cascade delays nobody)."""
+    """Piecewise burial off (the default: the compile process, check, simulate, analyze): the
+    same result, without walking the tree (there, freeing in one cascade delays nobody)."""
     from softplc.program import teardown
 
     gc.disable()
@@ -70,7 +71,7 @@ def test_where_no_scan_thread_waits_a_burial_frees_all_at_once() -> None:
         assert [w() for w in watched] == [None, None]
     finally:
         teardown._walk = original
-        teardown.piecewise(True)
+        teardown.piecewise(False)
         gc.enable()
 
 

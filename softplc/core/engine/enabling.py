@@ -70,7 +70,7 @@ class Enabling:
             ts, cap = self._net.transitions, self._net.capacity
             for ti in busy_changed:
                 self._dirty_places.update(a.place for a in ts[ti].pre)
-                pass
+                self._dirty_places.update(o.place for o in ts[ti].post if cap[o.place] >= 0)
         self._recheck.update(selected)
         self._recheck.update(completed)
         if self._dirty_places:
