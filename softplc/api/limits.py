@@ -1,10 +1,18 @@
-"""Bounds of the HTTP API: connection cap, header timeout, body read deadline, size limits.
+"""Bounds of the HTTP API: connections, request classes, header timeout, body deadline, sizes.
 
-Owns: `HttpLimits` (the numbers), the aiohttp `AppRunner` arguments that enforce header size
-limits and the header/idle timeout, a listening site whose connections pass a gate (cap:
-evict the connection idle longest, refuse with 503 only when every connection is inside a
-request), and a middleware that gives a request body one deadline.
-Does not know: routes, auth, the PLC, the channel (api/server.py).
+Owns: `HttpLimits` (the numbers), `Capacity` (those numbers cut to the file descriptors the
+process really has), the aiohttp `AppRunner` arguments that enforce header size limits and
+the header/idle timeout, a listening site whose connections pass a gate, the request classes
+(priority, stream, ordinary) and their bounds, refusal counts for status with a rate-limited
+summary line in the log, and a middleware that gives a request body one deadline.
+Does not know: routes, auth, the PLC, the channel (api/server.py classifies its routes).
+
+The rule (docs/api.md, "Connections and request classes"): at the connection cap the idle
+connection that never authenticated goes first, from the peer holding most connections, idle
+longest; a connection inside a request is never evicted. Event streams have their own pools
+(total and per peer) and ordinary requests a bound of their own, both below the cap, so the
+rest of it (`reserve` at least) is always free or held by idle connections for the priority
+requests (stop, status, the page), which are never refused for capacity.
 
 Why these mechanisms (aiohttp 3.14, web_protocol.py): a new connection gets aiohttp's
 keep-alive timer at once, and when it fires while no complete request head has arrived
@@ -17,10 +25,14 @@ deadline and no connection cap: those are the middleware and the gate here.
 from __future__ import annotations
 
 import asyncio
+import enum
 import json
 import logging
+import os
+import resource
+from collections import Counter
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Final
 
 from aiohttp import web
@@ -37,12 +49,31 @@ REFUSAL: Final = (
     + f"Content-Length: {len(_REFUSAL_BODY)}\r\n\r\n".encode()
     + _REFUSAL_BODY
 )
+SUMMARY_S: Final = 60.0  # refusals reach the log as one summary line per minute at most
+MIN_CONNECTIONS: Final = 8  # even a process starved of descriptors serves stop and status
+
+
+class Kind(enum.Enum):
+    PRIORITY = "priority"  # stop, status, the page: never refused for capacity
+    STREAM = "stream"  # an endless response (event streams): pools of their own
+    ORDINARY = "ordinary"  # the rest: bounded together
+
+
+# (method, path, has a body) -> (kind, pool); the pool names a stream's pool.
+Classify = Callable[[str, str, bool], tuple[Kind, str]]
 
 
 @dataclass(frozen=True, slots=True)
 class HttpLimits:
     # A handful of operators, tools and pages; HMIs poll over Modbus, not here.
     max_connections: int = 128
+    # Per stream pool (events, the page's live stream): in total, and from one address.
+    max_streams: int = 16
+    max_streams_per_peer: int = 8
+    # Connections that streams and ordinary requests can never hold: stop, status, the page.
+    reserve: int = 16
+    # Of the descriptors free when the server starts; Modbus and OPC UA share the process.
+    fd_share: float = 0.25
     # A new connection must deliver a complete request head within this, and a kept-alive
     # connection is closed after this long without a request.
     header_timeout_s: float = 10.0
@@ -60,6 +91,9 @@ class HttpLimits:
             f"{name} must be > 0, got {value}"
             for name, value in (
                 ("max_connections", self.max_connections),
+                ("max_streams", self.max_streams),
+                ("max_streams_per_peer", self.max_streams_per_peer),
+                ("fd_share", self.fd_share),
                 ("header_timeout_s", self.header_timeout_s),
                 ("body_timeout_s", self.body_timeout_s),
                 ("max_line_size", self.max_line_size),
@@ -68,8 +102,9 @@ class HttpLimits:
             )
             if not value > 0
         ]
-        if self.lingering_s < 0:
-            bad.append(f"lingering_s must be >= 0, got {self.lingering_s}")
+        bad += [f"{name} must be >= 0, got {value}"
+                for name, value in (("lingering_s", self.lingering_s), ("reserve", self.reserve))
+                if value < 0]
         if bad:
             raise ValueError("; ".join(bad))
 
@@ -85,65 +120,170 @@ class HttpLimits:
 
 
 @dataclass(frozen=True, slots=True)
+class Capacity:
+    """The limits as enforced: the cap cut to the descriptors, the rest scaled with it."""
+
+    connections: int
+    streams: int  # per pool
+    streams_per_peer: int
+    ordinary: int  # ordinary requests in progress at once
+    reserve: int
+    fd_limit: int  # RLIMIT_NOFILE (soft) of this process
+
+    @classmethod
+    def of(cls, limits: HttpLimits, pools: int, fd_limit: int, fd_open: int) -> Capacity:
+        budget = int(max(fd_limit - fd_open, 0) * limits.fd_share)
+        cap = min(limits.max_connections, max(MIN_CONNECTIONS, budget))
+        scale = cap / limits.max_connections
+        reserve = min(max(int(limits.reserve * scale), 1 if limits.reserve else 0), cap // 4)
+        streams = max(1, min(int(limits.max_streams * scale), (cap - reserve) // (2 * pools)))
+        ordinary = max(1, cap - reserve - pools * streams)
+        return cls(cap, streams, min(limits.max_streams_per_peer, streams), ordinary, reserve,
+                   fd_limit)
+
+
+def descriptors() -> tuple[int, int]:
+    """(RLIMIT_NOFILE soft limit, descriptors open now) of this process."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    try:
+        in_use = len(os.listdir("/proc/self/fd"))
+    except OSError:
+        in_use = 64  # no /proc: a typical count at start
+    return (soft if soft != resource.RLIM_INFINITY else 1 << 20), in_use
+
+
+@dataclass(frozen=True, slots=True)
 class ConnectionStats:
     admitted: int = 0
     evicted: int = 0  # closed while idle (no request running) to make room for a new one
     refused: int = 0  # answered 503: every connection was inside a request
+    streams_refused: int = 0  # 503: the stream pool (or the peer's share of it) was full
+    busy_refused: int = 0  # 503: too many ordinary requests in progress
     body_timeouts: int = 0  # 408: the body did not arrive within body_timeout_s
+
+
+class Refused(Exception):
+    """A request over its class's bound: answered 503 with `message`, Retry-After: 1."""
 
 
 @dataclass(slots=True)
 class _Entry:
     transport: asyncio.BaseTransport
+    peer: str
     last_active_s: float  # connect, or the end of its last request
     busy: int = 0  # requests of this connection inside the app right now
+    trusted: bool = False  # some request of it was answered other than 401/403
+
+
+@dataclass(slots=True)
+class Ticket:
+    """One request inside the app: what it holds, given back by `leave`."""
+
+    entry: _Entry | None
+    kind: Kind
+    pool: str
 
 
 class _Gate:
-    """The open connections and the cap. Runs on the server's event loop only."""
+    """The open connections, the requests in progress and the caps. Event loop only."""
 
-    def __init__(self, limits: HttpLimits) -> None:
-        self.limits = limits
+    def __init__(self, capacity: Capacity) -> None:
+        self.capacity = capacity
         self.stats = ConnectionStats()
         self._entries: dict[asyncio.BaseTransport, _Entry] = {}
+        self._streams: Counter[tuple[str, str]] = Counter()  # (pool, peer) -> open streams
+        self._ordinary = 0
+        self._logged = ConnectionStats()
+        self._logged_s = -SUMMARY_S
 
     def __len__(self) -> int:
         return len(self._entries)
 
-    def admit(self, transport: asyncio.BaseTransport, now_s: float) -> bool:
-        if len(self._entries) >= self.limits.max_connections and not self._evict_one():
-            self.count("refused")
+    def admit(self, transport: asyncio.BaseTransport, peer: str, now_s: float) -> bool:
+        if len(self._entries) >= self.capacity.connections and not self._evict_one():
+            self.count("refused", now_s)
             return False
-        self._entries[transport] = _Entry(transport, now_s)
-        self.count("admitted")
+        self._entries[transport] = _Entry(transport, peer, now_s)
+        self.count("admitted", now_s)
         return True
 
     def forget(self, transport: asyncio.BaseTransport) -> None:
         self._entries.pop(transport, None)
 
-    def enter(self, transport: asyncio.BaseTransport | None) -> _Entry | None:
+    def enter(self, transport: asyncio.BaseTransport | None, kind: Kind, pool: str,
+              now_s: float) -> Ticket:
         entry = self._entries.get(transport) if transport is not None else None
+        peer = entry.peer if entry is not None else "?"
+        if kind is Kind.STREAM:
+            self._check_stream(pool, peer, now_s)
+            self._streams[(pool, peer)] += 1
+        elif kind is Kind.ORDINARY:
+            if self._ordinary >= self.capacity.ordinary:
+                self.count("busy_refused", now_s)
+                raise Refused(f"server busy: {self._ordinary} requests in progress (the "
+                              "limit); retry, or use stop and status, which are always served")
+            self._ordinary += 1
         if entry is not None:
             entry.busy += 1
-        return entry
+        return Ticket(entry, kind, pool)
 
-    def leave(self, entry: _Entry | None, now_s: float) -> None:
-        if entry is not None:
-            entry.busy -= 1
-            entry.last_active_s = now_s
+    def _check_stream(self, pool: str, peer: str, now_s: float) -> None:
+        total = sum(n for (p, _), n in self._streams.items() if p == pool)
+        if total >= self.capacity.streams:
+            self.count("streams_refused", now_s)
+            raise Refused(f"too many {pool} streams: {total} open (the limit); close one")
+        if self._streams[(pool, peer)] >= self.capacity.streams_per_peer:
+            self.count("streams_refused", now_s)
+            raise Refused(f"too many {pool} streams from {peer}: "
+                          f"{self.capacity.streams_per_peer} open (the limit per address)")
+
+    def leave(self, ticket: Ticket, answered: int, now_s: float) -> None:
+        if ticket.kind is Kind.STREAM:
+            key = (ticket.pool, ticket.entry.peer if ticket.entry is not None else "?")
+            self._streams[key] -= 1
+            if self._streams[key] <= 0:
+                del self._streams[key]
+        elif ticket.kind is Kind.ORDINARY:
+            self._ordinary -= 1
+        if ticket.entry is not None:
+            ticket.entry.busy -= 1
+            ticket.entry.last_active_s = now_s
+            ticket.entry.trusted |= answered not in (401, 403)
 
     def _evict_one(self) -> bool:
         idle = [entry for entry in self._entries.values() if entry.busy == 0]
         if not idle:
             return False
-        victim = min(idle, key=lambda entry: entry.last_active_s)
+        per_peer = Counter(entry.peer for entry in self._entries.values())
+        victim = min(idle, key=lambda e: (e.trusted, -per_peer[e.peer], e.last_active_s))
         del self._entries[victim.transport]
         victim.transport.close()  # flushes a reply still being written, then closes
-        self.count("evicted")
+        self.count("evicted", 0.0)
         return True
 
-    def count(self, outcome: str) -> None:
+    def count(self, outcome: str, now_s: float) -> None:
         self.stats = replace(self.stats, **{outcome: getattr(self.stats, outcome) + 1})
+        if outcome in ("refused", "streams_refused", "busy_refused"):
+            self._summarise(now_s)
+
+    def _summarise(self, now_s: float) -> None:
+        """One log line for the first refusal, then at most one per SUMMARY_S: a flood of
+        refused clients must not become a flood of log lines."""
+        if now_s - self._logged_s < SUMMARY_S:
+            return
+        then, now = asdict(self._logged), asdict(self.stats)
+        counts = ", ".join(f"{key} {now[key] - then[key]}" for key in now if key != "admitted")
+        log.warning("HTTP door, since the last summary: %s (connections %d of %d)", counts,
+                    len(self._entries), self.capacity.connections)
+        self._logged, self._logged_s = self.stats, now_s
+
+    def report(self) -> dict[str, Any]:
+        streams: Counter[str] = Counter()
+        for (pool, _), n in self._streams.items():
+            streams[pool] += n
+        return {**asdict(self.stats), "connections": len(self._entries),
+                "ordinary_in_progress": self._ordinary, "streams": dict(streams),
+                "capacity": asdict(self.capacity)}
 
 
 class _GatedProtocol(asyncio.Protocol):
@@ -157,8 +297,9 @@ class _GatedProtocol(asyncio.Protocol):
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         loop = asyncio.get_running_loop()
-        if not self._gate.admit(transport, loop.time()):
-            log.debug("HTTP connection refused: %d connections, all in a request", len(self._gate))
+        peer = transport.get_extra_info("peername")
+        peer = str(peer[0]) if isinstance(peer, tuple) and peer else "?"
+        if not self._gate.admit(transport, peer, loop.time()):
             if isinstance(transport, asyncio.WriteTransport):
                 transport.write(REFUSAL)
             transport.close()
@@ -213,21 +354,36 @@ class _BoundedSite(web.BaseSite):
         )  # fmt: skip
 
 
+def _everything_priority(method: str, path: str, has_body: bool) -> tuple[Kind, str]:
+    return Kind.PRIORITY, ""
+
+
 class HttpBounds:
     """One server's bounds: `runner(app)` then `site(runner, host, port)` instead of
-    `web.AppRunner(app)` and `web.TCPSite(runner, host, port)`."""
+    `web.AppRunner(app)` and `web.TCPSite(runner, host, port)`. Without `classify` every
+    request is bounded by the connection cap only; `pools` names the stream pools."""
 
-    def __init__(self, limits: HttpLimits | None = None) -> None:
+    def __init__(self, limits: HttpLimits | None = None, classify: Classify | None = None,
+                 pools: int = 1) -> None:
         self.limits = limits or HttpLimits()
-        self._gate = _Gate(self.limits)
+        self._classify = classify or _everything_priority
+        self._gate = _Gate(Capacity.of(self.limits, pools, *descriptors()))
 
     @property
     def stats(self) -> ConnectionStats:
         return self._gate.stats
 
     @property
+    def capacity(self) -> Capacity:
+        return self._gate.capacity
+
+    @property
     def connection_count(self) -> int:
         return len(self._gate)
+
+    def report(self) -> dict[str, Any]:
+        """Counts since start, connections and streams open, the capacity: for status."""
+        return self._gate.report()
 
     def runner(self, app: web.Application, **kwargs: Any) -> web.AppRunner:
         # Outermost: a request counts as busy for the whole of its handling. Innermost: the
@@ -241,11 +397,20 @@ class HttpBounds:
 
     @web.middleware
     async def _track(self, request: web.Request, handler: Handler) -> web.StreamResponse:
-        entry = self._gate.enter(request.transport)
+        loop = asyncio.get_running_loop()
+        kind, pool = self._classify(request.method, request.path, request.can_read_body)
         try:
-            return await handler(request)
+            ticket = self._gate.enter(request.transport, kind, pool, loop.time())
+        except Refused as exc:
+            return web.json_response({"error": str(exc), "problems": []}, status=503,
+                                     headers={"Retry-After": "1"})
+        answered = 500
+        try:
+            response = await handler(request)
+            answered = response.status
+            return response
         finally:
-            self._gate.leave(entry, asyncio.get_running_loop().time())
+            self._gate.leave(ticket, answered, loop.time())
 
     @web.middleware
     async def _body_deadline(self, request: web.Request, handler: Handler) -> web.StreamResponse:
@@ -254,7 +419,7 @@ class HttpBounds:
                 async with asyncio.timeout(self.limits.body_timeout_s):
                     await request.read()  # cached: the handler's read()/text()/json() reuse it
             except TimeoutError:
-                self._gate.count("body_timeouts")
+                self._gate.count("body_timeouts", asyncio.get_running_loop().time())
                 raise web.HTTPRequestTimeout(
                     text=f"the request body did not arrive within {self.limits.body_timeout_s:g} s"
                 ) from None

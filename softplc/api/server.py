@@ -36,7 +36,7 @@ from softplc.api.commands import (
     Record,
 )
 from softplc.api.events import EventHub
-from softplc.api.limits import HttpBounds, HttpLimits
+from softplc.api.limits import HttpBounds, HttpLimits, Kind
 from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
 from softplc.api.problems import ApiProblem, idempotency_key
 from softplc.core.image import ProcessImage
@@ -59,6 +59,22 @@ DEFAULT_PORT: Final = 8080
 MAX_BODY_BYTES: Final = 1 << 20
 COMMAND_TIMEOUT_S: Final = 5.0  # a lifecycle command's deadline; below the client's 10 s
 HEARTBEAT_S: Final = 15.0
+# Endless responses, each with a pool of its own (api/limits.py): events do not starve pages.
+STREAM_POOLS: Final = {f"{API_PREFIX}/events": "events", f"{API_PREFIX}/live": "live"}
+# Always served, whatever streams and other requests hold: the operator's way in and out.
+PRIORITY_PATHS: Final = frozenset({"/healthz", "/", "/index.html", f"{API_PREFIX}/status",
+                                   f"{API_PREFIX}/stop", f"{API_PREFIX}/kill"})
+
+
+def request_class(method: str, path: str, has_body: bool) -> tuple[Kind, str]:
+    """The class a request is bounded in (docs/api.md, "Connections and request classes").
+    A request with a body is never a priority one: a trickled body would hold the reserve."""
+    if method == "GET" and path in STREAM_POOLS:
+        return Kind.STREAM, STREAM_POOLS[path]
+    if not has_body and method in ("GET", "HEAD", "POST") and (
+            path in PRIORITY_PATHS or path.startswith(("/static/", f"{API_PREFIX}/commands/"))):
+        return Kind.PRIORITY, ""
+    return Kind.ORDINARY, ""
 
 
 class CommandChannel(Protocol):
@@ -97,7 +113,8 @@ class ApiServer:
         self._token: str | None = None
         self._hub = EventHub(self.board_document)
         self._runner: web.AppRunner | None = None
-        self.bounds = HttpBounds(limits)  # connection cap, header and body timeouts
+        # Connection cap, request classes, header and body timeouts.
+        self.bounds = HttpBounds(limits, request_class, pools=len(STREAM_POOLS))
 
     @property
     def token_file(self) -> Path | None:
@@ -301,6 +318,7 @@ class ApiServer:
                 status.setdefault("program_hash", s.program_hash or None)
                 status.setdefault("timing", {"p99_lateness_us": s.p99_lateness_us,
                                              "overruns": s.overruns})
+        status["http"] = self.bounds.report()  # refusals counted here, not logged one by one
         status["last_event_seq"] = max(
             (e["seq"] for e in events if isinstance(e, dict) and isinstance(e.get("seq"), int)),
             default=0)

@@ -23,8 +23,8 @@ from softplc.bench.measure import Progress, figures, ratio
 from softplc.bench.netgen import FAMILIES, GenNet, to_compiled
 from softplc.bench.refengine import RefEngine
 from softplc.bench.snakes_net import SnakesEngine
+from softplc.core.engine import Engine
 from softplc.core.expr import Value
-from softplc.core.firing import Engine
 
 SIZES = (10, 100, 1_000, 10_000, 100_000)
 QUICK_SIZES = (10, 100, 1_000, 10_000)

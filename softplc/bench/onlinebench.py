@@ -18,7 +18,7 @@ from softplc.api.client import ApiClient, ApiError, ApiUnreachable
 from softplc.bench.live import ROOT, LiveRuntime, ScanRecord, run_floor
 from softplc.bench.measure import Progress, figures
 from softplc.core import online
-from softplc.core.firing import Engine
+from softplc.core.engine import Engine
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import Command
 from softplc.core.net import NetState

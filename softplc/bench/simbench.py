@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from softplc.bench.measure import Progress, figures
-from softplc.core.firing import Engine, Step
+from softplc.core.engine import Engine, Step
 from softplc.program.compiler import compile_file
 from softplc.runtime.runner import boot
 from softplc.runtime.simulate import simulate

@@ -3,7 +3,7 @@
 Owns: the limits (arc weight, tokens per place and in total, coloured tokens per place and in
 total, binding tries per scan), their defaults, the hard maxima a program's `limits:` section
 may not exceed, and the names of the keys of that section.
-Does not know: YAML (program/spec.py parses the section), the engine (core/firing.py checks
+Does not know: YAML (program/spec.py parses the section), the engine (core/engine/counts.py checks
 the run-time limits and raises PlcFault(FaultCode.LIMIT, ...)).
 
 Why these numbers (docs/programs.md, "Limits"):

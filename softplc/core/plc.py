@@ -18,9 +18,9 @@ import numpy as np
 
 from softplc.core import events as event_conditions
 from softplc.core import online
+from softplc.core.engine import Engine
 from softplc.core.expr import Value
 from softplc.core.faults import DeviceMonitor, Verdict
-from softplc.core.firing import Engine
 from softplc.core.forcing import Force, ForceRefused, Forces
 from softplc.core.image import AREAS, Area, ProcessImage
 from softplc.core.lifecycle import Command, CommandRejected, PlcState, accepting, next_state

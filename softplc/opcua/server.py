@@ -26,7 +26,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any, Final, Protocol
 
-from asyncua import Server, ua
+from asyncua import ua
 from asyncua.crypto.permission_rules import User, UserRole
 from asyncua.server.internal_session import InternalSession
 
@@ -38,7 +38,9 @@ from softplc.core.snapshot import (
     SnapshotUnavailable,
 )
 from softplc.opcua.access import ClientServices, TokenUsers, may_act
+from softplc.opcua.door import DoorServer
 from softplc.opcua.ids import status_code, string_id
+from softplc.opcua.limits import DoorStats, OpcUaLimits
 from softplc.opcua.mirror import Mirror
 from softplc.opcua.program import CommandChannel, Outcome, ProgramHandling, arguments
 from softplc.opcua.space import METHODS, NAMESPACE_URI, PROGRAM, Space, SymbolNode
@@ -60,15 +62,16 @@ class OpcUaServer:
     def __init__(self, channel: CommandChannel, snapshots: SnapshotSource, board: BoardSource,
                  *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, state_dir: Path,
                  modbus_writes: str = "open", poll_s: float = POLL_S,
-                 board_poll_s: float = BOARD_POLL_S) -> None:
+                 board_poll_s: float = BOARD_POLL_S, limits: OpcUaLimits | None = None) -> None:
         self.host, self.port = host, port
+        self.limits = limits or OpcUaLimits()
         self.state_dir = Path(state_dir)
         self.modbus_writes = modbus_writes
         self.poll_s, self.board_poll_s = poll_s, board_poll_s
         self._channel = channel
         self._snapshots = snapshots
         self._board = board
-        self._server: Server | None = None
+        self._server: DoorServer | None = None
         self.space: Space | None = None
         self._handling = ProgramHandling(channel, self._after_command)
         self._methods: dict[ua.NodeId, str] = {}
@@ -90,10 +93,17 @@ class OpcUaServer:
         port: int = bound.sockets[0].getsockname()[1]
         return port
 
+    @property
+    def door_stats(self) -> DoorStats:
+        """What the door admitted, evicted and refused since start (docs/opcua.md)."""
+        door = self._server.door if self._server is not None else None
+        return door.stats if door is not None else DoorStats()
+
     async def start(self) -> None:
         _quiet_asyncua()
         token = await asyncio.to_thread(auth.load_or_create_token, self.state_dir)
-        server = Server(user_manager=TokenUsers(token, auth.is_loopback(self.host)))
+        server = DoorServer(self.limits,
+                            user_manager=TokenUsers(token, auth.is_loopback(self.host)))
         await server.init()
         server.set_endpoint(f"opc.tcp://{self.host}:{self.port}")
         server.set_server_name("softplc")
@@ -138,7 +148,7 @@ class OpcUaServer:
                                                     inputs, outputs)
             self._methods[nodeid] = name
 
-    async def _event_generator(self, server: Server, ns: int) -> Any:
+    async def _event_generator(self, server: DoorServer, ns: int) -> Any:
         assert self.space is not None and self.space.plc is not None
         etype = await server.create_custom_event_type(
             ns, "SoftplcEventType", ua.ObjectIds.BaseEventType,
@@ -146,7 +156,7 @@ class OpcUaServer:
              ("Scan", ua.VariantType.UInt64)])
         return await server.get_event_generator(etype, self.space.plc.nodeid)
 
-    def _hook_sessions(self, server: Server) -> None:
+    def _hook_sessions(self, server: DoorServer) -> None:
         iserver = server.iserver
         create = iserver.create_session
 
@@ -270,7 +280,7 @@ class OpcUaServer:
         await mirror.push(snapshot)
 
 
-async def _end_clock(server: Server) -> None:
+async def _end_clock(server: DoorServer) -> None:
     """Cancel asyncua's once-a-second clock task (ServerStatus.CurrentTime): its own stop
     sets a flag and waits for the task to see it, up to 1 s (measured 0.9 s of a SIGTERM's
     2 s)."""

@@ -21,7 +21,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from softplc.core.firing import Engine
+from softplc.core.engine import Engine
 from softplc.core.judge import CycleWatchdog
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.problems import FaultCode
@@ -88,7 +88,7 @@ class ScanLoop:
         self._paced = False  # run() steps downloads between scans; by hand: at the boundary
         self._driver_specs: tuple[object, ...] = ()
         self.retain: RetainWriter | None = None
-        self._retained_ns = 0
+        self.retained_ns = 0
         self._prepared: dict[int, Prepared] = {}  # downloads handed to the scan, by request id
         self._retired: list[Any] = []  # a replaced net and its engine (scan_once)
         self._diag_engine: Engine | None = None  # diagnostics put on the event stream
@@ -114,7 +114,7 @@ class ScanLoop:
         cap = capture(self.runner.plc, now_ns, self._sim_plants())
         if cap is not None:
             self.retain.submit(cap)
-            self._retained_ns = now_ns
+            self.retained_ns = now_ns
 
     # -- commands ---------------------------------------------------------------------------
 
@@ -332,7 +332,7 @@ class ScanLoop:
                 self.writer.publish(self.runner.plc.image, self.status())
             interval = self.config.retain_interval_ns
             if self.retain is not None:
-                self._retain(now_ns, interval > 0 and now_ns - self._retained_ns >= interval)
+                self._retain(now_ns, interval > 0 and now_ns - self.retained_ns >= interval)
             if self.board is not None and refresh:
                 self.board.publish(self.document())
         except Exception as exc:

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from softplc.core import online
-from softplc.core.firing import Engine
+from softplc.core.engine import Engine
 from softplc.core.image import ImageSizes
 from softplc.core.lifecycle import Command, CommandRejected, PlcState, next_state
 from softplc.core.net import CompiledNet, NetState

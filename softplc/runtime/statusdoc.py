@@ -1,24 +1,72 @@
 """The scan loop's status, as people and other processes read it.
 
 Owns: the status board document (`softplc status`, the HTTP API, the operator's page) and the
-fixed-size Status of every published snapshot, both read off a ScanLoop between scans.
-Does not know: how they are published (runtime/board.py, runtime/shm.py).
+fixed-size Status of every published snapshot, both read between scans off a LoopView: what a
+scan loop shows of itself (runtime/loop.py's ScanLoop is one; this module does not import it).
+Does not know: how they are published (runtime/board.py, runtime/shm.py), the loop's workings.
 """
 
 from __future__ import annotations
 
 import os
-from typing import TYPE_CHECKING, Any
+from collections.abc import Sequence
+from typing import Any, Protocol
 
+from softplc.core.judge import CycleWatchdog
 from softplc.core.net import CompiledNet, NetState
 from softplc.core.snapshot import Status
 from softplc.runtime import netview
+from softplc.runtime.bootkeeper import BootKeeper
+from softplc.runtime.clock import Clock
+from softplc.runtime.compileproc import CompileProcess
+from softplc.runtime.config import LoopConfig
+from softplc.runtime.retain import RetainWriter
+from softplc.runtime.runner import ScanRunner
+from softplc.runtime.stats import TimingStats, TimingSummary
 
-if TYPE_CHECKING:
-    from softplc.runtime.loop import ScanLoop
+
+class LoopView(Protocol):
+    """What a scan loop shows of itself for status: read-only, between scans."""
+
+    @property
+    def config(self) -> LoopConfig: ...
+    @property
+    def runner(self) -> ScanRunner: ...
+    @property
+    def clock(self) -> Clock: ...
+    @property
+    def stats(self) -> TimingStats: ...
+    @property
+    def summary(self) -> TimingSummary: ...
+    @property
+    def stalls(self) -> int: ...
+    @property
+    def longest_gap_ns(self) -> int: ...
+    @property
+    def budget_ns(self) -> int: ...
+    @property
+    def watchdog(self) -> CycleWatchdog: ...
+    @property
+    def internal_errors(self) -> int: ...
+    @property
+    def start_mode(self) -> str: ...
+    @property
+    def start_reason(self) -> str: ...
+    @property
+    def realtime(self) -> str: ...
+    @property
+    def boot(self) -> BootKeeper: ...
+    @property
+    def analysis(self) -> dict[str, Any] | None: ...
+    @property
+    def retain(self) -> RetainWriter | None: ...
+    @property
+    def compiler(self) -> CompileProcess | None: ...
+    @property
+    def events(self) -> Sequence[dict[str, Any]]: ...
 
 
-def document(loop: ScanLoop) -> dict[str, Any]:
+def document(loop: LoopView) -> dict[str, Any]:
     """The status board of `loop`: what `softplc status` and the HTTP API show."""
     plc = loop.runner.plc
     timing: dict[str, Any] = dict(loop.summary.as_dict())
@@ -67,7 +115,7 @@ def document(loop: ScanLoop) -> dict[str, Any]:
         "waiting_for_io": bool(plc.waiting_io), "waiting_for_devices": list(plc.waiting_io),
     }
 
-def status(loop: ScanLoop) -> Status:
+def status(loop: LoopView) -> Status:
     """The fixed-size status of every snapshot (shared memory, Modbus status block)."""
     plc = loop.runner.plc
     return Status(plc.state, plc.scan_count, loop.stats.last_exec_ns // 1000,

@@ -1,20 +1,23 @@
 """How a scan loop starts its program: warm from the newest usable retain snapshot of the
 same program, else cold from the initial marking (docs/retain.md).
 
-Owns: the start decision applied to a ScanLoop before its first scan: the program's devices
-opened and the snapshot put in (warm), or the download queued (cold); a snapshot that does not
-fit after all falls back to cold, with the reason.
+Owns: the start decision applied to a starting loop (`Starting`: what it may set) before its
+first scan: the program's devices opened and the snapshot put in (warm), or the download
+queued (cold); a snapshot that does not fit after all falls back to cold, with the reason.
 Does not know: how snapshots are stored and chosen (runtime/retain.py).
 """
 
 from __future__ import annotations
 
 import sys
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
 from softplc.core.scan import Plc, ProgramCommand
+from softplc.runtime.clock import Clock
+from softplc.runtime.config import LoopConfig
+from softplc.runtime.prepare import Prepared
 from softplc.runtime.retain import (
     ContinuedClock,
     Loaded,
@@ -25,12 +28,28 @@ from softplc.runtime.retain import (
     load_plant,
     restore,
 )
+from softplc.runtime.runner import ScanRunner
+from softplc.runtime.shm import SnapshotWriter
 
-if TYPE_CHECKING:
-    from softplc.runtime.loop import ScanLoop
+
+class Starting(Protocol):
+    """What a starting scan loop lets the start decision set (runtime/loop.py's ScanLoop is
+    one; this module does not import it)."""
+
+    config: LoopConfig
+    runner: ScanRunner
+    writer: SnapshotWriter | None
+    clock: Clock
+    retain: RetainWriter | None
+    retained_ns: int
+    pending: list[ProgramCommand]
+    start_mode: str
+    start_reason: str
+
+    def swap_drivers(self, prepared: Prepared | None) -> None: ...
 
 
-def begin(loop: ScanLoop, net: CompiledNet | None) -> None:
+def begin(loop: Starting, net: CompiledNet | None) -> None:
     """Decide and prepare the start of `net` (None: no program, nothing to start)."""
     decision = StartDecision("cold", loop.start_reason)
     if loop.config.state_dir is not None:
@@ -47,7 +66,7 @@ def begin(loop: ScanLoop, net: CompiledNet | None) -> None:
     continue_count(loop)
 
 
-def continue_count(loop: ScanLoop) -> None:
+def continue_count(loop: Starting) -> None:
     """The scan count never goes back: a scan process started after another one died goes on
     from the count that one last published (the supervisor's snapshot segment outlives it),
     not from the retain snapshot's, up to a retain interval older (issue 26.5). Only the
@@ -58,7 +77,7 @@ def continue_count(loop: ScanLoop) -> None:
         plc.scan_count = max(plc.scan_count, published + 1)
 
 
-def cold(loop: ScanLoop, net: CompiledNet) -> None:
+def cold(loop: Starting, net: CompiledNet) -> None:
     """Download `net` (and start it, if asked) on the first scan, from its initial marking.
     A restart after a crash with no usable snapshot waits STOPPED: nothing says whether the
     program was running, and starting a machine from its initial marking is a person's call."""
@@ -66,7 +85,7 @@ def cold(loop: ScanLoop, net: CompiledNet) -> None:
     if loop.config.start and not loop.config.restarts:
         loop.pending.append(ProgramCommand(Command.START, id=0))
 
-def warm(loop: ScanLoop, net: CompiledNet, snap: Loaded) -> None:
+def warm(loop: Starting, net: CompiledNet, snap: Loaded) -> None:
     """Download `net`, open its devices and put the snapshot in; on a snapshot that does
     not fit after all (same hash, unusable content) fall back to a cold start."""
     payload = snap.payload
@@ -89,5 +108,5 @@ def warm(loop: ScanLoop, net: CompiledNet, snap: Loaded) -> None:
         if driver.name in plants and hasattr(driver, "plant"):
             driver.plant = plants[driver.name]  # simulation only: the field side
     loop.clock = ContinuedClock(loop.clock, payload["now_ns"])
-    loop._retained_ns = payload["now_ns"]
+    loop.retained_ns = payload["now_ns"]
     loop.start_reason += f" -> {state.name}"

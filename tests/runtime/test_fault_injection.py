@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from softplc.core.firing import Engine
+from softplc.core.engine import Engine
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.problems import FaultCode, PlcFault
