@@ -75,11 +75,17 @@ class Analysis:
             "p_invariants": [_named(v, net.place_names) for v in self.pinv.vectors],
             "t_invariants": [_named(v, net.transition_names) for v in self.tinv.vectors],
             "invariants_complete": self.pinv.complete and self.tinv.complete,
-            "conservative": len(covered) == P and self.pinv.complete,
+            # Covered by invariants found: conservative, complete or not; else unknown
+            # unless the invariants are all known.
+            "conservative": True if len(covered) == P else (False if self.pinv.complete
+                                                             else None),
             "strictly_conservative": bool(((net.post - net.pre).sum(axis=1) == 0).all()),
             "seconds": round(self.seconds, 6),
             "bytes_per_state": g.bytes_per_state,
-            "notes": [*net.notes, *g.notes],
+            "notes": [*net.notes, *g.notes, *(f"{kind}-invariants incomplete: {inv.why}"
+                                                for kind, inv in (("P", self.pinv),
+                                                                  ("T", self.tinv))
+                                                if not inv.complete)],
         }
 
 

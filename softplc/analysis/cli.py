@@ -1,9 +1,9 @@
 """The analysis commands of the CLI: `softplc analyze NET` and `softplc export PROGRAM`, and
 the summary `softplc check` prints.
 
-Owns: their arguments, exit codes (analyze: 0 no blocking finding, 1 findings or a bad
-net, 2 incomplete without findings; export: 0 or 1) and output. Does not know: how the
-analysis works.
+Owns: their arguments, exit codes (analyze: 0 no blocking finding, 1 findings, a bad net
+or one too large to analyse, 2 incomplete without findings; export: 0 or 1) and output.
+Does not know: how the analysis works.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import Any
 
 from softplc.analysis.analyze import DEFAULT_MAX_STATES, SEMANTICS, analyze
 from softplc.analysis.gate import Verdict, verdict_of, verify
-from softplc.analysis.model import AnalysisNet, from_compiled
+from softplc.analysis.model import AnalysisNet, TooLarge, from_compiled
 from softplc.core.net import CompiledNet
 from softplc.core.problems import ProgramError
 from softplc.program.compiler import compile_file
@@ -59,8 +59,12 @@ def cmd_analyze(args: argparse.Namespace) -> int:
             print(problem, file=sys.stderr)
         print(f"{args.net}: {len(exc.problems)} problem(s)", file=sys.stderr)
         return 1
+    except TooLarge as exc:
+        print(exc, file=sys.stderr)
+        return 1
     semantics = args.semantics or ("scan" if program else "interleaving")
     verdict = verdict_of(analyze(net, semantics, max(1, args.max_states)))
+    assert verdict.analysis is not None  # verdict_of always has one
     if args.json:
         print(json.dumps(verdict.analysis.to_dict() | {"findings": list(verdict.findings),
                                                        "blocking": verdict.blocking}))
@@ -72,12 +76,15 @@ def cmd_analyze(args: argparse.Namespace) -> int:
 
 
 def _print(verdict: Verdict) -> None:
+    assert verdict.analysis is not None
     d = verdict.analysis.to_dict()
+    conservative = {True: "conservative", False: "not conservative",
+                    None: "conservative unknown"}[d["conservative"]]
     print(verdict.summary)
     bounds = ", ".join(f"{k}: {'ω' if v is None else v}" for k, v in d["place_bounds"].items())
     print(f"place bounds: {bounds}")
     print(f"max tokens: {d['max_tokens_place']} in a place, {d['max_tokens_marking']} in a "
-          f"marking; {'conservative' if d['conservative'] else 'not conservative'}; "
+          f"marking; {conservative}; "
           f"{len(d['p_invariants'])} P-invariant(s), {len(d['t_invariants'])} T-invariant(s)")
     for finding in verdict.findings:
         print(finding)

@@ -20,6 +20,8 @@ from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
 from softplc.analysis.graph import (
     MAX_REPORTED,
     Conflict,
@@ -30,10 +32,13 @@ from softplc.analysis.graph import (
     state_conflicts,
     step_conflicts,
 )
-from softplc.analysis.model import AnalysisNet, GuardKind
+from softplc.analysis.model import AnalysisNet, GuardKind, IntArray
 
 OMEGA = 1 << 50
 MAX_OPTIONAL = 12  # optional candidates enumerated per state (2^12 subsets)
+# Candidate sets and ancestors looked at in one exploration: 2^12 optional candidates under
+# 2^12 guard valuations could be 16 million sets in a single state. ~10-30 s of Python.
+MAX_WORK = 20_000_000
 State = tuple[int, ...]  # marking, then one busy flag per three-phase transition
 
 
@@ -46,6 +51,11 @@ class Move:
     choice: tuple[int, ...]  # the candidate set that produced it (for covering replays)
 
 
+def _arcs(matrix: IntArray) -> list[list[tuple[int, int]]]:
+    """Per transition, (place, weight) of the nonzero entries of its row."""
+    return [[(int(p), int(row[p])) for p in np.flatnonzero(row)] for row in matrix]
+
+
 class Explorer:
     def __init__(self, net: AnalysisNet, semantics: str) -> None:
         self.net, self.semantics = net, semantics
@@ -54,14 +64,9 @@ class Explorer:
         self.timed = [t for t in range(net.n_transitions) if net.timed[t]] if self.scan else []
         self.busy_slot = {t: self.P + i for i, t in enumerate(self.timed)}
         T = net.n_transitions
-        self.pre = [[(p, int(net.pre[t, p])) for p in range(self.P) if net.pre[t, p]]
-                    for t in range(T)]
-        self.post = [[(p, int(net.post[t, p])) for p in range(self.P) if net.post[t, p]]
-                     for t in range(T)]
-        self.test = [[(p, int(net.test[t, p])) for p in range(self.P) if net.test[t, p]]
-                     for t in range(T)]
-        self.inhibit = [[(p, int(net.inhibit[t, p])) for p in range(self.P)
-                         if net.inhibit[t, p]] for t in range(T)]
+        self.work = 0  # candidate sets and ancestors looked at (the budget of explore())
+        self.pre, self.post = _arcs(net.pre), _arcs(net.post)
+        self.test, self.inhibit = _arcs(net.test), _arcs(net.inhibit)
         cap = [int(c) for c in net.capacity]
         self.cap = cap
         self.capped = [[(p, w) for p, w in self.post[t] if cap[p] >= 0] for t in range(T)]
@@ -165,6 +170,7 @@ class Explorer:
             optional = optional[:MAX_OPTIONAL]
             for k in range(len(optional) + 1):
                 for extra in itertools.combinations(optional, k):
+                    self.work += 1
                     key = tuple(sorted(forced + list(extra)))
                     if key not in out:
                         out.add(key)
@@ -195,15 +201,18 @@ class Explorer:
         return True
 
 
-def explore(net: AnalysisNet, semantics: str, max_states: int, accelerate: bool = True) -> Graph:
+def explore(net: AnalysisNet, semantics: str, max_states: int, accelerate: bool = True,
+            max_work: int = MAX_WORK) -> Graph:
     """Breadth-first search. `accelerate=False` when every place is known to be bounded
-    (P-invariants, capacities): no covering can exist, so ancestors are not searched."""
+    (P-invariants, capacities): no covering can exist, so ancestors are not searched. Past
+    max_states states or max_work candidate sets and ancestors, the graph is incomplete."""
     x = Explorer(net, semantics)
     T = net.n_transitions
     g = Graph(semantics, fired=[False] * T)
     start: State = tuple(int(v) for v in net.initial) + (0,) * len(x.timed)
     index: dict[State, int] = {start: 0}
     states: list[State] = [start]
+    totals = [sum(start)]  # a state covers an ancestor only if its total is larger
     parent: list[tuple[int, Move] | None] = [None]
     queue = deque([0])
     conflicted: set[str] = set()
@@ -213,6 +222,12 @@ def explore(net: AnalysisNet, semantics: str, max_states: int, accelerate: bool 
         _state_findings(net, x, s, i, states, parent, g, conflicted)
         any_move = False
         for mv in x.moves(s):
+            if x.work > max_work:
+                g.complete = False
+                g.stopped = (f"stopped after {max_work:,} candidate sets and ancestors "
+                             "(work budget)")
+                queue.clear()
+                break
             any_move = True
             g.edges += 1
             for t in mv.fired:
@@ -220,8 +235,8 @@ def explore(net: AnalysisNet, semantics: str, max_states: int, accelerate: bool 
             if not x.scan:
                 g.fired[mv.fired[0]] = True
             _step_findings(net, x, mv, i, states, parent, g, conflicted)
-            target = (_accelerate(x, mv.target, i, mv, states, parent, g) if accelerate
-                      else mv.target)
+            target = (_accelerate(x, mv.target, i, mv, states, totals, parent, g)
+                      if accelerate else mv.target)
             if target in index:
                 continue
             if len(states) >= max_states:
@@ -229,9 +244,10 @@ def explore(net: AnalysisNet, semantics: str, max_states: int, accelerate: bool 
                 continue
             index[target] = len(states)
             states.append(target)
+            totals.append(sum(target))
             parent.append((i, mv))
             queue.append(len(states) - 1)
-        if not any_move and not any(s[x.P:]):
+        if not any_move and not any(s[x.P:]) and not g.stopped:  # cut short: no deadlock
             g.deadlock_count += 1
             if len(g.deadlocks) < MAX_REPORTED:
                 g.deadlocks.append(Deadlock(
@@ -247,13 +263,15 @@ def explore(net: AnalysisNet, semantics: str, max_states: int, accelerate: bool 
 
 
 def _accelerate(x: Explorer, target: State, i: int, mv: Move, states: list[State],
-                parent: list[tuple[int, Move] | None], g: Graph) -> State:
+                totals: list[int], parent: list[tuple[int, Move] | None], g: Graph) -> State:
     """Karp-Miller: omega in the places where `target` strictly covers an ancestor."""
     chain: list[tuple[State, Move]] = [(states[i], mv)]
+    total = sum(target)
     j: int | None = i
     while j is not None:
         a = states[j]
-        if a[x.P:] == target[x.P:] and a != target and all(
+        x.work += 1
+        if totals[j] < total and a[x.P:] == target[x.P:] and all(
                 u <= v for u, v in zip(a, target, strict=True)):
             grown = [p for p in range(x.P) if a[p] < target[p] < OMEGA]
             if grown and x.repeats(list(reversed(chain)), grown):

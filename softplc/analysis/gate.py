@@ -3,7 +3,8 @@
 Owns: `verify(net) -> Verdict`, the one call the download path and `softplc check` make, and
 the wording of each finding (`FILE:LINE: place p: unbounded ...`). Blocking findings: an
 unbounded place, a deadlock, an output conflict, a dead transition. An incomplete analysis
-(past max_states) is a non-blocking finding. Does not know: HTTP, the scan, the CLI.
+(past max_states or a work budget) is a non-blocking finding; a net too large to analyse
+(analysis/model.py MAX_CELLS) a blocking one. Does not know: HTTP, the scan, the CLI.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from softplc.analysis.analyze import Analysis, analyze
-from softplc.analysis.model import AnalysisNet, from_compiled
+from softplc.analysis.model import AnalysisNet, TooLarge, from_compiled
 from softplc.core.net import CompiledNet
 
 GATE_MAX_STATES = 20_000
@@ -21,10 +22,12 @@ GATE_MAX_STATES = 20_000
 class Verdict:
     findings: tuple[str, ...]  # every finding, one located line each, blocking ones first
     blocking: bool
-    analysis: Analysis
+    analysis: Analysis | None  # None: the net is too large to analyse (the finding says)
 
     @property
     def summary(self) -> str:
+        if self.analysis is None:
+            return "analysis skipped (net too large for the analysis)"
         d = self.analysis.to_dict()
         bounded = {True: "bounded", False: "UNBOUNDED", None: "bounds unknown"}[d["bounded"]]
         return (f"analysis ({d['semantics']}): {d['states']} states, {d['edges']} edges"
@@ -36,8 +39,14 @@ class Verdict:
 
 def verify(net: CompiledNet, max_states: int = GATE_MAX_STATES,
            semantics: str = "scan") -> Verdict:
-    """Analyse `net` under the PLC's scan semantics (any input at any scan)."""
-    return verdict_of(analyze(from_compiled(net), semantics, max_states))
+    """Analyse `net` under the PLC's scan semantics (any input at any scan). A net too large
+    for the analysis is one blocking finding: what was not verified is not accepted under
+    --verify refuse (as the download gate's transition bound, runtime/prepare.py)."""
+    try:
+        model = from_compiled(net)
+    except TooLarge as exc:
+        return Verdict((f"{exc} (run `softplc analyze` offline on a smaller net)",), True, None)
+    return verdict_of(analyze(model, semantics, max_states))
 
 
 def verdict_of(result: Analysis) -> Verdict:
@@ -62,8 +71,9 @@ def verdict_of(result: Analysis) -> Verdict:
                         f"({'; '.join(c.drivers)}) after {_seq(c.path)}")
     notes: list[str] = []
     if not g.complete:
-        notes.append(f"{_short_source(net)}:0: analysis incomplete: stopped at {g.states} "
-                     "states (max_states); findings so far only")
+        why = g.stopped or f"stopped at {g.states} states (max_states)"
+        notes.append(f"{_short_source(net)}:0: analysis incomplete: {why}; findings so far "
+                     "only")
     return Verdict(tuple(blocking + notes), bool(blocking), result)
 
 

@@ -48,6 +48,7 @@ class Graph:
     unbounded: list[Unbounded] = field(default_factory=list)
     bytes_per_state: float = 0.0
     notes: list[str] = field(default_factory=list)
+    stopped: str = ""  # why an incomplete exploration stopped, when not at max_states
 
 
 MAX_REPORTED = 20  # deadlocks and conflicts listed in full (all are counted)

@@ -27,8 +27,9 @@ MAX_ROWS = 2_000
 # int64 cells of the new rows built for one column (32 MB); past it the pairs with the
 # smallest supports are combined first.
 MAX_NEW_CELLS = 4_000_000
-# Multiply-adds of the whole run (combinations and support tests): ~1-3 s of numpy here.
-MAX_WORK = 3_000_000_000
+# Cells touched in the whole run (combinations, support tests, column choices): ~1 s of
+# numpy here; the 253-place fork-join net of tests/analysis/test_budget.py spends it.
+MAX_WORK = 100_000_000
 # Matrices above this many cells are not started (a 10,000-place ring took 4.8 GB before
 # any bound); the result says "not complete".
 MAX_CELLS = 250_000
@@ -72,6 +73,7 @@ def farkas(matrix: npt.NDArray[np.int64], max_work: int = MAX_WORK) -> Invariant
     run = _Run(np.hstack([matrix.astype(np.int64), np.eye(n, dtype=np.int64)]), m)
     todo = [c for c in range(m) if matrix[:, c].any()]
     while todo and not run.why:
+        run.work += run.rows.shape[0] * (len(todo) + n)
         col = _next_column(run.rows, todo)
         todo.remove(col)
         _eliminate(run, col, max_work)
@@ -117,7 +119,9 @@ def _eliminate(run: _Run, col: int, max_work: int) -> None:
     new = a[minimal] * -b[minimal, col:col + 1] + b[minimal] * a[minimal, col:col + 1]
     gcd = np.gcd.reduce(new, axis=1)
     new //= np.maximum(gcd, 1)[:, None]
-    run.rows = _beam(run, np.unique(np.vstack([keep, new]), axis=0))
+    # No new row equals an old one (that one's support would lie in the union), and equal
+    # new rows are rare: only the new ones are made unique.
+    run.rows = _beam(run, np.vstack([keep, np.unique(new, axis=0)]))
 
 
 def _pairs(run: _Run, pos: npt.NDArray[np.int64],

@@ -25,6 +25,24 @@ from softplc.core.symbols import SymType
 
 IntArray = npt.NDArray[np.int64]
 MAX_GUARD_VARS = 12  # beyond this, concrete guards are treated as free (2^12 valuations)
+# Guard evaluations to classify the concrete guards (valuations x guards): past it they are
+# treated as free (4,096 valuations of 2,000 guards were ~10 s).
+MAX_GUARD_EVALS = 1_000_000
+# Places x transitions of the dense T x P arrays (four of int64: 128 MB at this bound). A
+# net of 100,000 places and as many transitions asked numpy for 74.5 GiB per array.
+MAX_CELLS = 4_000_000
+
+
+class TooLarge(ValueError):
+    """A net too large for the analysis's dense arrays; the message says the bound."""
+
+
+def check_size(source: str, places: int, transitions: int) -> None:
+    """Raise TooLarge, before anything is allocated, for a net over MAX_CELLS."""
+    if places * transitions > MAX_CELLS:
+        raise TooLarge(f"{_short(source)}:1: not analysed: {places:,} places x "
+                       f"{transitions:,} transitions = {places * transitions:,} cells exceed "
+                       f"the analysis bound of {MAX_CELLS:,} (places x transitions)")
 WriteValue = int | str  # a constant, or the text of an expression (value unknown)
 
 
@@ -161,7 +179,8 @@ def _classify(net: CompiledNet) -> tuple[tuple[GuardKind, ...], npt.NDArray[np.b
             variables.update(g.reads)
             variables.update("prev:" + n for n in g.edges)
     names = sorted(variables)
-    if len(names) > MAX_GUARD_VARS:
+    concrete = sum(k is GuardKind.CONCRETE for k in kinds)
+    if len(names) > MAX_GUARD_VARS or (concrete << len(names)) > MAX_GUARD_EVALS:
         kinds = [GuardKind.FREE if k is GuardKind.CONCRETE else k for k in kinds]
         names = []
     rows: set[tuple[bool, ...]] = set()
@@ -184,6 +203,7 @@ def _eval(guard: Compiled | None, ctx: _Valuation) -> bool:
 
 def from_compiled(net: CompiledNet) -> AnalysisNet:
     P, T = len(net.place_names), len(net.transitions)
+    check_size(net.source, P, T)
     pre, post = np.zeros((T, P), np.int64), np.zeros((T, P), np.int64)
     test, inhibit = np.zeros((T, P), np.int64), np.zeros((T, P), np.int64)
     for t in net.transitions:
@@ -222,6 +242,7 @@ def from_pt(name: str, source: str, places: Sequence[tuple[str, int, int]],
             inhibit: IntArray | None = None, test: IntArray | None = None) -> AnalysisNet:
     """A bare P/T net: `places` as (name, initial, line), `transitions` as (name, line)."""
     P, T = len(places), len(transitions)
+    check_size(source, P, T)
     zeros = np.zeros((T, P), np.int64)
     return AnalysisNet(
         name, source, tuple(p[0] for p in places), tuple((source, p[2]) for p in places),

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from softplc.analysis.model import AnalysisNet, from_pt
+from softplc.analysis.model import AnalysisNet, check_size, from_pt
 
 Arcs = dict[str, int]
 
@@ -34,6 +34,7 @@ class PtNet:
 def analysis_net(net: PtNet) -> AnalysisNet:
     index = {p: i for i, (p, _) in enumerate(net.places)}
     T, P = len(net.transitions), len(net.places)
+    check_size(f"<{net.name}>", P, T)
     pre, post = np.zeros((T, P), np.int64), np.zeros((T, P), np.int64)
     for t, (_, ins, outs) in enumerate(net.transitions):
         for p, w in ins.items():

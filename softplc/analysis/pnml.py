@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from softplc.analysis.model import AnalysisNet, from_pt
+from softplc.analysis.model import AnalysisNet, check_size, from_pt
 from softplc.analysis.pnml_export import PTNET, TOOL
 from softplc.analysis.pnml_export import export_compiled as export_compiled
 from softplc.analysis.pnml_export import export_pt as export_pt
@@ -28,6 +28,7 @@ from softplc.core.net import CompiledNet
 from softplc.core.problems import Problem, ProgramError
 from softplc.program.compiler import compile_text_with_io
 from softplc.program.io_image import load_io_image
+from softplc.program.sizes import count_problem
 
 # -- import -------------------------------------------------------------------------------
 
@@ -90,9 +91,15 @@ class _Reader:
 
 
 def _elements(page: Node) -> Iterator[Node]:
-    for child in page.children:
-        if child.tag == "page":
-            yield from _elements(child)
+    """The page's elements in document order, nested pages flattened (iteratively: pages
+    may nest as deep as xmltree.MAX_DEPTH allows)."""
+    stack = [iter(page.children)]
+    while stack:
+        child = next(stack[-1], None)
+        if child is None:
+            stack.pop()
+        elif child.tag == "page":
+            stack.append(iter(child.children))
         else:
             yield child
 
@@ -185,6 +192,7 @@ def _resolve(ident: str, items: dict[str, _Item], refs: dict[str, tuple[str, Nod
 def pt_analysis_net(net: PnmlNet) -> AnalysisNet:
     """The bare P/T skeleton (softplc data, if any, ignored)."""
     P, T = len(net.places), len(net.transitions)
+    check_size(net.file, P, T)
     pre, post = np.zeros((T, P), np.int64), np.zeros((T, P), np.int64)
     for p, t, w, to_place, _ in net.arcs:
         (post if to_place else pre)[t, p] += w
@@ -219,6 +227,11 @@ def compiled_net(net: PnmlNet, mapping: dict[str, Any] | None = None) -> Compile
     if not io_ref:
         raise ProgramError([Problem(net.file, 1, "net", "no io image: a softplc toolspecific "
                                     "<program> or a .softplc.json mapping must name one")])
+    too_big = count_problem(net.file, 1, {"places": len(net.places),
+                                          "transitions": len(net.transitions),
+                                          "arcs": len(net.arcs)})
+    if too_big is not None:  # before a program text of that size is written and parsed
+        raise ProgramError([too_big])
     io = load_io_image(Path(net.file).parent / str(io_ref))
     places: dict[str, Any] = {}
     for item, tokens in zip(net.places, net.initial, strict=True):
@@ -236,6 +249,9 @@ def compiled_net(net: PnmlNet, mapping: dict[str, Any] | None = None) -> Compile
             spec["outputs"] = {s: v for s, v in extra["outputs"]}
         places[item.name] = spec
     transitions: dict[str, Any] = {}
+    arcs_of: list[list[tuple[int, int, int, bool, Node]]] = [[] for _ in net.transitions]
+    for arc in net.arcs:
+        arcs_of[arc[1]].append(arc)
     for t, item in enumerate(net.transitions):
         data = r.tool_json(item.node, "transition") or {}
         data.update(mapping.get("transitions", {}).get(item.name, {}))
@@ -243,10 +259,10 @@ def compiled_net(net: PnmlNet, mapping: dict[str, Any] | None = None) -> Compile
                                                        "duration")}
         if data.get("outputs"):
             spec["outputs"] = {s: v for s, v in data["outputs"]}
-        spec["from"] = [_arc_spec(net, r, p, w, a, "var") for p, tt, w, to, a in net.arcs
-                        if tt == t and not to]
-        spec["to"] = [_arc_spec(net, r, p, w, a, "token") for p, tt, w, to, a in net.arcs
-                      if tt == t and to]
+        spec["from"] = [_arc_spec(net, r, p, w, a, "var") for p, _, w, to, a in arcs_of[t]
+                        if not to]
+        spec["to"] = [_arc_spec(net, r, p, w, a, "token") for p, _, w, to, a in arcs_of[t]
+                      if to]
         for key in ("read", "inhibit"):
             if data.get(key):
                 spec[key] = [{"place": p, "weight": w} for p, w in data[key]]

@@ -2,7 +2,8 @@
 
 Owns: Node (tag without namespace, attributes, text, line, children) and `parse_xml`, which
 refuses DTDs' entity declarations and external entities (defusedxml raises on them) and
-turns every XML error into a located Problem. Does not know: PNML.
+elements nested deeper than MAX_DEPTH, and turns every XML error into a located Problem.
+Does not know: PNML.
 """
 
 from __future__ import annotations
@@ -16,6 +17,17 @@ import defusedxml.sax  # type: ignore[import-untyped]
 from defusedxml import DefusedXmlException
 
 from softplc.core.problems import Problem, ProgramError
+
+# PNML nests pnml/net/page/place/name/text and pages in pages; 100,000 nested <page>s once
+# ended `softplc analyze` in a RecursionError. The tree is built and walked iteratively;
+# this bound keeps every walk of it (and its repr) shallow.
+MAX_DEPTH = 100
+
+
+class _TooDeep(Exception):
+    def __init__(self, line: int) -> None:
+        super().__init__(line)
+        self.line = line
 
 
 @dataclass(slots=True)
@@ -51,6 +63,8 @@ class _Builder(ContentHandler):
 
     def startElement(self, name: str, attrs: AttributesImpl) -> None:
         line = self.locator.getLineNumber() if self.locator else 0
+        if len(self.stack) >= MAX_DEPTH:
+            raise _TooDeep(line or 1)
         node = Node(name.rpartition(":")[2], dict(attrs.items()), line or 0)
         if self.stack:
             self.stack[-1].children.append(node)
@@ -76,6 +90,9 @@ def parse_xml(data: bytes, filename: str) -> Node:
         raise ProgramError([Problem(filename, line or 1, "", f"refused XML: {exc} (entity "
                                     "declarations and external entities are not accepted)")]
                            ) from None
+    except _TooDeep as exc:
+        raise ProgramError([Problem(filename, exc.line, "", f"XML nested deeper than "
+                                    f"{MAX_DEPTH} elements")]) from None
     except xml.sax.SAXParseException as exc:
         raise ProgramError([Problem(filename, exc.getLineNumber() or 1, "",
                                     f"not well-formed XML: {exc.getMessage()}")]) from None

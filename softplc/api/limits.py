@@ -1,18 +1,12 @@
 """Bounds of the HTTP API: connections, request classes, header timeout, body deadline, sizes.
 
-Owns: `HttpLimits` (the numbers), `Capacity` (those numbers cut to the file descriptors the
-process really has), the aiohttp `AppRunner` arguments that enforce header size limits and
-the header/idle timeout, a listening site whose connections pass a gate, the request classes
-(priority, stream, ordinary) and their bounds, refusal counts for status with a rate-limited
-summary line in the log, and a middleware that gives a request body one deadline.
+Owns: `HttpLimits`, `Capacity` (the limits cut to the descriptors the process really has),
+aiohttp's header limits and header/idle timeout, a site whose connections pass a gate (the
+cap; eviction, idle unauthenticated connections first), the request classes and their
+bounds, refusal counts for status (a summary log line per minute at most), the body deadline.
 Does not know: routes, auth, the PLC, the channel (api/server.py classifies its routes).
-
-The rule (docs/api.md, "Connections and request classes"): at the connection cap the idle
-connection that never authenticated goes first, from the peer holding most connections, idle
-longest; a connection inside a request is never evicted. Event streams have their own pools
-(total and per peer) and ordinary requests a bound of their own, both below the cap, so the
-rest of it (`reserve` at least) is always free or held by idle connections for the priority
-requests (stop, status, the page), which are never refused for capacity.
+Streams and ordinary requests are bounded below the cap, so `reserve` connections at least
+are free or idle for priority requests (stop, status, the page): docs/api.md.
 
 Why these mechanisms (aiohttp 3.14, web_protocol.py): a new connection gets aiohttp's
 keep-alive timer at once, and when it fires while no complete request head has arrived
@@ -87,21 +81,11 @@ class HttpLimits:
     max_headers: int = 32
 
     def __post_init__(self) -> None:
-        bad = [
-            f"{name} must be > 0, got {value}"
-            for name, value in (
-                ("max_connections", self.max_connections),
-                ("max_streams", self.max_streams),
-                ("max_streams_per_peer", self.max_streams_per_peer),
-                ("fd_share", self.fd_share),
-                ("header_timeout_s", self.header_timeout_s),
-                ("body_timeout_s", self.body_timeout_s),
-                ("max_line_size", self.max_line_size),
-                ("max_field_size", self.max_field_size),
-                ("max_headers", self.max_headers),
-            )
-            if not value > 0
-        ]
+        positive = ("max_connections", "max_streams", "max_streams_per_peer", "fd_share",
+                    "header_timeout_s", "body_timeout_s", "max_line_size", "max_field_size",
+                    "max_headers")
+        bad = [f"{name} must be > 0, got {getattr(self, name)}" for name in positive
+               if not getattr(self, name) > 0]
         bad += [f"{name} must be >= 0, got {value}"
                 for name, value in (("lingering_s", self.lingering_s), ("reserve", self.reserve))
                 if value < 0]
@@ -110,13 +94,9 @@ class HttpLimits:
 
     def handler_args(self) -> dict[str, Any]:
         """aiohttp RequestHandler arguments, passed through `web.AppRunner(**...)`."""
-        return {
-            "keepalive_timeout": self.header_timeout_s,
-            "lingering_time": self.lingering_s,
-            "max_line_size": self.max_line_size,
-            "max_field_size": self.max_field_size,
-            "max_headers": self.max_headers,
-        }
+        sizes = {k: getattr(self, k) for k in ("max_line_size", "max_field_size", "max_headers")}
+        return {"keepalive_timeout": self.header_timeout_s, "lingering_time": self.lingering_s,
+                **sizes}
 
 
 @dataclass(frozen=True, slots=True)
@@ -145,10 +125,7 @@ class Capacity:
 def descriptors() -> tuple[int, int]:
     """(RLIMIT_NOFILE soft limit, descriptors open now) of this process."""
     soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
-    try:
-        in_use = len(os.listdir("/proc/self/fd"))
-    except OSError:
-        in_use = 64  # no /proc: a typical count at start
+    in_use = len(os.listdir("/proc/self/fd")) if os.path.isdir("/proc/self/fd") else 64
     return (soft if soft != resource.RLIM_INFINITY else 1 << 20), in_use
 
 
@@ -163,7 +140,7 @@ class ConnectionStats:
 
 
 class Refused(Exception):
-    """A request over its class's bound: answered 503 with `message`, Retry-After: 1."""
+    """A request over its class's bound: answered 503, Retry-After: 1."""
 
 
 @dataclass(slots=True)
@@ -180,6 +157,7 @@ class Ticket:
     """One request inside the app: what it holds, given back by `leave`."""
 
     entry: _Entry | None
+    peer: str
     kind: Kind
     pool: str
 
@@ -193,8 +171,7 @@ class _Gate:
         self._entries: dict[asyncio.BaseTransport, _Entry] = {}
         self._streams: Counter[tuple[str, str]] = Counter()  # (pool, peer) -> open streams
         self._ordinary = 0
-        self._logged = ConnectionStats()
-        self._logged_s = -SUMMARY_S
+        self._logged, self._logged_s = ConnectionStats(), -SUMMARY_S
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -210,10 +187,10 @@ class _Gate:
     def forget(self, transport: asyncio.BaseTransport) -> None:
         self._entries.pop(transport, None)
 
-    def enter(self, transport: asyncio.BaseTransport | None, kind: Kind, pool: str,
+    def enter(self, transport: asyncio.BaseTransport | None, peer: str, kind: Kind, pool: str,
               now_s: float) -> Ticket:
+        # No entry: evicted while its request head was already parsed. It still counts.
         entry = self._entries.get(transport) if transport is not None else None
-        peer = entry.peer if entry is not None else "?"
         if kind is Kind.STREAM:
             self._check_stream(pool, peer, now_s)
             self._streams[(pool, peer)] += 1
@@ -225,7 +202,7 @@ class _Gate:
             self._ordinary += 1
         if entry is not None:
             entry.busy += 1
-        return Ticket(entry, kind, pool)
+        return Ticket(entry, peer, kind, pool)
 
     def _check_stream(self, pool: str, peer: str, now_s: float) -> None:
         total = sum(n for (p, _), n in self._streams.items() if p == pool)
@@ -239,7 +216,7 @@ class _Gate:
 
     def leave(self, ticket: Ticket, answered: int, now_s: float) -> None:
         if ticket.kind is Kind.STREAM:
-            key = (ticket.pool, ticket.entry.peer if ticket.entry is not None else "?")
+            key = (ticket.pool, ticket.peer)
             self._streams[key] -= 1
             if self._streams[key] <= 0:
                 del self._streams[key]
@@ -278,11 +255,9 @@ class _Gate:
         self._logged, self._logged_s = self.stats, now_s
 
     def report(self) -> dict[str, Any]:
-        streams: Counter[str] = Counter()
-        for (pool, _), n in self._streams.items():
-            streams[pool] += n
         return {**asdict(self.stats), "connections": len(self._entries),
-                "ordinary_in_progress": self._ordinary, "streams": dict(streams),
+                "ordinary_in_progress": self._ordinary, "streams": dict(sum(
+                    (Counter({pool: n}) for (pool, _), n in self._streams.items()), Counter())),
                 "capacity": asdict(self.capacity)}
 
 
@@ -290,8 +265,7 @@ class _GatedProtocol(asyncio.Protocol):
     """Stands in front of aiohttp's RequestHandler: a refused connection never reaches it."""
 
     def __init__(self, gate: _Gate, make_inner: Callable[[], asyncio.Protocol]) -> None:
-        self._gate = gate
-        self._make_inner = make_inner
+        self._gate, self._make_inner = gate, make_inner
         self._inner: asyncio.Protocol | None = None
         self._transport: asyncio.BaseTransport | None = None
 
@@ -348,14 +322,13 @@ class _BoundedSite(web.BaseSite):
         server = self._runner.server
         assert server is not None, "the runner is set up before its site starts"
         gate = self._gate
+        # asyncio accepts up to `backlog` sockets per loop turn before any is admitted or
+        # evicted: that burst counts against the descriptors too.
+        backlog = min(self._backlog, gate.capacity.connections)
         self._server = await asyncio.get_running_loop().create_server(
             lambda: _GatedProtocol(gate, server), self._host, self._port,
-            backlog=self._backlog, reuse_address=True,
+            backlog=backlog, reuse_address=True,
         )  # fmt: skip
-
-
-def _everything_priority(method: str, path: str, has_body: bool) -> tuple[Kind, str]:
-    return Kind.PRIORITY, ""
 
 
 class HttpBounds:
@@ -366,7 +339,7 @@ class HttpBounds:
     def __init__(self, limits: HttpLimits | None = None, classify: Classify | None = None,
                  pools: int = 1) -> None:
         self.limits = limits or HttpLimits()
-        self._classify = classify or _everything_priority
+        self._classify = classify or (lambda method, path, body: (Kind.PRIORITY, ""))
         self._gate = _Gate(Capacity.of(self.limits, pools, *descriptors()))
 
     @property
@@ -400,17 +373,17 @@ class HttpBounds:
         loop = asyncio.get_running_loop()
         kind, pool = self._classify(request.method, request.path, request.can_read_body)
         try:
-            ticket = self._gate.enter(request.transport, kind, pool, loop.time())
+            ticket = self._gate.enter(request.transport, request.remote or "?", kind, pool,
+                                      loop.time())
         except Refused as exc:
             return web.json_response({"error": str(exc), "problems": []}, status=503,
                                      headers={"Retry-After": "1"})
-        answered = 500
+        response: web.StreamResponse | None = None
         try:
             response = await handler(request)
-            answered = response.status
             return response
         finally:
-            self._gate.leave(ticket, answered, loop.time())
+            self._gate.leave(ticket, 500 if response is None else response.status, loop.time())
 
     @web.middleware
     async def _body_deadline(self, request: web.Request, handler: Handler) -> web.StreamResponse:

@@ -38,7 +38,7 @@ from softplc.api.commands import (
 from softplc.api.events import EventHub
 from softplc.api.limits import HttpBounds, HttpLimits, Kind
 from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
-from softplc.api.problems import ApiProblem, idempotency_key
+from softplc.api.problems import MAX_JSON_BYTES, ApiProblem, idempotency_key
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import Command
 from softplc.core.snapshot import (
@@ -199,6 +199,10 @@ class ApiServer:
                              headers={"WWW-Authenticate": 'Bearer realm="softplc"'})
         if (request.content_length or 0) > MAX_BODY_BYTES:
             raise ApiProblem(413, f"request body larger than {MAX_BODY_BYTES} bytes")
+        if request.method == "PUT" and (request.content_length or 0) > MAX_JSON_BYTES:
+            # Every PUT is a JSON value write: refused before the body is read, not after.
+            raise ApiProblem(413, f"JSON body of {request.content_length} bytes: at most "
+                                  f"{MAX_JSON_BYTES}")
         return await handler(request)
 
     # -- plumbing ---------------------------------------------------------------------------

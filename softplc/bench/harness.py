@@ -26,7 +26,7 @@ from typing import Any
 from softplc.bench.measure import Progress
 
 SECTIONS = ("engine", "scan", "simulate", "modbus", "online_change", "restart", "memory",
-            "web", "analysis", "opcua")
+            "web", "analysis", "opcua", "isolation")
 # Run only when named (--only): the watchdog section takes 30 minutes (--quick: 3).
 ON_REQUEST = ("watchdog",)
 
@@ -109,6 +109,15 @@ TARGETS = (
            "our states/s / SNAKES StateGraph's, same P/T nets (Kanban 2, FMS 2, ...)"),
     Target("analysis.kanban5_s", "<=", 5,
            "full reachability graph of Kanban N = 5 (2,546,432 states), seconds; not in --quick"),
+    Target("isolation.modbus_p99_ratio_max", "<=", 2,
+           "Modbus p99 response time under the worst OPC UA or HTTP abuse / without abuse",
+           period="1 ms"),
+    Target("isolation.http_p99_ratio_max", "<=", 2,
+           "HTTP /status p99 under the worst OPC UA or HTTP abuse / without abuse",
+           period="1 ms"),
+    Target("isolation.scan_p99_ratio_max", "<=", 2,
+           "scan p99 lateness under the worst OPC UA or HTTP abuse / without abuse",
+           period="1 ms"),
 )
 HEADLINE = (*(t.key for t in TARGETS), "memory.rss_mb")
 
@@ -119,7 +128,7 @@ _MODULES = {"engine": "engine", "scan": "scanbench", "simulate": "simbench",
             "modbus": "modbusbench", "web": "webbench", "opcua": "opcuabench",
             "analysis": "analysisbench", "restart": "restartbench",
             "online_change": "onlinebench", "memory": "memorybench",
-            "watchdog": "watchdogbench"}
+            "watchdog": "watchdogbench", "isolation": "isolationbench"}
 
 
 def _section_runner(name: str) -> Callable[[bool, Progress], dict[str, Any]]:

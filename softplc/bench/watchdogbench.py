@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -106,6 +107,7 @@ def measure(duration_s: float, burners: int = BURNERS, options: Sequence[str] = 
             burner.kill()
             burner.wait()
         _end(proc)
+        shutil.rmtree(state, ignore_errors=True)
     late = sorted(tally.p99_late_us)
     return {
         "duration_s": duration_s, "burners": burners, "options": list(options),

@@ -39,7 +39,7 @@ class CycleWatchdog:
     """When scan execution times fault the PLC, as a CODESYS task watchdog with its
     sensitivity: a scan longer than `budget_ns` is over budget, `sensitivity` of them in a row
     fault, and one scan longer than `hard_ns` faults alone. A busy host stretches a scan now
-    and then (scans of 99 ms, cycles 1 s late: 2 cores at load 10-20, docs/faults.md); a stuck
+    and then (scans of 105 ms, cycles 1 s late: 2 cores at load 10-20, docs/faults.md); a stuck
     driver or a runaway net stretches every scan, or one without end. Pure: the runtime measures."""
 
     budget_ns: int

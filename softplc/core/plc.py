@@ -3,8 +3,8 @@
 Owns: Plc (state, image, program, engine, events, forcing, device watches) with program
 handling per the lifecycle table (download, start, stop, resume, reset, kill), online change
 with the marking carried over by place name, frozen timers while stopped, faults and device
-recovery, HMI writes and safe outputs; ProgramCommand, a command as the scan applies it;
-ScanContext, the guards' view of the image.
+recovery, HMI writes and safe outputs; ProgramCommand, a command as the scan applies it
+(ScanContext, the guards' view of the image, is core/context.py's, imported here for scan.py).
 Does not know: the order of a scan (core/scan.py), clocks, processes, sockets, YAML.
 """
 
@@ -18,12 +18,20 @@ import numpy as np
 
 from softplc.core import events as event_conditions
 from softplc.core import online
+from softplc.core.context import ScanContext
 from softplc.core.engine import Engine
-from softplc.core.expr import Value
 from softplc.core.faults import DeviceMonitor, Verdict
 from softplc.core.forcing import Force, ForceRefused, Forces
 from softplc.core.image import AREAS, Area, ProcessImage
-from softplc.core.lifecycle import Command, CommandRejected, PlcState, accepting, next_state
+from softplc.core.lifecycle import (
+    Command,
+    CommandRejected,
+    PlcState,
+    Stage,
+    accepting,
+    next_stage,
+    stage_of,
+)
 from softplc.core.net import Busy, CompiledNet, NetState
 from softplc.core.online import CarryPlan
 from softplc.core.problems import FaultCode
@@ -52,31 +60,6 @@ class ProgramCommand:
     # against the running net, so that the swap costs a few array operations.
     engine: Engine | None = None
     plan: CarryPlan | None = None
-
-
-class ScanContext:
-    """EvalContext over the scan's image: current values, previous values, events."""
-
-    __slots__ = ("events", "image", "locations", "prev")
-
-    def __init__(self, image: ProcessImage, prev: ProcessImage,
-                 locations: dict[str, tuple[str, int]], events: frozenset[str]) -> None:
-        self.image, self.prev, self.locations, self.events = image, prev, locations, events
-
-    def symbol(self, name: str) -> int:
-        area, index = self.locations[name]
-        return int(getattr(self.image, area)[index])
-
-    def previous(self, name: str) -> int:
-        area, index = self.locations[name]
-        return int(getattr(self.prev, area)[index])
-
-    def event(self, name: str) -> bool:
-        return name in self.events
-
-    def token(self, var: str) -> dict[str, Value]:
-        raise KeyError(var)
-
 
 
 @dataclass
@@ -136,13 +119,19 @@ class Plc:
             return {}
         return self.engine.state.marking_by_name(self.net)
 
+    @property
+    def stage(self) -> Stage:
+        """The lifecycle's stage: a STOPPED PLC is SUSPENDED when a stop froze its marking
+        and timers (`stopped_at_ns`, which retain keeps), READY when it holds the initial one."""
+        return stage_of(self.state, self.stopped_at_ns is not None)
+
     # -- program handling -------------------------------------------------------------------
 
     def apply(self, cmd: ProgramCommand, now_ns: int) -> str:
         """Apply one command. Raises CommandRejected and changes nothing when refused."""
         if cmd.command is Command.FORCE or cmd.command is Command.UNFORCE:
             return self._force(cmd)
-        target = next_state(self.state, cmd.command)
+        target = next_stage(self.stage, cmd.command).state
         self.end_io_wait(now_ns)  # a command ends a wait as it stands; the scan re-decides
         if cmd.command is Command.DOWNLOAD:
             if cmd.net is None:
@@ -153,7 +142,8 @@ class Plc:
         elif cmd.command is Command.START or cmd.command is Command.RESET:
             assert self.net is not None
             self._load(self.net, NetState.initial(self.net))
-            self.forces.release(None)  # a cold start drops every force (docs/design.md section 10)
+            if cmd.command is Command.RESET:  # a start keeps what was forced while READY
+                self.forces.release(None)  # a reset drops every force (docs/design.md 10)
         elif cmd.command is Command.RESUME:
             self._thaw(now_ns)
             self.events.rearm()

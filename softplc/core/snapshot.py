@@ -32,6 +32,7 @@ class Status:
     period_us: int = 0
     forced: int = 0  # how many symbols are forced (docs/design.md section 10)
     waiting_for_io: bool = False  # a device has not delivered its first input image (issue 26)
+    marking_kept: bool = False  # STOPPED by a stop: Stage.SUSPENDED, not READY (issue 29)
     # About the snapshot, not the PLC (so not part of equality): CLOCK_MONOTONIC when the scan
     # process published it (0: never), and a reader's verdict that it is older than the PLC's
     # cycle allows (the scan process is frozen or dead).

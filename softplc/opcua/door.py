@@ -231,6 +231,7 @@ class Door(BinaryServer):
                     if c.processor is not None and c.processor.session is not None}
         orphan = next((s for s in sessions.values() if id(s) not in attached), None)
         if orphan is None:
+            self.count("requests_refused")
             raise ServiceError(ua.StatusCodes.BadTooManySessions)
         self.count("evicted")
         await orphan.close_session(True)

@@ -19,6 +19,7 @@ from asyncua import Server, ua
 from softplc.core.image import AddressError
 from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import Snapshot
+from softplc.opcua.part10 import Part10, notifier_chain, trigger_everywhere
 from softplc.opcua.program import Outcome
 from softplc.opcua.space import PartState, Space, SymbolNode, part10_state
 
@@ -41,6 +42,7 @@ class Mirror:
         self.built_hash: str | None = None  # the program whose nodes are built
         self._values: dict[Any, Any] = {}  # node id -> last value pushed
         self._part10: PartState | None = None
+        self.part10: Part10 | None = None  # LastTransition, Executable, transition events
         self._state: PlcState | None = None
         self._fault = 0
         self._event_seq = 0
@@ -48,13 +50,27 @@ class Mirror:
     async def first_look(self, document: Mapping[str, Any], snapshot: Snapshot | None) -> None:
         """Nodes of the program that runs now; events from now on (no replay of old ones)."""
         self._event_seq = newest_seq(document)
+        assert self.space.plc is not None and self.space.program is not None
+        await notifier_chain(self._server, self.space.plc, self.space.program)
+        transitions = await self._server.get_event_generator(
+            ua.ObjectIds.ProgramTransitionEventType, self.space.program.nodeid)
+        self.part10 = Part10(self._server, self.space.program, transitions)
         if snapshot is not None:
             self._state = snapshot.status.state
-            self._part10 = part10_state(snapshot.status.state, None)
             await self.maybe_rebuild(snapshot.status.program_hash, document)
             await self.push(snapshot)
-        if self._part10 is not None:
-            await self.space.set_part10_state(self._part10)
+        await self.follow(part10_state(snapshot.status.state, snapshot.status.marking_kept)
+                          if snapshot is not None else PartState.HALTED)
+
+    async def follow(self, state: PartState) -> bool:
+        """The Program object in Part 10 `state`; False when it was in it already."""
+        if state is self._part10:
+            return False
+        self._part10 = state
+        await self.space.set_part10_state(state)
+        if self.part10 is not None:
+            await self.part10.set(state)
+        return True
 
     async def maybe_rebuild(self, program_hash: str, document: Mapping[str, Any]) -> None:
         if (document.get("program_hash") or "") != program_hash:
@@ -66,18 +82,15 @@ class Mirror:
         if previous is not None and program_hash:
             await self.emit("download", f"program {document.get('program')} loaded "
                             f"(sha256 {program_hash[:12]}), state {document.get('state')}")
-            self._part10 = PartState.RUNNING if self._state is PlcState.RUNNING \
-                else PartState.READY
-            await self.space.set_part10_state(self._part10)
 
     async def transitions(self, snapshot: Snapshot) -> None:
         status = snapshot.status
-        if status.state is not self._state:
+        part = part10_state(status.state, status.marking_kept)
+        moved = await self.follow(part)
+        if status.state is not self._state or moved:
             before, self._state = self._state, status.state
-            self._part10 = part10_state(status.state, self._part10)
-            await self.space.set_part10_state(self._part10)
             await self.emit("state", f"{before.name if before else '?'} -> {status.state.name}"
-                            f" (Part 10: {self._part10.text})", scan=status.scan_count)
+                            f" (Part 10: {part.text})", scan=status.scan_count)
         if status.fault_code != self._fault:
             self._fault = status.fault_code
             if status.fault_code:
@@ -145,6 +158,10 @@ class Mirror:
                        ua.Variant(list(outcome.problems), ua.VariantType.String))
         if not outcome.ok:
             await self.emit("refused", text + "".join(f"\n{p}" for p in outcome.problems))
+        elif outcome.state in PlcState.__members__:
+            # The scan's reply says the state at once: a next call is checked against it, not
+            # against a snapshot up to a poll older (a STOPPED reply of Suspend kept the marking).
+            await self.follow(part10_state(PlcState[outcome.state], method == "Suspend"))
 
     async def set(self, nodeid: ua.NodeId, variant: ua.Variant) -> None:
         """Write a value into the address space only when it changed (subscribers are told
@@ -159,7 +176,7 @@ class Mirror:
         event = self._events.event
         event.EventName, event.Seq, event.Scan = name, seq & 0xFFFFFFFF, scan
         event.Severity = severity
-        await self._events.trigger(message=message)
+        await trigger_everywhere(self._events, message)
 
 
 def newest_seq(document: Mapping[str, Any]) -> int:

@@ -22,7 +22,9 @@ from asyncua import ua
 
 from softplc.core.lifecycle import Command
 from softplc.core.snapshot import ChannelFull, CommandReply, CommandRequest, HmiWrite
-from softplc.opcua.ids import numeric_id, status_code
+from softplc.opcua.ids import numeric_id, status_code, string_id
+from softplc.opcua.part10 import TYPE_METHODS, refusal
+from softplc.opcua.space import METHODS, PROGRAM, Space
 
 COMMAND_TIMEOUT_S: Final = 8.0  # as the HTTP API: below a client's usual 10 s
 DOWNLOAD_TIMEOUT_S: Final = 60.0  # a download compiles off the scan; a big net takes seconds
@@ -89,11 +91,40 @@ class ProgramHandling:
         self._channel = channel
         self._on_outcome = on_outcome
         self._ids = itertools.count(_FIRST_ID)
+        self.space: Space | None = None  # the address space, once the server built it
 
-    async def call(self, method: str, args: list[ua.Variant]) -> ua.CallMethodResult:
-        outcome = await self._outcome(method, [a.Value for a in args])
+    def method_of(self, request: ua.CallMethodRequest) -> str | None:
+        """The program method a call names, by the instance's method id or the type's
+        (Part 4: a type's method id called on an instance reaches the instance); None: not
+        ours (asyncua answers it)."""
+        method_id = request.MethodId
+        if method_id.NamespaceIndex == 0 and method_id.Identifier in TYPE_METHODS:
+            return TYPE_METHODS[int(method_id.Identifier)]
+        if self.space is None:
+            return None
+        for name in METHODS:
+            if method_id == string_id(f"{PROGRAM}.{name}", self.space.ns):
+                return name
+        return None
+
+    async def call(self, method: str, args: list[ua.Variant],
+                   object_id: ua.NodeId | None = None) -> ua.CallMethodResult:
+        outcome = self._misdirected(method, object_id) or \
+            await self._outcome(method, [a.Value for a in args])
         await self._on_outcome(method, outcome)
         return outcome.result()
+
+    def _misdirected(self, method: str, object_id: ua.NodeId | None) -> Outcome | None:
+        """A call on another object than the Program (Part 4: BadMethodInvalid), or one that
+        Part 10's state machine does not allow in the Program's state (BadInvalidState)."""
+        space = self.space
+        if space is None or space.program is None:
+            return None
+        if object_id is not None and object_id != space.program.nodeid:
+            return Outcome(ua.StatusCodes.BadMethodInvalid,
+                           f"{method} is a method of {PROGRAM}, not of {object_id.to_string()}")
+        reason = refusal(method, space.part10) if space.part10 is not None else None
+        return None if reason is None else Outcome(ua.StatusCodes.BadInvalidState, reason)
 
     async def _outcome(self, method: str, values: list[object]) -> Outcome:
         command = COMMANDS[method]

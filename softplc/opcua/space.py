@@ -17,7 +17,7 @@ from typing import Any, Final
 from asyncua import Node, Server, ua
 
 from softplc.core.image import Address, AddressError, parse_address
-from softplc.core.lifecycle import PlcState
+from softplc.core.lifecycle import PlcState, Stage, stage_of
 from softplc.opcua.ids import numeric_id, string_id
 
 NAMESPACE_URI: Final = "urn:softplc"
@@ -54,17 +54,16 @@ class PartState(enum.Enum):
         return numeric_id(self.value[2])
 
 
-def part10_state(state: PlcState, previous: PartState | None) -> PartState:
-    """RUNNING is Running; STOPPED is Suspended when it came from Running (a `stop`, marking
-    kept) and Ready otherwise (download, reset: initial marking); EMPTY/KILLED/FAULTED are
+def part10_state(state: PlcState, marking_kept: bool) -> PartState:
+    """RUNNING is Running; STOPPED is Suspended when a stop kept its marking (Stage.SUSPENDED)
+    and Ready when it holds the initial one (download, reset); EMPTY/KILLED/FAULTED are
     Halted (Part 10's idle state: cannot run, or ended)."""
-    if state is PlcState.RUNNING:
-        return PartState.RUNNING
-    if state is PlcState.STOPPED:
-        if previous in (PartState.RUNNING, PartState.SUSPENDED):
-            return PartState.SUSPENDED
-        return PartState.READY
-    return PartState.HALTED
+    return _PART10[stage_of(state, marking_kept)]
+
+
+_PART10: Final = {Stage.EMPTY: PartState.HALTED, Stage.KILLED: PartState.HALTED,
+                  Stage.FAULTED: PartState.HALTED, Stage.READY: PartState.READY,
+                  Stage.SUSPENDED: PartState.SUSPENDED, Stage.RUNNING: PartState.RUNNING}
 
 
 @dataclass(frozen=True, slots=True)
@@ -117,6 +116,7 @@ class Space:
         self.ns = ns
         self.plc: Node | None = None
         self.program: Node | None = None
+        self.part10: PartState | None = None  # the Program object's CurrentState, once known
         self.status: dict[str, Node] = {}
         self.symbols: dict[str, SymbolNode] = {}
         self.places: dict[str, Node] = {}
@@ -140,9 +140,11 @@ class Space:
                                        "LastProblems": (ua.VariantType.String, [])}.items():
             self.status[name] = await self.program.add_variable(
                 self.nid(f"{PROGRAM}.{name}"), f"{self.ns}:{name}", ua.Variant(initial, vtype))
+        await program_properties(self.server, self.program)
 
     async def set_part10_state(self, state: PartState) -> None:
         assert self.program is not None
+        self.part10 = state
         current = await self.program.get_child("0:CurrentState")
         await current.write_value(ua.LocalizedText(state.text))
         state_id = await current.get_child("0:Id")
@@ -207,3 +209,42 @@ async def _optional_child(node: Node, path: str) -> Node | None:
         return await node.get_child(path)
     except ua.UaStatusCodeError:
         return None
+
+
+async def program_properties(server: Server, program: Node) -> None:
+    """What asyncua leaves null on the instance: the optional properties get their values
+    (one program, neither deletable nor recycled), the optional ProgramDiagnostic goes (absent
+    rather than null), the methods get their OutputArguments (Message, State)."""
+    values = {"0:Deletable": ua.Variant(False, ua.VariantType.Boolean),
+              "0:AutoDelete": ua.Variant(False, ua.VariantType.Boolean),
+              "0:RecycleCount": ua.Variant(0, ua.VariantType.Int32),
+              "0:AvailableStates": ua.Variant([s.node for s in PartState],
+                                              ua.VariantType.NodeId),
+              "0:AvailableTransitions": ua.Variant(
+                  [numeric_id(getattr(ua.ObjectIds, f"ProgramStateMachineType_{t}"))
+                   for t in TRANSITION_NAMES], ua.VariantType.NodeId)}
+    for path, variant in values.items():
+        node = await _optional_child(program, path)
+        if node is not None:
+            await node.write_value(variant)
+    diagnostic = await _optional_child(program, "0:ProgramDiagnostic")
+    if diagnostic is not None:
+        await server.delete_nodes([diagnostic], recursive=True)
+    outputs = [ua.Argument(Name=name, DataType=numeric_id(ua.ObjectIds.String), ValueRank=-1,
+                           Description=ua.LocalizedText(text)) for name, text in OUTPUTS]
+    for method in METHODS[:5]:
+        node = await program.get_child(f"0:{method}")
+        if await _optional_child(node, "0:OutputArguments") is None:
+            prop = await node.add_property(
+                ua.NodeId(f"{node.nodeid.Identifier}.OutputArguments", node.nodeid.NamespaceIndex),
+                "0:OutputArguments", ua.Variant(outputs, ua.VariantType.ExtensionObject),
+                datatype=numeric_id(ua.ObjectIds.Argument))
+            await prop.write_value_rank(1)
+            await prop.write_array_dimensions([0])
+
+
+TRANSITION_NAMES: Final = ("HaltedToReady", "ReadyToRunning", "RunningToHalted",
+                           "RunningToReady", "RunningToSuspended", "SuspendedToRunning",
+                           "SuspendedToHalted", "SuspendedToReady", "ReadyToHalted")
+OUTPUTS: Final = (("Message", "what the PLC did or why it refused"),
+                  ("State", "PLC state after the command"))

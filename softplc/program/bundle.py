@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Any, Final
 
+from softplc.core.problems import Problem, ProgramError
 from softplc.program.yamlload import load_yaml
 
 MANIFEST: Final = "softplc-bundle.json"
@@ -191,6 +192,11 @@ def _check(bundle: Bundle, what: str = "bundle") -> None:
             raise BundleError(f"{what}: {name!r}: {why}")
     if len(bundle.files) > MAX_FILES:
         raise BundleError(f"{what}: {len(bundle.files)} files, at most {MAX_FILES} expected")
+    folders = {str(p) for name in bundle.files for p in PurePosixPath(name).parents}
+    for name in sorted(bundle.files):
+        if name in folders:  # `io` and `io/p.yaml` cannot both be unpacked
+            inner = min(n for n in bundle.files if n.startswith(name + "/"))
+            raise BundleError(f"{what}: {name!r} is a file and also the folder of {inner!r}")
     if sum(len(d) for d in bundle.files.values()) > MAX_TOTAL_BYTES:
         raise BundleError(f"{what}: more than {MAX_TOTAL_BYTES} bytes unpacked")
     if bundle.program not in bundle.files:
@@ -215,7 +221,16 @@ def path_problem(name: str) -> str | None:
 
 def extract(bundle: Bundle, directory: str | Path) -> Path:
     """Unpack into `directory` (created atomically: a crash leaves it whole or absent);
-    returns the program's path. An existing directory of the same digest is reused."""
+    returns the program's path. An existing directory of the same digest is reused. A bundle
+    that cannot be written (a full disk) is a ProgramError, the download refused."""
+    try:
+        return _extract(bundle, directory)
+    except OSError as exc:
+        raise ProgramError([Problem("bundle", 0, "", f"bundle: cannot be unpacked on the "
+                                    f"server: {exc.strerror or exc}")]) from None
+
+
+def _extract(bundle: Bundle, directory: str | Path) -> Path:
     target = Path(directory)
     if not target.is_dir():
         target.parent.mkdir(parents=True, exist_ok=True)

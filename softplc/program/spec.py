@@ -2,7 +2,7 @@
 
 Owns: the program file format (places, transitions, arcs, subnets, params, events), read
 into the spec values of specvalues.py, each with its file and line. Problems are collected,
-not raised.
+not raised; past a size limit (sizes.py) the expansion stops where it went over.
 Does not know: symbols' meaning, expressions' meaning (compiler.py checks those).
 """
 
@@ -16,6 +16,7 @@ from softplc.core.expr import ExprError, Value, substitute
 from softplc.core.problems import Problem
 from softplc.core.units import parse_duration_ns
 from softplc.core.values import record_problems
+from softplc.program.sizes import DEFAULT_SIZES, SizeExceeded, SizeLimits, Sizes
 from softplc.program.specvalues import ArcSpec, PlaceSpec, ProgramSpec, TransitionSpec, Where
 from softplc.program.suggest import did_you_mean, did_you_mean_key
 from softplc.program.teardown import bury
@@ -33,9 +34,14 @@ class _Parser:
     """Parses one file (the program, or a subnet instance with its prefix and parameters)."""
 
     def __init__(self, spec: ProgramSpec, problems: list[Problem], file: str, prefix: str,
-                 params: dict[str, Value], root: Path | None, depth: int) -> None:
+                 params: dict[str, Value], root: Path | None, depth: int,
+                 sizes: Sizes) -> None:
         self.spec, self.problems, self.file = spec, problems, file
         self.prefix, self.params, self.root, self.depth = prefix, params, root, depth
+        self.sizes = sizes  # shared by every instance: the expanded program's size
+
+    def count(self, key: str, n: int, where: Where) -> None:  # SizeExceeded past a limit
+        self.sizes.add(key, n, where.file, where.line, where.path)
 
     def problem(self, line: int, path: str, message: str) -> None:
         self.problems.append(Problem(self.file, line, path, message))
@@ -164,6 +170,7 @@ class _Parser:
                          "capacity must be a whole number >= 1")
             capacity = None
         outputs = self.outputs(data, where)
+        self.count("places", 1, where)
         self.spec.places.append(PlaceSpec(self.prefix + name, tokens,
                                           records if coloured else None, coloured,
                                           capacity, outputs, where))
@@ -215,6 +222,7 @@ class _Parser:
             w = self.where(data, "when", f"{where.path}.when")
             if isinstance(text, str) and text.strip().lower() in ("on", "off", "yes", "no"):
                 self.problem(w.line, w.path, f"guard {text!r}{trap_hint(text)}")
+            self.count("expression_chars", len(str(text)), w)  # before it is parsed
             when = (self.expr(str(text).lower() if isinstance(text, bool) else str(text), w), w)
         actions = []
         raw_do = data.get("do", YList())
@@ -223,12 +231,14 @@ class _Parser:
             raw_do = YList()
         for i, act in enumerate(raw_do):
             w = self.where(raw_do, i, f"{where.path}.do[{i}]")
+            self.count("expression_chars", len(str(act)), w)  # before it is parsed
             actions.append((self.action(str(act)), w))
+        arcs = [self.arcs(data, key, where) for key in ("from", "to", "read", "inhibit")]
+        self.count("transitions", 1, where)
+        self.count("arcs", sum(map(len, arcs)), where)
+        self.count("expression_chars", sum(len(str(a.token or "")) for a in arcs[1]), where)
         self.spec.transitions.append(TransitionSpec(
-            self.prefix + name,
-            self.arcs(data, "from", where), self.arcs(data, "to", where),
-            self.arcs(data, "read", where), self.arcs(data, "inhibit", where),
-            priority, when, tuple(actions),
+            self.prefix + name, *arcs, priority, when, tuple(actions),
             self.duration(data, "delay", where), self.duration(data, "duration", where),
             self.outputs(data, where), where))
 
@@ -313,12 +323,14 @@ class _Parser:
         if isinstance(target, str):
             self.problem(line_of(data, "net"), f"{where.path}.net", target)
             return
+        self.count("subnets", 1, where)
         try:
             text = target.read_text(encoding="utf-8")
-        except OSError as exc:
-            self.problem(line_of(data, "net"), f"{where.path}.net",
-                         f"cannot read subnet {data['net']!r}: {exc.strerror}")
+        except (OSError, UnicodeDecodeError) as exc:
+            self.problem(line_of(data, "net"), f"{where.path}.net", f"cannot read subnet "
+                         f"{data['net']!r}: {getattr(exc, 'strerror', '') or 'not UTF-8 text'}")
             return
+        self.count("text_chars", len(text), where)
         given = data.get("with", YMap())
         sub, problems = load_yaml(text, str(target))
         self.problems.extend(problems)
@@ -340,7 +352,7 @@ class _Parser:
         self.spec.subnets.append(self.prefix + instance)
         self.spec.texts.append(text)
         _Parser(self.spec, self.problems, str(target), f"{self.prefix}{instance}.", params,
-                self.root, self.depth + 1).parse(sub, top=False)
+                self.root, self.depth + 1, self.sizes).parse(sub, top=False)
 
     def resolve_param(self, value: str) -> str:
         """A parameter value names a symbol, or a place of the instantiating net (prefixed)."""
@@ -365,15 +377,23 @@ def resolve(base: Path, ref: str, root: Path | None) -> Path | str:
     return full
 
 
-def parse_program(text: str, filename: str,
-                  root: Path | None = None) -> tuple[ProgramSpec, list[Problem]]:
-    data, problems = load_yaml(text, filename)
+def parse_program(text: str, filename: str, root: Path | None = None,
+                  limits: SizeLimits = DEFAULT_SIZES) -> tuple[ProgramSpec, list[Problem]]:
+    """The flat spec and every problem. Past a size limit (program/sizes.py) the expansion
+    stops at once: the spec is then empty and the problems say which limit, where."""
+    sizes = Sizes(limits)
     spec = ProgramSpec(Path(filename).stem, filename, None, texts=[text])
-    if data is None:
-        if not problems:
+    data, problems = None, []
+    try:
+        sizes.add("text_chars", len(text), filename, 1, "")  # before it is parsed
+        data, problems = load_yaml(text, filename)
+        if data is not None:
+            _Parser(spec, problems, filename, "", {}, root, 0, sizes).parse(data, top=True)
+        elif not problems:
             problems.append(Problem(filename, 1, "", "empty program"))
-        return spec, problems
-    _Parser(spec, problems, filename, "", {}, root, 0).parse(data, top=True)
+    except SizeExceeded as exc:
+        problems.append(exc.problem)
+        spec.places, spec.transitions = [], []  # nothing more is built of it
     box = [data]  # the YAML document, let go of a piece at a time (teardown.py)
     del data
     bury(box)

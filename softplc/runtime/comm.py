@@ -1,10 +1,13 @@
-"""The communication process: Modbus TCP slave, HTTP API and OPC UA on one asyncio loop.
+"""The service processes: the Modbus TCP slave and the HTTP API in one, OPC UA in another.
 
-Owns: starting the services against the published snapshot (shared memory) and the command
-channel, and stopping them together within STOP_SERVICES_S, then ending the process at once
-(the supervisor stops it after the scan's outputs are safe); which Modbus writes are
-allowed (`modbus_writes`: open, the running program's HMI-writable symbols, or none). A
-crash here never stops the scan: it is another process.
+Owns: starting the services a CommConfig turns on against the published snapshot (shared
+memory) and the command channel, and stopping them together within STOP_SERVICES_S, then
+ending the process at once (the supervisor stops it after the scan's outputs are safe);
+how the services are grouped into processes (`service_groups`: OPC UA alone, at a lower
+CPU priority, so that its clients cannot delay Modbus or HTTP; docs/design.md section 7);
+a loop that logs what asyncio reports (an accept() out of descriptors, ...) at most once per
+LOOP_LOG_S; which Modbus writes are allowed (`modbus_writes`: open, the running program's
+HMI-writable symbols, or none). A crash here never stops the scan: it is another process.
 Does not know: the scan loop's internals, Modbus framing, the register map's layout.
 """
 
@@ -17,7 +20,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final, Literal, Protocol, get_args
 
@@ -33,6 +36,7 @@ from softplc.runtime.shm import SnapshotReader
 
 if TYPE_CHECKING:
     from softplc.hmi.server import ModbusSlave
+    from softplc.opcua.limits import OpcUaLimits
 
 log = logging.getLogger("softplc.comm")
 
@@ -44,6 +48,11 @@ MODBUS_WRITES: Final[tuple[str, ...]] = get_args(ModbusWrites)
 RECHECK_S: Final = 0.001  # one program check per write request, not per written address
 # All services stop together, bounded: the supervisor kills what runs 2 s after a signal.
 STOP_SERVICES_S: Final = 1.0
+# The OPC UA process's niceness: under CPU contention the kernel gives the scan and the
+# Modbus/HTTP process about three times its share (CFS weights 1024 vs 335), so a
+# CPU-hungry OPC UA client (asyncua decodes and encodes in Python) slows OPC UA first.
+OPCUA_NICE: Final = 5
+LOOP_LOG_S: Final = 10.0  # one asyncio error report per this, with the count of the others
 
 
 @dataclass(frozen=True, slots=True)
@@ -58,6 +67,8 @@ class CommConfig:
     modbus_max_per_peer: int = 8
     modbus_idle_timeout_s: float = 60.0
     opcua: tuple[str, int] | None = None  # `softplc run` serves 127.0.0.1:4840 unless told off
+    opcua_limits: OpcUaLimits | None = None  # None: the defaults of opcua/limits.py
+    nice: int = 0  # added to the process's niceness at its start
 
     def __post_init__(self) -> None:
         if self.modbus_writes not in MODBUS_WRITES:
@@ -65,6 +76,17 @@ class CommConfig:
                              f"not {self.modbus_writes!r}")
         Limits(self.modbus_max_connections, self.modbus_max_per_peer,
                self.modbus_idle_timeout_s)  # raises ValueError naming the bad one
+
+
+def service_groups(config: CommConfig) -> dict[str, CommConfig]:
+    """The service processes of `config` by name, each with the services it runs: "comm"
+    (Modbus and HTTP), "opcua" (OPC UA, niced). A group with nothing on is left out.
+    Each process has its own loop, descriptors and memory: a client that fills one (1,000
+    idle OPC UA sockets, a 15 s Read) leaves the others answering."""
+    groups = {"comm": replace(config, opcua=None),
+              "opcua": replace(config, modbus=None, api=None, nice=OPCUA_NICE)}
+    return {name: group for name, group in groups.items()
+            if group.modbus is not None or group.api is not None or group.opcua is not None}
 
 
 def modbus_limits(args: Any) -> dict[str, Any]:
@@ -143,6 +165,7 @@ def modbus_slave(config: CommConfig, source: SnapshotSource, sink: Callable[[Hmi
 
 async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name: str,
                  ready: Event, stop: Event) -> None:
+    asyncio.get_running_loop().set_exception_handler(_LoopErrors())
     mapping = SnapshotReader.attach(shm_name, config.sizes)
     reader = FreshSource(mapping)
     board = StatusBoard.attach(board_name)
@@ -196,7 +219,8 @@ async def _start_opcua(config: CommConfig, channel: Channel, reader: SnapshotSou
     assert config.opcua is not None
     host, port = config.opcua
     server = OpcUaServer(channel, reader, board, host=host, port=port,
-                         state_dir=Path(config.state_dir), modbus_writes=config.modbus_writes)
+                         state_dir=Path(config.state_dir), modbus_writes=config.modbus_writes,
+                         limits=config.opcua_limits)
     try:
         await server.start()
     except Exception:
@@ -218,7 +242,9 @@ def comm_process_main(config: CommConfig, channel: Channel, shm_name: str, board
             exit_now(0)  # the services already serving close with the process
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, once(on_stop))  # re-entering set() deadlocks (procs.once)
+    signal.signal(signal.SIGTERM, once(on_stop))
+    if config.nice:
+        os.nice(config.nice)  # re-entering set() deadlocks (procs.once)
     die_with_parent()
     asyncio.run(_serve(config, channel, shm_name, board_name, serving, stop))
     exit_now(0)  # the services are closed; freeing asyncua's address space took up to 2.4 s
@@ -234,3 +260,25 @@ class _Serving(threading.Event):
     def set(self) -> None:
         super().set()
         self._ready.set()
+
+
+class _LoopErrors:
+    """The loop's exception handler: asyncio's report, at most once per LOOP_LOG_S. Out of
+    descriptors, asyncio reported every failed accept() with a traceback (161,395 lines,
+    65 MB in 90 s)."""
+
+    def __init__(self) -> None:
+        self._next_s = 0.0
+        self._skipped = 0
+
+    def __call__(self, loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        now_s = time.monotonic()
+        if now_s < self._next_s:
+            self._skipped += 1
+            return
+        if self._skipped:
+            context = {**context, "message": f"{context.get('message')} "
+                       f"({self._skipped} reports in the last {LOOP_LOG_S:g} s not logged)"}
+        self._skipped = 0
+        self._next_s = now_s + LOOP_LOG_S
+        loop.default_exception_handler(context)

@@ -3,8 +3,10 @@
 Owns: starting the compile process (spawned, at the lowest scheduling there is: it runs on
 CPU time nothing else of the runtime wants, off the scan's CPU when the scan is pinned), one
 download at a time over a private pipe, a compile that dies or runs past COMPILE_TIMEOUT_S
-turned into a refused download (the next download starts a new process), and its end with
-the scan process (pipe closed, or PR_SET_PDEATHSIG).
+turned into a refused download (the next download starts a new process), its budgets (a
+download past COMPILE_MEMORY_BYTES of address space or COMPILE_CPU_S of CPU is refused, by
+RLIMIT_AS and RLIMIT_CPU, and the process lives on), and its end with the scan process
+(pipe closed, or PR_SET_PDEATHSIG).
 Why a process: threads of the scan process share one interpreter lock with the scan. Paced
 between scans on a thread of the scan process (as it once was), a 10,000-transition compile
 took ~3 s of the scan process's time and still cost slots at 1 ms; here it takes ~0.8 s of
@@ -18,9 +20,11 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import math
 import multiprocessing
 import os
 import pickle
+import resource
 import signal
 import threading
 from multiprocessing.connection import Connection, wait
@@ -34,12 +38,21 @@ from softplc.runtime.prepare import AnalysisRefused, Built, CompilerFailed, Prep
 from softplc.runtime.realtime import keep_off_scan_cpu
 
 COMPILE_TIMEOUT_S = 120.0  # one download's compile and analysis; then it is refused
+# The compile process's budgets (docs/programs.md, size limits). Memory: address space
+# above what the process maps once its imports are done (RLIMIT_AS; 159 MB measured): the
+# 16,000-transition ring at the size limits peaked at 230 MB, the analysis gate's arrays
+# are bounded to ~0.2 GB; a 70,000-place download once took it to 6,990 MiB and the
+# machine into swap. CPU: seconds per download (RLIMIT_CPU, set again for each): that ring
+# took 2.1 s, the gate's work budgets a few more.
+COMPILE_MEMORY_BYTES = 1 << 30
+COMPILE_CPU_S = 60
 _CTX = multiprocessing.get_context("spawn")  # a fresh interpreter: nothing of the scan's
 
 
-def compile_main(config: LoopConfig, conn: Connection) -> None:
+def compile_main(config: LoopConfig, conn: Connection,
+                 memory_bytes: int = COMPILE_MEMORY_BYTES, cpu_s: float = COMPILE_CPU_S) -> None:
     """Entry point of the compile process: a request in, a Built or an error out, until the
-    scan process closes the pipe."""
+    scan process closes the pipe. A download over the memory or CPU budget is refused."""
     from softplc.runtime.procs import die_with_parent
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the supervisor's business
@@ -47,11 +60,14 @@ def compile_main(config: LoopConfig, conn: Connection) -> None:
     idle(0)
     teardown.piecewise(False)  # no scan thread here: temporaries are freed at once
     prep = Preparer(config, lambda: None, lambda: ())
+    _limit_memory(memory_bytes)
+    signal.signal(signal.SIGXCPU, _out_of_cpu)
     while True:
         try:
             req = pickle.loads(conn.recv_bytes())
         except (EOFError, OSError):
             return  # the scan process is gone or closed the pipe
+        _limit_cpu(cpu_s)
         gc.disable()  # collected once per download, below: full collections while the heap
         try:  # grows cost ~20 % of a big compile
             reply: tuple[str, Any] = ("ok", prep.build(req))
@@ -61,6 +77,14 @@ def compile_main(config: LoopConfig, conn: Connection) -> None:
                 for p in exc.problems]))
         except AnalysisRefused as exc:  # its findings are relative already
             reply = ("error", exc)
+        except MemoryError:
+            reply = ("error", CompilerFailed(
+                f"the download needs more memory than the compile process's budget of "
+                f"{memory_bytes >> 20:,} MiB; it is refused"))
+        except OutOfCpu:
+            reply = ("error", CompilerFailed(
+                f"the download needs more than the compile process's CPU budget of "
+                f"{cpu_s:g} s; it is refused"))
         except Exception as exc:  # a compiler bug: the download is refused, the process lives
             reply = ("error", CompilerFailed(
                 f"internal compiler error ({type(exc).__name__}: {exc})"))
@@ -69,8 +93,46 @@ def compile_main(config: LoopConfig, conn: Connection) -> None:
         except (OSError, ValueError):
             return
         del reply
+        _limit_cpu(None)
         gc.enable()
         gc.collect()  # between downloads, where nobody waits
+
+
+class OutOfCpu(BaseException):
+    """SIGXCPU: the download spent the CPU budget (raised in the main thread; a
+    BaseException, so that no `except Exception` in the compiler swallows it)."""
+
+
+def _out_of_cpu(signum: int, frame: object) -> None:
+    raise OutOfCpu
+
+
+def _limit_memory(budget: int) -> None:
+    """RLIMIT_AS at what is mapped now plus `budget`: past it an allocation fails with a
+    MemoryError (a refusal), never a swap storm."""
+    with open("/proc/self/statm", encoding="ascii") as statm:
+        mapped = int(statm.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+    _, hard = resource.getrlimit(resource.RLIMIT_AS)
+    soft = mapped + budget
+    if hard != resource.RLIM_INFINITY:
+        soft = min(soft, hard)
+    with contextlib.suppress(ValueError, OSError):
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+
+
+def _limit_cpu(budget_s: float | None) -> None:
+    """RLIMIT_CPU (soft) at the CPU time used so far plus `budget_s` (None: none). It counts
+    the process's whole life, so it is set again for each download; the hard limit stays, so
+    it can be raised again."""
+    _, hard = resource.getrlimit(resource.RLIMIT_CPU)
+    soft = resource.RLIM_INFINITY
+    if budget_s is not None:
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        soft = math.ceil(usage.ru_utime + usage.ru_stime + budget_s)
+        if hard != resource.RLIM_INFINITY:
+            soft = min(soft, hard)
+    with contextlib.suppress(ValueError, OSError):
+        resource.setrlimit(resource.RLIMIT_CPU, (soft, hard))
 
 
 def idle(pid: int) -> None:
@@ -85,9 +147,11 @@ class CompileProcess:
     download (from the thread that stays: PR_SET_PDEATHSIG follows the thread that spawned
     it); `close()` on the way out."""
 
-    def __init__(self, config: LoopConfig, timeout_s: float = COMPILE_TIMEOUT_S) -> None:
+    def __init__(self, config: LoopConfig, timeout_s: float = COMPILE_TIMEOUT_S,
+                 memory_bytes: int = COMPILE_MEMORY_BYTES, cpu_s: float = COMPILE_CPU_S) -> None:
         self.config = config
         self.timeout_s = timeout_s
+        self.budgets = (memory_bytes, cpu_s)  # the compile process's, per process/download
         self.started = 0  # processes started, for status and tests
         self.last_failure = ""  # why the last one ended while compiling (status)
         self._proc: Any = None
@@ -100,7 +164,7 @@ class CompileProcess:
                 return
             self._end()
             mine, theirs = _CTX.Pipe(duplex=True)
-            proc = _CTX.Process(target=compile_main, args=(self.config, theirs),
+            proc = _CTX.Process(target=compile_main, args=(self.config, theirs, *self.budgets),
                                 name="softplc-compile", daemon=True)
             proc.start()
             theirs.close()

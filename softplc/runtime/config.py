@@ -23,7 +23,7 @@ class LoopConfig:
     # The watchdog (docs/faults.md): a scan longer than period x watchdog is over budget;
     # watchdog_sensitivity of them in a row fault, and so does one scan (or one that has not
     # ended) longer than watchdog_hard_ns. On 2 cores at load 10-20 an idle 10 ms PLC had
-    # scans of up to 99 ms and a cycle that started 1010 ms late within 5 minutes (issue 26
+    # scans of up to 105 ms and a cycle that started 1047 ms late in runs of 3-15 min (issue 26
     # saw a 106 ms scan and a cycle over 500 ms late at load 2-5): the hard limit is about
     # three times the longest gap seen (docs/faults.md, watchdog).
     watchdog: float = 10.0

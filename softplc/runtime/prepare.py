@@ -22,7 +22,7 @@ from typing import Any, Protocol
 from softplc.core import online
 from softplc.core.engine import Engine
 from softplc.core.image import ImageSizes
-from softplc.core.lifecycle import Command, CommandRejected, PlcState, next_state
+from softplc.core.lifecycle import Command, CommandRejected, PlcState, Stage, next_stage
 from softplc.core.net import CompiledNet, NetState
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.scan import Plc
@@ -272,10 +272,12 @@ def _verdict(plc: Plc, prepared: Prepared, detail: dict[str, Any], sizes: ImageS
         return "refused: the program's image sizes differ from the runtime's"
     if plc.state is not PlcState.RUNNING:
         try:
-            next_state(plc.state, Command.DOWNLOAD)
+            next_stage(plc.stage, Command.DOWNLOAD)
         except CommandRejected as exc:
             return f"refused: {exc}"
-        return f"accepted: loads from its initial marking ({plc.state.name})"
+        dropped = " (the marking kept at the stop is dropped)" \
+            if plc.stage is Stage.SUSPENDED else ""
+        return f"accepted: loads from its initial marking ({plc.state.name}){dropped}"
     old = plc.net
     assert old is not None
     if not req.online:

@@ -108,7 +108,7 @@ def _pack_status(status: Status, published_ns: int = 0) -> bytes:
         status.period_us,
         status.forced,
         published_ns,
-        int(status.waiting_for_io),
+        int(status.waiting_for_io) | (2 if status.marking_kept else 0),  # flags: one field
         program_hash,
     )
 
@@ -128,7 +128,8 @@ def _unpack_status(raw: npt.NDArray[np.uint8]) -> Status:
         period_us=period,
         forced=forced,
         published_ns=published,
-        waiting_for_io=bool(waiting),
+        waiting_for_io=bool(waiting & 1),
+        marking_kept=bool(waiting & 2),
     )
 
 

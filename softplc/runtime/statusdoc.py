@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from typing import Any, Protocol
 
 from softplc.core.judge import CycleWatchdog
+from softplc.core.lifecycle import Stage
 from softplc.core.net import CompiledNet, NetState
 from softplc.core.snapshot import Status
 from softplc.runtime import netview
@@ -122,7 +123,8 @@ def status(loop: LoopView) -> Status:
                   loop.stats.max_exec_ns // 1000, int(loop.summary.lateness_p99_us),
                   loop.stats.overruns,
                   plc.net.program_hash if plc.net else "", int(plc.fault_code),
-                  loop.config.period_ns // 1000, len(plc.forces), bool(plc.waiting_io))
+                  loop.config.period_ns // 1000, len(plc.forces), bool(plc.waiting_io),
+                  plc.stage is Stage.SUSPENDED)
 
 
 def _records(net: CompiledNet | None, state: NetState | None) -> dict[str, list[Any]]:

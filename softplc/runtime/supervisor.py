@@ -1,13 +1,15 @@
-"""The processes of `softplc run`: start the scan process and the communication process,
-watch them, heal them, and stop both with outputs driven safe.
+"""The processes of `softplc run`: start the scan process and the service processes (the
+communication process: Modbus and HTTP; the OPC UA process), watch them, heal them, and stop
+them all with outputs driven safe.
 
 Owns: process start order; the shared-memory segments (they outlive a scan process, so the
-communication side keeps serving across a restart); restarting a dead scan process warm from
+service processes keep serving across a restart); restarting a dead scan process warm from
 the newest retain snapshot and the boot program, with backoff, at most SCAN_RESTARTS times in
-RESTART_WINDOW_S, then giving up (GaveUp); restarting a dead communication process within the
-same kind of budget; stopping everything within STOP_S in every state, also while a child is
-still starting: the scan process first (outputs safe, confirmed by the devices), then the
-communication process, so no service goes away while an output is still on.
+RESTART_WINDOW_S, then giving up (GaveUp); restarting a dead service process within the
+same kind of budget, each its own; stopping everything within STOP_S in every state, also
+while a child is still starting: the scan process first (outputs safe, confirmed by the
+devices), then every service process at once, so no service goes away while an output is
+still on.
 Does not know: what a scan does, what a snapshot holds, the console and exit codes
 (runcmd.py), what killed runs leave in /dev/shm (leftovers.py).
 """
@@ -22,13 +24,14 @@ import os
 import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
 from softplc.core.image import ImageSizes
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
-from softplc.runtime.comm import CommConfig, comm_process_main, modbus_limits
+from softplc.runtime.comm import CommConfig, comm_process_main, modbus_limits, service_groups
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.leftovers import SHM_PREFIX, record_semaphores
 from softplc.runtime.procs import ReadySignal, StopFlag
@@ -37,13 +40,13 @@ from softplc.runtime.scanproc import scan_process_main
 from softplc.runtime.shm import SnapshotWriter
 
 SCAN_RESTARTS: Final = 5  # scan process restarts allowed within RESTART_WINDOW_S
-COMM_RESTARTS: Final = 5  # communication process restarts allowed within RESTART_WINDOW_S
+COMM_RESTARTS: Final = 5  # restarts of each service process allowed within RESTART_WINDOW_S
 RESTART_WINDOW_S: Final = 60.0
 BACKOFF_S: Final = (0.0, 0.5, 1.0, 2.0, 4.0)  # by restarts within BACKOFF_WINDOW_S
 BACKOFF_WINDOW_S: Final = 10.0  # a scan process that ran this long restarts without delay
 STOP_S: Final = 2.0  # SIGTERM/SIGINT: every process gone within this (then SIGKILL)
 # At a stop, how long the supervisor waits for the scan's "safe" before it stops the
-# communication process anyway: the confirmed safe write is bounded by 0.5 s
+# service processes anyway: the confirmed safe write is bounded by 0.5 s
 # (ScanLoop.shutdown), plus the scan in progress.
 SAFE_WAIT_S: Final = 1.0
 
@@ -52,8 +55,29 @@ class GaveUp(RuntimeError):
     """The scan process died too often: the supervisor stops instead of looping."""
 
 
+# What each service process is called in process lists and in what the supervisor says.
+_TITLES: Final = {"comm": ("softplc-comm", "communication process (Modbus, HTTP)"),
+                  "opcua": ("softplc-opcua", "OPC UA process")}
+
+
+@dataclass(eq=False)
+class ServiceProcess:
+    """One service process (comm.service_groups): its configuration, stop flag, process
+    and restart history."""
+
+    name: str
+    config: CommConfig
+    stop: StopFlag
+    proc: Any = None
+    restarts: deque[float] = field(default_factory=deque)
+
+    @property
+    def title(self) -> str:
+        return _TITLES[self.name][1]
+
+
 class Supervisor:
-    """The scan process and the communication process of one PLC. `scan_main` and its
+    """The scan process and the service processes of one PLC. `scan_main` and its
     `scan_args` (after the standard ones) let the benchmark run an instrumented scan loop
     under the same start order, names and stop events."""
 
@@ -67,21 +91,36 @@ class Supervisor:
         self.shm_name, self.board_name = f"{self.tag}_image", f"{self.tag}_board"
         self.stop_scan = StopFlag()
         self.stop_comm = StopFlag()
+        self.stop_opcua = StopFlag()
         self.loop_config, self.comm_config = loop_config, comm_config
         self.scan_main, self.scan_args = scan_main, scan_args
         self.scan: Any = None
-        self.comm: Any = None
+        flags = {"comm": self.stop_comm, "opcua": self.stop_opcua}
+        self.services = [ServiceProcess(name, config, flags[name])
+                         for name, config in service_groups(comm_config).items()]
         self._scan_says: ReadySignal | None = None  # "ready", then "safe" at a stop
         self._stopping: Callable[[], bool] = lambda: False
         self.clock = clock
         self.scan_restarts: deque[float] = deque()  # when, within the window
-        self.comm_restarts: deque[float] = deque()
         self.restarts = 0  # scan process restarts in this run, for status
         self.restart_reason = ""
         self._restart_due: float | None = None
         self.final: dict[str, Any] = {}
         self.segment: SnapshotWriter | None = None
         self.board: StatusBoard | None = None
+
+    @property
+    def comm(self) -> Any:
+        """The communication process (Modbus, HTTP), None when not running."""
+        return self._process("comm")
+
+    @property
+    def opcua(self) -> Any:
+        """The OPC UA process, None when not running."""
+        return self._process("opcua")
+
+    def _process(self, name: str) -> Any:
+        return next((s.proc for s in self.services if s.name == name), None)
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> Supervisor:
@@ -118,7 +157,7 @@ class Supervisor:
         self.board = StatusBoard.create(self.board_name)
         self.start_scan(self.loop_config, timeout_s)
         if not stopping():
-            self.start_comm(timeout_s)
+            self.start_services(timeout_s)
         record_semaphores(self.tag)
 
     def start_scan(self, config: LoopConfig, timeout_s: float = 30.0) -> None:
@@ -137,23 +176,33 @@ class Supervisor:
             if time.monotonic() > deadline:
                 raise RuntimeError(f"the scan process did not start within {timeout_s:g} s")
 
-    def start_comm(self, timeout_s: float = 30.0) -> None:
-        if (self.comm_config.modbus is None and self.comm_config.api is None
-                and self.comm_config.opcua is None):
-            return
+    def start_services(self, timeout_s: float = 30.0) -> None:
+        """Every service process, started together (OPC UA takes seconds), then each waited
+        for until it serves."""
+        waiting = [(service, self._spawn(service)) for service in self.services]
+        for service, ready in waiting:
+            self._await_service(service, ready, timeout_s)
+
+    def _spawn(self, service: ServiceProcess) -> ReadySignal:
         ready = ReadySignal(self.ctx)
-        self.comm = self.ctx.Process(
-            target=comm_process_main, name="softplc-comm",
-            args=(self.comm_config, self.channel, self.shm_name, self.board_name, ready,
-                  self.stop_comm))
-        self.comm.start()
-        self.stop_comm.bind(self.comm.pid)
-        keep_off_scan_cpu(self.comm.pid, self.loop_config.realtime)
+        service.proc = self.ctx.Process(
+            target=comm_process_main, name=_TITLES[service.name][0],
+            args=(service.config, self.channel, self.shm_name, self.board_name, ready,
+                  service.stop))
+        service.proc.start()
+        service.stop.bind(service.proc.pid)
+        keep_off_scan_cpu(service.proc.pid, self.loop_config.realtime)
+        return ready
+
+    def _await_service(self, service: ServiceProcess, ready: ReadySignal,
+                       timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
         while not ready.wait(0.05) and not self._stopping():
-            if not self.comm.is_alive() or time.monotonic() > deadline:
-                raise RuntimeError("the communication process did not start (is a port in use? "
-                                   f"Modbus {self.comm_config.modbus}, API {self.comm_config.api})")
+            if not service.proc.is_alive() or time.monotonic() > deadline:
+                config = service.config
+                raise RuntimeError(f"the {service.title} did not start (is a port in use? "
+                                   f"Modbus {config.modbus}, API {config.api}, "
+                                   f"OPC UA {config.opcua})")
 
     def _budget(self, history: deque[float]) -> int:
         """Restarts within the window so far, after forgetting the older ones."""
@@ -171,8 +220,10 @@ class Supervisor:
         if self._restart_due is not None and self.clock() >= self._restart_due:
             self._restart_due = None
             said.append(self._restart_scan())
-        if self.comm is not None and not self.comm.is_alive() and not self.stop_comm.is_set():
-            said.append(self._comm_died())
+        for service in self.services:
+            proc = service.proc
+            if proc is not None and not proc.is_alive() and not service.stop.is_set():
+                said.append(self._service_died(service))
         return said
 
     def _scan_died(self) -> list[str]:
@@ -208,34 +259,36 @@ class Supervisor:
         record_semaphores(self.tag)
         return f"scan process restarted (restart {self.restarts}, pid {self.scan.pid})"
 
-    def _comm_died(self) -> str:
-        code = self.comm.exitcode
-        used = self._budget(self.comm_restarts)
+    def _service_died(self, service: ServiceProcess) -> str:
+        code = service.proc.exitcode
+        used = self._budget(service.restarts)
         if used >= COMM_RESTARTS:
-            self.comm = None
-            return (f"communication process exited ({code}) {used + 1} times within "
-                    f"{RESTART_WINDOW_S:g} s: Modbus and API stay off; the PLC scans on")
-        self.comm_restarts.append(self.clock())
+            service.proc = None
+            return (f"{service.title} exited ({code}) {used + 1} times within "
+                    f"{RESTART_WINDOW_S:g} s: it stays off; the PLC scans on")
+        service.restarts.append(self.clock())
         try:
-            self.start_comm()
+            self._await_service(service, self._spawn(service), 30.0)
         except RuntimeError as exc:
-            return f"communication process exited ({code}); restart failed: {exc}"
+            return f"{service.title} exited ({code}); restart failed: {exc}"
         record_semaphores(self.tag)
-        return f"communication process exited ({code}); restarted"
+        return f"{service.title} exited ({code}); restarted"
 
     def stop(self, timeout_s: float = STOP_S) -> None:
         """The scan process first: it drives outputs safe and has the devices confirm it, then
-        says "safe"; only then the communication process, so clients see the PLC until its
-        outputs are safe (and its teardown takes no CPU from the safe write). Whatever still
-        runs after `timeout_s` is killed."""
+        says "safe"; only then every service process at once, so clients see the PLC until
+        its outputs are safe (and their teardown takes no CPU from the safe write). Whatever
+        still runs after `timeout_s` is killed."""
         deadline = time.monotonic() + timeout_s
         self.stop_scan.set()
         self._await_safe(min(deadline, time.monotonic() + SAFE_WAIT_S))
-        self.stop_comm.set()
-        for proc in (self.scan, self.comm):
+        for service in self.services:
+            service.stop.set()
+        services = [service.proc for service in self.services]
+        for proc in (self.scan, *services):
             if proc is not None:
                 proc.join(max(0.0, deadline - time.monotonic()))
-        for proc in (self.comm, self.scan):
+        for proc in (*services, self.scan):
             if proc is not None and proc.is_alive():
                 proc.kill()
                 proc.join(1.0)

@@ -131,12 +131,16 @@ def test_force_needs_a_program_and_release_all_works_everywhere(tmp_path: Path) 
     assert reply.ok and "nothing" in reply.message
 
 
-def test_a_cold_start_drops_forces_a_resume_keeps_them(bench: Bench) -> None:
+def test_a_reset_drops_forces_a_resume_and_a_start_keep_them(bench: Bench) -> None:
     bench.scan(10, [force("a", 1), ProgramCommand(C.STOP)])
     bench.scan(20, [ProgramCommand(C.RESUME)])
     assert bench.plc.forces.values() == {"a": 1}
-    bench.scan(30, [ProgramCommand(C.STOP), ProgramCommand(C.START)])
+    # a reset drops them; a start (since issue 29 only from READY: after a reset or a
+    # download) keeps what was forced while READY, so a force can act from the first scan
+    bench.scan(30, [ProgramCommand(C.STOP), ProgramCommand(C.RESET)])
     assert bench.plc.forces.values() == {}
+    bench.scan(35, [force("a", 1), ProgramCommand(C.START)])
+    assert bench.plc.forces.values() == {"a": 1} and bench.plc.state is PlcState.RUNNING
     bench.scan(40, [force("a", 1), ProgramCommand(C.STOP), ProgramCommand(C.RESET)])
     assert bench.plc.forces.values() == {}
 

@@ -103,8 +103,8 @@ class Model:
     def warm_start(self, start: bool) -> None:
         """A whole new run on the same state directory, no program on the command line: the
         boot program and its final snapshot (docs/retain.md, at start)."""
-        if self.program is None:
-            self.state = EMPTY
+        if self.program is None:  # nothing to restore: a cold start, counting from 0
+            self.state, self.scan_floor = EMPTY, 0
             return
         if self.state == RUNNING and not start:
             self.state, self.stopped_by = STOPPED, None

@@ -80,8 +80,8 @@ class Library:
 def write_library(root: Path, port: int) -> Library:
     """The io images and programs under `root` (the PLC's --programs-dir), with hashes."""
     root.mkdir(parents=True, exist_ok=True)
-    (root / "io.yaml").write_text(IO.format(port=port, timeout_s=0.5), encoding="utf-8")
-    (root / "io2.yaml").write_text(IO.format(port=port, timeout_s=0.4), encoding="utf-8")
+    (root / "io.yaml").write_text(IO.format(port=port, timeout_s=2.0), encoding="utf-8")
+    (root / "io2.yaml").write_text(IO.format(port=port, timeout_s=1.9), encoding="utf-8")
     hashes = {}
     for key, text in PROGRAMS.items():
         (root / f"{key}.yaml").write_text(text, encoding="utf-8")

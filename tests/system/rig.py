@@ -74,9 +74,23 @@ class Run:
     def children(self) -> list[int]:
         return [pid for pid in _children(self.proc.pid) if "resource_tracker" not in _cmd(pid)]
 
-    def comm_pid(self, scan_pid: int) -> int | None:
-        others = [pid for pid in self.children() if pid != scan_pid]
-        return others[0] if len(others) == 1 else None
+    def listener(self, port: int) -> int | None:
+        """The child process listening on `port` (the communication process serves Modbus
+        and HTTP, the OPC UA process its port)."""
+        inodes = _listening_inodes(port)
+        for pid in self.children():
+            try:
+                fds = list(Path(f"/proc/{pid}/fd").iterdir())
+            except OSError:
+                continue
+            for fd in fds:
+                try:
+                    target = os.readlink(fd)
+                except OSError:
+                    continue
+                if target.startswith("socket:[") and target[8:-1] in inodes:
+                    return pid
+        return None
 
     def remember(self, status: dict[str, Any]) -> None:
         """Every process the run showed, so that the end can check that none is left."""
@@ -220,6 +234,20 @@ def _listens(port: int | None) -> bool:
         return True
     with socket.socket() as s:
         return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def _listening_inodes(port: int) -> set[str]:
+    found = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            fields = line.split()
+            if fields[3] == "0A" and int(fields[1].rsplit(":", 1)[1], 16) == port:
+                found.add(fields[9])
+    return found
 
 
 def _children(pid: int) -> list[int]:

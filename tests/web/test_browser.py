@@ -8,6 +8,7 @@ SOFTPLC_WEB_SHOTS=DIR copies them there (docs/web-transport.png comes from that)
 
 from __future__ import annotations
 
+import ctypes
 import os
 import shutil
 import signal
@@ -47,6 +48,15 @@ def until(probe: Callable[[], T], timeout_s: float = 10.0, what: str = "conditio
         time.sleep(0.1)
 
 
+PRCTL = ctypes.CDLL(None).prctl  # looked up here: the forked child only calls it
+
+
+def die_with_parent() -> None:
+    """In the child before exec: SIGTERM when the test process dies (a pytest killed mid-run
+    must not leave a `softplc run` serving forever; Linux prctl PR_SET_PDEATHSIG = 1)."""
+    PRCTL(1, signal.SIGTERM)
+
+
 class Softplc:
     """`softplc run PROGRAM --start` with its API on a free loopback port."""
 
@@ -56,8 +66,8 @@ class Softplc:
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "softplc.cli", "run", program, *(["--start"] if start else []),
              "--modbus", "off", "--api", f"127.0.0.1:{self.port}", "--state-dir", str(state),
-             "--quiet", "--period", "10ms"], cwd=ROOT, stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT, text=True)
+             "--quiet", "--period", "10ms"], cwd=ROOT, stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL, preexec_fn=die_with_parent)
         self.client = ApiClient(self.url, timeout_s=10)
         state_name = "RUNNING" if start else "STOPPED"
         until(lambda: self.client.status()["state"] == state_name, 60,

@@ -140,10 +140,10 @@ class Engine:
         self._live.high = True  # a new marking: check the counts after the next round
 
     def prime(self) -> None:
-        """Off the scan (an online change's compile thread): which transitions that only their
-        arcs decide are enabled on the current marking, so that the first round after the next
-        invalidate() re-checks only what differs from it (enabling.py): the same enabledness,
-        without O(transitions) work in the swap scan."""
+        """Off the scan (an online change, between scans: runtime/download.py): which
+        transitions that only their arcs decide are enabled on the current marking, so that
+        the first round after the next invalidate() re-checks only what differs from it
+        (enabling.py): the same enabledness, without O(transitions) work in the swap scan."""
         drain(self.priming())
 
     def priming(self) -> Steps[None]:

@@ -1,0 +1,214 @@
+"""Downloads bounded before they cost anything (issue 28): the size limits of the expanded
+program (program/sizes.py), each refusal located at the item that went over and naming the
+limit; the user mistakes that were "internal compiler error"; the compile process's memory
+and CPU budgets, on a real compile process."""
+
+from __future__ import annotations
+
+import io
+import json
+import subprocess
+import sys
+import time
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from softplc.bench.onlinebench import ring_program
+from softplc.core.lifecycle import Command
+from softplc.core.problems import Problem, ProgramError
+from softplc.core.snapshot import CommandRequest
+from softplc.program import bundle as bundles
+from softplc.program import wire
+from softplc.program.compiler import compile_file, compile_text
+from softplc.program.sizes import DEFAULT_SIZES
+from softplc.runtime.compileproc import CompileProcess
+from softplc.runtime.config import LoopConfig
+from softplc.runtime.prepare import CompilerFailed, Preparer
+
+ROOT = Path(__file__).resolve().parents[2]
+IO = (ROOT / "io_images" / "transport.yaml").read_text(encoding="utf-8")
+
+
+def refused(call: object, *args: object) -> Problem:
+    """The one problem of a refused compile, which must come quickly."""
+    began = time.monotonic()
+    with pytest.raises(ProgramError) as caught:
+        call(*args)  # type: ignore[operator]
+    assert time.monotonic() - began < 15
+    (problem,) = caught.value.problems
+    return problem
+
+
+def test_the_benchs_10000_transition_ring_is_allowed() -> None:
+    net = compile_text(ring_program(10_000, 1), str(ROOT / "programs" / "ring.yaml"), ROOT)
+    assert (len(net.transitions), len(net.place_names)) == (10_000, 10_001)
+
+
+def test_the_shipped_programs_are_far_below_the_limits() -> None:
+    for path in sorted((ROOT / "programs").glob("*.yaml")):
+        net = compile_file(path, ROOT)
+        assert len(net.place_names) * 10 < DEFAULT_SIZES.places, path
+
+
+def test_a_20000_place_download_is_refused_at_the_place_over_the_limit() -> None:
+    problem = refused(compile_text, ring_program(20_000, 0),
+                      str(ROOT / "programs" / "ring.yaml"), ROOT)
+    assert (Path(problem.file).name, problem.line, problem.path) == (
+        "ring.yaml", 16_004, "places.p16000")  # 3 lines of header, then p0 ...
+    assert "16,001 places" in problem.message and "places = 16,000" in problem.message
+
+
+def _subnet_tree(tmp_path: Path) -> Path:
+    """10 x 10 x 10 instances of a 100-transition leaf: 2.2 KB of files, 100,000 transitions
+    once expanded."""
+    (tmp_path / "io.yaml").write_text(IO, encoding="utf-8")
+    leaf = ["places:"] + [f"  q{i}: {{}}" for i in range(100)] + ["transitions:"]
+    leaf += [f"  t{i}: {{from: [q{i}], to: [q{(i + 1) % 100}]}}" for i in range(100)]
+    (tmp_path / "leaf.yaml").write_text("\n".join(leaf) + "\n", encoding="utf-8")
+    for name, child in (("mid.yaml", "leaf.yaml"), ("top.yaml", "mid.yaml")):
+        lines = ["subnets:"] + [f"  s{i}: {{net: {child}}}" for i in range(10)]
+        (tmp_path / name).write_text("\n".join(lines) + "\n", encoding="utf-8")
+    lines = ["program: bomb", "io_image: io.yaml", "places: {}", "subnets:"]
+    lines += [f"  s{i}: {{net: top.yaml}}" for i in range(10)]
+    (tmp_path / "main.yaml").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return tmp_path / "main.yaml"
+
+
+def test_a_100000_transition_subnet_tree_stops_at_the_transition_limit(tmp_path: Path) -> None:
+    main = _subnet_tree(tmp_path)
+    assert sum(p.stat().st_size for p in tmp_path.iterdir()) < 5_000
+    problem = refused(compile_file, main, tmp_path)
+    assert (Path(problem.file).name, problem.path) == ("leaf.yaml", "transitions.t0")
+    assert "16,001 transitions" in problem.message and "transitions = 16,000" in problem.message
+
+
+def test_the_same_tree_as_a_bundle_download_is_refused_with_the_limit(tmp_path: Path) -> None:
+    (tmp_path / "src").mkdir()
+    blob = bundles.pack(bundles.from_files(_subnet_tree(tmp_path / "src")))
+    prep = Preparer(LoopConfig(root=str(tmp_path), state_dir=str(tmp_path / "state")),
+                    lambda: None, lambda: ())
+    problem = refused(prep.compile_bundle, blob)
+    assert "transitions = 16,000" in problem.message
+
+
+def test_subnet_instances_have_a_limit(tmp_path: Path) -> None:
+    (tmp_path / "io.yaml").write_text(IO, encoding="utf-8")
+    (tmp_path / "one.yaml").write_text("places: {x: {}}\n", encoding="utf-8")
+    lines = ["program: many", "io_image: io.yaml", "subnets:"]
+    lines += [f"  s{i}: {{net: one.yaml}}" for i in range(1_001)]
+    (tmp_path / "main.yaml").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    problem = refused(compile_file, tmp_path / "main.yaml", tmp_path)
+    assert (problem.line, problem.path) == (1_004, "subnets.s1000")
+    assert "1,001 subnet instances" in problem.message and "subnets = 1,000" in problem.message
+
+
+def test_arcs_have_a_limit() -> None:
+    arcs = ", ".join(["a"] * 65)
+    lines = ["program: arcs", "io_image: ../io_images/transport.yaml", "places:",
+             "  a: {tokens: 1}", "transitions:"]
+    lines += [f"  t{i}: {{from: [{arcs}], to: [a]}}" for i in range(1_000)]
+    problem = refused(compile_text, "\n".join(lines), str(ROOT / "programs" / "arcs.yaml"),
+                      ROOT)
+    assert problem.path == "transitions.t984"  # 985 x 66 arcs > 64,000
+    assert "arcs = 64,000" in problem.message
+
+
+def test_expression_characters_have_a_limit() -> None:
+    guard = " or ".join(["true"] * 399)  # 1,991 characters: each under the 2,000 of one
+    lines = ["program: guards", "io_image: ../io_images/transport.yaml", "places:",
+             "  a: {tokens: 1}", "transitions:"]
+    lines += [f"  t{i}: {{from: [a], to: [a], when: '{guard}'}}" for i in range(1_100)]
+    problem = refused(compile_text, "\n".join(lines), str(ROOT / "programs" / "g.yaml"), ROOT)
+    assert problem.path == "transitions.t1004.when"  # 1,005 x 1,991 > 2,000,000
+    assert "expression_chars = 2,000,000" in problem.message
+
+
+def test_program_text_has_a_limit_checked_before_parsing() -> None:
+    text = "program: big\n" + "# padding\n" * 400_001
+    problem = refused(compile_text, text, str(ROOT / "programs" / "big.yaml"), ROOT)
+    assert problem.line == 1 and "text_chars = 4,000,000" in problem.message
+
+
+def test_a_guard_of_ten_thousand_nots_is_a_located_problem() -> None:
+    lines = ["program: nots", "io_image: ../io_images/transport.yaml", "places:",
+             "  a: {tokens: 1}", "transitions:",
+             f"  t: {{from: [a], to: [a], when: '{'not ' * 10_000}true'}}"]
+    with pytest.raises(ProgramError) as caught:  # was a MemoryError: internal compiler error
+        compile_text("\n".join(lines), str(ROOT / "programs" / "nots.yaml"), ROOT)
+    (problem,) = caught.value.problems
+    assert (problem.line, problem.path) == (6, "transitions.t.when")
+    assert "expression longer than 2000 characters" in problem.message
+
+
+def _zip(files: dict[str, bytes]) -> bytes:
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as archive:
+        for name, data in files.items():
+            archive.writestr(name, data)
+    return out.getvalue()
+
+
+def test_a_bundle_with_a_file_and_a_folder_of_the_same_name_is_refused(
+        tmp_path: Path) -> None:
+    blob = _zip({bundles.MANIFEST: json.dumps({"format": 1, "program": "main.yaml"}).encode(),
+                 "main.yaml": b"program: x\nio_image: io/p.yaml\n",
+                 "io": b"a file", "io/p.yaml": IO.encode()})
+    prep = Preparer(LoopConfig(root=str(tmp_path), state_dir=str(tmp_path / "state")),
+                    lambda: None, lambda: ())
+    problem = refused(prep.compile_bundle, blob)
+    assert problem.message == "bundle: 'io' is a file and also the folder of 'io/p.yaml'"
+    assert not (tmp_path / "state" / "bundles").exists() or \
+        not any((tmp_path / "state" / "bundles").iterdir())  # nothing unpacked
+
+
+def test_a_bundle_that_cannot_be_written_is_refused_not_an_internal_error(
+        tmp_path: Path) -> None:
+    # A full disk, for real: the child may write files of at most 1 KB (RLIMIT_FSIZE; SIGXFSZ
+    # ignored, so the write fails with EFBIG as it fails with ENOSPC on a full disk).
+    script = (
+        "import resource, signal, sys\n"
+        "from softplc.program import bundle\n"
+        "from softplc.core.problems import ProgramError\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (1024, resource.RLIM_INFINITY))\n"
+        "b = bundle.Bundle('main.yaml', {'main.yaml': b'#' * 4096})\n"
+        "try:\n"
+        "    bundle.extract(b, sys.argv[1])\n"
+        "except ProgramError as exc:\n"
+        "    print(exc.problems[0].message)\n")
+    out = subprocess.run([sys.executable, "-c", script, str(tmp_path / "unpacked")],
+                         capture_output=True, text=True, timeout=20, check=False, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "bundle: cannot be unpacked on the server: File too large"
+    assert not (tmp_path / "unpacked").exists()  # nothing half-written is left in place
+
+
+def _download(text: str) -> CommandRequest:
+    return CommandRequest(1, Command.DOWNLOAD, program_text=text, program_path="ring.yaml")
+
+
+def test_a_compile_over_the_memory_budget_is_refused_and_the_process_lives_on() -> None:
+    compiler = CompileProcess(LoopConfig(root=str(ROOT)), memory_bytes=24 << 20)
+    try:  # the 10,000-transition ring needs ~70 MB more than an idle compile process
+        with pytest.raises(CompilerFailed, match="more memory than the compile process's "
+                                                 "budget of 24 MiB"):
+            compiler.build(_download(ring_program(10_000, 0)))
+        pid = compiler.pid
+        assert wire.loads(compiler.build(_download(ring_program(10, 0))).net).transitions
+        assert (compiler.pid, compiler.started) == (pid, 1)
+    finally:
+        compiler.close()
+
+
+def test_a_compile_over_the_cpu_budget_is_refused_and_the_process_lives_on() -> None:
+    compiler = CompileProcess(LoopConfig(root=str(ROOT)), cpu_s=0.5)
+    try:  # the 16,000-transition ring takes about 2 s of CPU; the budget leaves 0.5 to 1.5
+        with pytest.raises(CompilerFailed, match=r"CPU budget of 0\.5 s"):
+            compiler.build(_download(ring_program(16_000, 0)))
+        pid = compiler.pid
+        assert wire.loads(compiler.build(_download(ring_program(10, 0))).net).transitions
+        assert (compiler.pid, compiler.started) == (pid, 1)
+    finally:
+        compiler.close()
