@@ -11,14 +11,23 @@ from __future__ import annotations
 import enum
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from softplc.core.lifecycle import PlcState
 from softplc.core.problems import FaultCode
 from softplc.core.symbols import FaultPolicy, OnFailure
 
-if TYPE_CHECKING:  # the scan owns a DeviceMonitor; the monitor only acts on the Plc it is given
-    from softplc.core.scan import Plc
+
+class Monitored(Protocol):
+    """What the monitor reads of, and does to, the PLC it is given (core/plc.py's Plc is
+    one; the scan owns a DeviceMonitor, which does not import it)."""
+
+    @property
+    def state(self) -> PlcState: ...
+    @property
+    def fault_code(self) -> FaultCode: ...
+    def fault(self, code: FaultCode, now_ns: int | None = None, reason: str = "") -> None: ...
+    def recover(self, now_ns: int) -> bool: ...
 
 FAULT_DEVICE = FaultCode.DEVICE
 
@@ -84,7 +93,7 @@ class DeviceMonitor:
         self.culprits: set[str] = set()  # devices behind the current device fault
         self.failed: list[str] = []  # devices whose verdict is FAULT, as of the last observation
 
-    def before_scan(self, plc: Plc, answering: Mapping[str, bool],
+    def before_scan(self, plc: Monitored, answering: Mapping[str, bool],
                     policies: Mapping[str, FaultPolicy], why: Callable[[str], str],
                     now_ns: int) -> list[str]:
         events: list[str] = []
@@ -105,7 +114,7 @@ class DeviceMonitor:
             self.culprits.clear()
         return events + self.after_scan(plc, now_ns)
 
-    def after_scan(self, plc: Plc, now_ns: int) -> list[str]:
+    def after_scan(self, plc: Monitored, now_ns: int) -> list[str]:
         failed = self.failed
         if not failed or plc.state is not PlcState.RUNNING:
             return []
@@ -113,7 +122,7 @@ class DeviceMonitor:
         plc.fault(FAULT_DEVICE, now_ns, "; ".join(self._describe(n) for n in failed))
         return ["plc_fault:device"]
 
-    def _maybe_recover(self, plc: Plc, policies: Mapping[str, FaultPolicy],
+    def _maybe_recover(self, plc: Monitored, policies: Mapping[str, FaultPolicy],
                        now_ns: int) -> list[str]:
         if self.failed:
             return []

@@ -14,11 +14,11 @@ importable from here.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
 from softplc.core import events as event_conditions
+from softplc.core.context import ScanContext
 from softplc.core.image import Area, ProcessImage
 from softplc.core.judge import NOTHING_OBSERVED, Observed, judge
 from softplc.core.lifecycle import Command, CommandRejected, PlcState
@@ -28,25 +28,14 @@ from softplc.core.plc import (
     FAULT_WATCHDOG,
     Plc,
     ProgramCommand,
-    ScanContext,
 )
 from softplc.core.problems import FaultCode, PlcFault
+from softplc.core.result import ScanResult
 from softplc.core.snapshot import CommandReply, HmiWrite, Refusal
 from softplc.core.symbols import FIRST_SCAN
 
 __all__ = ["FAULT_DEVICE", "FAULT_NONE", "FAULT_WATCHDOG", "NOTHING_OBSERVED", "Observed", "Plc",
            "ProgramCommand", "ScanContext", "ScanResult", "judge", "scan"]
-
-
-@dataclass(frozen=True, slots=True)
-class ScanResult:
-    outputs: ProcessImage  # the PLC's image after the scan (outputs and memory committed)
-    events: tuple[str, ...]  # event conditions that occurred and events the program emitted
-    fired: tuple[str, ...]
-    completed: tuple[str, ...]
-    marking_changes: dict[str, int]
-    replies: tuple[CommandReply, ...]
-    outputs_changed: bool = True  # False: the output image equals the previous scan's
 
 
 
