@@ -9,6 +9,8 @@ from __future__ import annotations
 import copy
 from typing import Any, Final
 
+from softplc.api.pagedoc import page_paths
+
 API_PREFIX: Final = "/api/v1"
 LIFECYCLE_COMMANDS: Final = ("start", "stop", "resume", "reset", "kill")
 
@@ -295,9 +297,7 @@ def openapi_document() -> dict[str, Any]:
             "responses": {"200": {"description": "OpenAPI 3.1", "content": {
                 "application/json": {"schema": {"type": "object"}}}}, **_errors(401, 403)}}},
     }
-    from softplc.api.web import openapi_paths  # the page, live stream and forcing
-
-    paths.update(openapi_paths(API_PREFIX))
+    paths.update(page_paths(API_PREFIX))  # the page, live stream and forcing
     return copy.deepcopy({
         "openapi": "3.1.0",
         "info": {"title": "softplc management API", "version": "1.0.0",

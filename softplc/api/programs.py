@@ -13,20 +13,18 @@ import asyncio
 import itertools
 import re
 from pathlib import Path
-from typing import TYPE_CHECKING, Final
+from typing import Final
 
 from aiohttp import web
 
 from softplc.api.commands import Record
 from softplc.api.openapi import API_PREFIX
 from softplc.api.problems import ApiProblem, flag, idempotency_key
+from softplc.api.service import ApiService
 from softplc.core.lifecycle import Command
 from softplc.core.snapshot import CommandReply
 from softplc.program import boot
 from softplc.program import bundle as bundles
-
-if TYPE_CHECKING:
-    from softplc.api.server import ApiServer
 
 _NAME: Final = re.compile(r"[A-Za-z0-9._-]{1,128}")
 # Characters a YAML stream may not hold (YAML 1.1 section 5.1, as PyYAML's reader checks).
@@ -34,7 +32,7 @@ _NOT_YAML: Final = re.compile(
     "[^\x09\x0A\x0D\x20-\x7E\x85\xA0-\uD7FF\uE000-\uFFFD\U00010000-\U0010FFFF]")
 
 
-def register(app: web.Application, api: ApiServer) -> None:
+def register(app: web.Application, api: ApiService) -> None:
     """Add the program routes to `app` (server.py's build_app calls this once)."""
     routes = _Routes(api)
     app.router.add_post(f"{API_PREFIX}/program", routes.download)
@@ -52,7 +50,7 @@ def unprintable(text: str, name: str) -> list[str]:
 
 
 class _Routes:
-    def __init__(self, api: ApiServer) -> None:
+    def __init__(self, api: ApiService) -> None:
         self._api = api
 
     async def download(self, request: web.Request) -> web.Response:

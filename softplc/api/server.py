@@ -21,7 +21,7 @@ import logging
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
-from typing import Any, Final, Protocol
+from typing import Any, Final
 
 from aiohttp import web
 
@@ -39,13 +39,12 @@ from softplc.api.events import EventHub
 from softplc.api.limits import HttpBounds, HttpLimits, Kind
 from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
 from softplc.api.problems import MAX_JSON_BYTES, ApiProblem, idempotency_key
+from softplc.api.service import BoardSource, CommandChannel
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import Command
 from softplc.core.snapshot import (
     ChannelFull,
     CommandReply,
-    CommandRequest,
-    HmiWrite,
     NotQueued,
     SnapshotSource,
     SnapshotUnavailable,
@@ -75,21 +74,6 @@ def request_class(method: str, path: str, has_body: bool) -> tuple[Kind, str]:
             path in PRIORITY_PATHS or path.startswith(("/static/", f"{API_PREFIX}/commands/"))):
         return Kind.PRIORITY, ""
     return Kind.ORDINARY, ""
-
-
-class CommandChannel(Protocol):
-    """What the service needs of softplc.runtime.channel.Channel (client side)."""
-
-    def send_command(self, request: CommandRequest, timeout_s: float = ...,
-                     on_late: Callable[[CommandReply], None] | None = ...) -> CommandReply: ...
-
-    def send_hmi_write(self, write: HmiWrite) -> None: ...
-
-
-class BoardSource(Protocol):
-    """What the service needs of softplc.runtime.board.StatusBoard."""
-
-    def read(self) -> dict[str, Any]: ...
 
 
 class ApiServer:

@@ -11,20 +11,18 @@ from __future__ import annotations
 import contextlib
 import json
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from aiohttp import web
 
 from softplc.api.openapi import API_PREFIX
 from softplc.api.problems import ApiProblem, json_body
+from softplc.api.service import ApiService
 from softplc.core.image import AddressError, parse_address
 from softplc.core.snapshot import ChannelFull, HmiWrite
 
-if TYPE_CHECKING:
-    from softplc.api.server import ApiServer
 
-
-def register(app: web.Application, api: ApiServer) -> None:
+def register(app: web.Application, api: ApiService) -> None:
     """Add the symbol routes to `app` (server.py's build_app calls this once)."""
     routes = _Routes(api)
     app.router.add_get(f"{API_PREFIX}/symbols", routes.symbols)
@@ -61,7 +59,7 @@ def write_value(name: str, entry: Mapping[str, Any], body: Any) -> bool | int:
 
 
 class _Routes:
-    def __init__(self, api: ApiServer) -> None:
+    def __init__(self, api: ApiService) -> None:
         self._api = api
 
     async def _table(self) -> dict[str, dict[str, Any]]:

@@ -18,20 +18,18 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Final
+from typing import Any, Final
 
 from aiohttp import web
 
 from softplc.api.openapi import API_PREFIX
+from softplc.api.pagedoc import LIVE_HZ
 from softplc.api.problems import ApiProblem, json_body
+from softplc.api.service import ApiService
 from softplc.core.lifecycle import Command
 from softplc.core.snapshot import CommandReply, SnapshotUnavailable
 
-if TYPE_CHECKING:
-    from softplc.api.server import ApiServer
-
 STATIC: Final = Path(__file__).with_name("static")
-LIVE_HZ: Final = 25  # frames per second at most; the board itself refreshes about every 50 ms
 PUBLIC_PREFIXES: Final = ("/static/",)
 PUBLIC_PATHS: Final = frozenset({"/", "/index.html"})
 # The page loads only its own files and talks only to its own origin.
@@ -46,7 +44,7 @@ def is_public(method: str, path: str) -> bool:
     return method in ("GET", "HEAD") and (path in PUBLIC_PATHS or path.startswith(PUBLIC_PREFIXES))
 
 
-def register(app: web.Application, api: ApiServer) -> None:
+def register(app: web.Application, api: ApiService) -> None:
     """Add the page's routes to `app` (server.py's build_app calls this once)."""
     routes = _Routes(api)
     p = API_PREFIX
@@ -81,7 +79,7 @@ class _Viewer:
 class _LiveHub:
     """One poll of board and snapshot for all pages while any page listens."""
 
-    def __init__(self, api: ApiServer) -> None:
+    def __init__(self, api: ApiService) -> None:
         self._api = api
         self._viewers: set[_Viewer] = set()
         self._task: asyncio.Task[None] | None = None
@@ -182,7 +180,7 @@ def _problem(status: int, error: str, **extra: Any) -> web.Response:
 
 
 class _Routes:
-    def __init__(self, api: ApiServer) -> None:
+    def __init__(self, api: ApiService) -> None:
         self._api = api
         self._hub = _LiveHub(api)
 
@@ -265,59 +263,3 @@ def _force_value(name: str, body: Any) -> int:
         return value
     raise ApiProblem(422, f"force {name}: value must be true/false or an integer, "
                           f"not {json.dumps(value)[:40]}")
-
-
-def openapi_paths(prefix: str) -> dict[str, Any]:
-    """This module's routes for openapi.py (the page and static files included)."""
-    def err(*codes: int) -> dict[str, Any]:
-        return {str(c): {"description": "Error", "content": {"application/json": {
-            "schema": {"$ref": "#/components/schemas/Error"}}}} for c in codes}
-
-    result = {"200": {"description": "Accepted; `state` is the (unchanged) state.",
-                      "content": {"application/json": {
-                          "schema": {"$ref": "#/components/schemas/CommandResult"}}}}}
-    name = {"name": "name", "in": "path", "required": True, "schema": {"type": "string"}}
-    html = {"200": {"description": "HTML, JavaScript or CSS of the operator's page.",
-                    "content": {"text/html": {"schema": {"type": "string"}}}}, **err(403, 404)}
-    page = {"get": {"operationId": "page", "tags": ["page"], "security": [],
-                    "summary": "The operator's page (served without a token; it asks for one).",
-                    "responses": html}}
-    return {
-        "/": page,
-        "/index.html": {"get": {**page["get"], "operationId": "pageIndex"}},
-        "/static": {"get": {"operationId": "static", "tags": ["page"], "security": [],
-                            "summary": "The page's vendored libraries (static/VENDORED.md).",
-                            "responses": html}},
-        f"{prefix}/net": {"get": {
-            "operationId": "net", "tags": ["page"],
-            "summary": "The loaded net's structure: places, transitions, arcs, subnet instance "
-                       "of each, outputs, symbols with descriptions.",
-            "responses": {"200": {"description": "The structure.", "content": {
-                "application/json": {"schema": {"type": "object"}}}}, **err(401, 403, 404, 503)}}},
-        f"{prefix}/live": {"get": {
-            "operationId": "live", "tags": ["page"],
-            "summary": f"Server-sent `event: frame` JSON frames for pages, at most {LIVE_HZ}/s: "
-                       "state, marking, busy firings, fire counts, values, forces, timing, "
-                       "new events.",
-            "responses": {"200": {"description": "An endless stream.", "content": {
-                "text/event-stream": {"schema": {"type": "string"}}}}, **err(401, 403)}}},
-        f"{prefix}/forces": {
-            "get": {"operationId": "listForces", "tags": ["forcing"],
-                    "summary": "Forced symbols and their values.",
-                    "responses": {"200": {"description": "{forced: {symbol: value}}", "content": {
-                        "application/json": {"schema": {"type": "object"}}}},
-                        **err(401, 403, 503)}},
-            "delete": {"operationId": "releaseAllForces", "tags": ["forcing"],
-                       "summary": "Release every force.",
-                       "responses": {**result, **err(401, 403, 409, 503)}}},
-        f"{prefix}/forces/{{name}}": {
-            "put": {"operationId": "force", "tags": ["forcing"], "parameters": [name],
-                    "summary": "Force a symbol: an input replaces the driver's value at the "
-                               "latch, an output the program's value (while RUNNING).",
-                    "requestBody": {"required": True, "content": {"application/json": {
-                        "schema": {"$ref": "#/components/schemas/SymbolWrite"}}}},
-                    "responses": {**result, **err(400, 401, 403, 409, 413, 422, 503)}},
-            "delete": {"operationId": "releaseForce", "tags": ["forcing"], "parameters": [name],
-                       "summary": "Release one force.",
-                       "responses": {**result, **err(401, 403, 409, 422, 503)}}},
-    }
