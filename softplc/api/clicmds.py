@@ -25,9 +25,10 @@ EXIT_REFUSED: Final = 1
 EXIT_UNREACHABLE: Final = 2
 
 _HELP: Final = {
-    "start": "start the program from its initial marking (cold)",
+    "start": "start a downloaded or reset program from its initial marking (after a stop: "
+             "resume, or reset then start)",
     "stop": "stop the program: outputs safe, marking frozen",
-    "resume": "resume a stopped program with its marking (warm)",
+    "resume": "resume a program stopped while running, with its marking (warm)",
     "reset": "back to the initial marking, stopped",
     "kill": "stop at once without committing the scan's outputs",
 }

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -35,11 +34,9 @@ from softplc.core.lifecycle import (
 from softplc.core.net import Busy, CompiledNet, NetState
 from softplc.core.online import CarryPlan
 from softplc.core.problems import FaultCode
+from softplc.core.result import ScanResult
 from softplc.core.snapshot import HmiWrite
 from softplc.core.symbols import Direction, DriverSpec, FaultPolicy
-
-if TYPE_CHECKING:
-    from softplc.core.scan import ScanResult
 
 # Kept for readers of older code and tests: the codes are FaultCode's.
 FAULT_NONE, FAULT_WATCHDOG, FAULT_DEVICE = FaultCode.NONE, FaultCode.WATCHDOG, FaultCode.DEVICE

@@ -38,6 +38,7 @@ from asyncua.server.internal_server import InternalServer
 from asyncua.server.uaprocessor import UaProcessor
 
 from softplc.hmi.admission import Limits, Slot, Verdict, decide
+from softplc.opcua.ids import numeric_id, status_code
 from softplc.opcua.limits import DoorStats, OpcUaLimits, operations
 
 log = logging.getLogger(__name__)
@@ -45,7 +46,7 @@ log = logging.getLogger(__name__)
 SUMMARY_S: Final = 10.0  # at most one summary line of refusals per this
 FD_RESERVE: Final = 64  # descriptors kept for the listener, the channel, shm, logs
 _HEADER: Final = struct.Struct("<3scI")  # message type, chunk type, message size
-_CREATE_SESSION: Final = ua.NodeId(ua.ObjectIds.CreateSessionRequest_Encoding_DefaultBinary)
+_CREATE_SESSION: Final = numeric_id(ua.ObjectIds.CreateSessionRequest_Encoding_DefaultBinary)
 
 
 def usable_connections(limits: OpcUaLimits) -> int:
@@ -96,7 +97,7 @@ class DoorServer(Server):
                             ("MaxNodesPerTranslateBrowsePathsToNodeIds",
                              limits.max_nodes_per_other)):
             ident = getattr(ua.ObjectIds, f"Server_ServerCapabilities_OperationLimits_{name}")
-            await self.get_node(ua.NodeId(ident)).write_value(
+            await self.get_node(numeric_id(ident)).write_value(
                 ua.Variant(value, ua.VariantType.UInt32))
 
 
@@ -147,7 +148,7 @@ async def _create_monitored_items(service: Any, inner: Callable[..., Any],
         params.ItemsToCreate = items[:room]
         fitting = await inner(params)
     refused = ua.MonitoredItemCreateResult()
-    refused.StatusCode = ua.StatusCode(ua.StatusCodes.BadTooManyMonitoredItems)
+    refused.StatusCode = status_code(ua.StatusCodes.BadTooManyMonitoredItems)
     return [*fitting, *([refused] * (len(items) - room))]
 
 

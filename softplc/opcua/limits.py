@@ -12,12 +12,16 @@ Does not know: sockets, asyncio, sessions.
 from __future__ import annotations
 
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, fields
+from functools import partial
 from typing import Final
 
 from asyncua import ua
 from asyncua.common.utils import Buffer, NotEnoughData
 from asyncua.ua.ua_binary import extensionobject_from_binary, struct_from_binary
+
+from softplc.opcua.ids import numeric_id
 
 
 @dataclass(frozen=True, slots=True)
@@ -97,7 +101,7 @@ def _history_count(body: Buffer) -> int:
 
 
 def _encoding(name: str) -> ua.NodeId:
-    return ua.NodeId(getattr(ua.ObjectIds, f"{name}Request_Encoding_DefaultBinary"))
+    return numeric_id(getattr(ua.ObjectIds, f"{name}Request_Encoding_DefaultBinary"))
 
 
 # Per request type: which limit field applies and the byte offset of the operation array
@@ -119,12 +123,12 @@ _FIXED: Final = {
     "SetPublishingMode": ("max_nodes_per_other", 1),
     "Publish": ("max_nodes_per_other", 0),
 }
-_PARSED: Final = {
+_PARSED: Final[dict[str, tuple[str, Callable[[Buffer], int]]]] = {
     "Browse": ("max_nodes_per_browse", _browse_count),
     "HistoryRead": ("max_nodes_per_other", _history_count),
 }
-_RULES: Final = {
-    **{_encoding(name): (field, lambda body, at=at: _count_at(body, at))
+_RULES: Final[dict[ua.NodeId, tuple[str, Callable[[Buffer], int]]]] = {
+    **{_encoding(name): (field, partial(_count_at, skip=at))
        for name, (field, at) in _FIXED.items()},
     **{_encoding(name): rule for name, rule in _PARSED.items()},
 }

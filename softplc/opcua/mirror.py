@@ -159,9 +159,11 @@ class Mirror:
         if not outcome.ok:
             await self.emit("refused", text + "".join(f"\n{p}" for p in outcome.problems))
         elif outcome.state in PlcState.__members__:
-            # The scan's reply says the state at once: a next call is checked against it, not
-            # against a snapshot up to a poll older (a STOPPED reply of Suspend kept the marking).
-            await self.follow(part10_state(PlcState[outcome.state], method == "Suspend"))
+            # The scan's reply says the state at once: the next call is checked against it
+            # (program.py), not against a snapshot up to a poll older. CurrentState, events and
+            # Status.State follow the snapshot together (a STOPPED reply of Suspend kept the
+            # marking; of anything else, it holds the initial one).
+            self.space.part10 = part10_state(PlcState[outcome.state], method == "Suspend")
 
     async def set(self, nodeid: ua.NodeId, variant: ua.Variant) -> None:
         """Write a value into the address space only when it changed (subscribers are told

@@ -83,7 +83,7 @@ class Part10:
             return
         await self._executable(state)
         transition = TRANSITIONS.get((before, state)) if before is not None else None
-        if transition is None:
+        if transition is None or before is None:
             return
         now = datetime.now(UTC)
         await self._last_transition(transition, now)

@@ -236,11 +236,11 @@ async def program_properties(server: Server, program: Node) -> None:
         node = await program.get_child(f"0:{method}")
         if await _optional_child(node, "0:OutputArguments") is None:
             prop = await node.add_property(
-                ua.NodeId(f"{node.nodeid.Identifier}.OutputArguments", node.nodeid.NamespaceIndex),
+                string_id(f"{node.nodeid.Identifier!s}.OutputArguments",
+                          node.nodeid.NamespaceIndex),
                 "0:OutputArguments", ua.Variant(outputs, ua.VariantType.ExtensionObject),
                 datatype=numeric_id(ua.ObjectIds.Argument))
             await prop.write_value_rank(1)
-            await prop.write_array_dimensions([0])
 
 
 TRANSITION_NAMES: Final = ("HaltedToReady", "ReadyToRunning", "RunningToHalted",

@@ -5,8 +5,8 @@ CPU time nothing else of the runtime wants, off the scan's CPU when the scan is 
 download at a time over a private pipe, a compile that dies or runs past COMPILE_TIMEOUT_S
 turned into a refused download (the next download starts a new process), its budgets (a
 download past COMPILE_MEMORY_BYTES of address space or COMPILE_CPU_S of CPU is refused, by
-RLIMIT_AS and RLIMIT_CPU, and the process lives on), and its end with the scan process
-(pipe closed, or PR_SET_PDEATHSIG).
+RLIMIT_AS and RLIMIT_CPU; after a MemoryError the process ends, the next download starts
+another), and its end with the scan process (pipe closed, or PR_SET_PDEATHSIG).
 Why a process: threads of the scan process share one interpreter lock with the scan. Paced
 between scans on a thread of the scan process (as it once was), a 10,000-transition compile
 took ~3 s of the scan process's time and still cost slots at 1 ms; here it takes ~0.8 s of
@@ -46,6 +46,7 @@ COMPILE_TIMEOUT_S = 120.0  # one download's compile and analysis; then it is ref
 # took 2.1 s, the gate's work budgets a few more.
 COMPILE_MEMORY_BYTES = 1 << 30
 COMPILE_CPU_S = 60
+OUT_OF_MEMORY_EXIT = 86  # its exit code after a MemoryError (when the refusal could not go)
 _CTX = multiprocessing.get_context("spawn")  # a fresh interpreter: nothing of the scan's
 
 
@@ -60,6 +61,7 @@ def compile_main(config: LoopConfig, conn: Connection,
     idle(0)
     teardown.piecewise(False)  # no scan thread here: temporaries are freed at once
     prep = Preparer(config, lambda: None, lambda: ())
+    no_memory = pickle.dumps(("error", CompilerFailed(_over_memory(memory_bytes))), protocol=5)
     _limit_memory(memory_bytes)
     signal.signal(signal.SIGXCPU, _out_of_cpu)
     while True:
@@ -77,10 +79,8 @@ def compile_main(config: LoopConfig, conn: Connection,
                 for p in exc.problems]))
         except AnalysisRefused as exc:  # its findings are relative already
             reply = ("error", exc)
-        except MemoryError:
-            reply = ("error", CompilerFailed(
-                f"the download needs more memory than the compile process's budget of "
-                f"{memory_bytes >> 20:,} MiB; it is refused"))
+        except MemoryError:  # at its limit the heap stays full: the refusal, then the end
+            _out_of_memory(conn, no_memory)
         except OutOfCpu:
             reply = ("error", CompilerFailed(
                 f"the download needs more than the compile process's CPU budget of "
@@ -96,6 +96,20 @@ def compile_main(config: LoopConfig, conn: Connection,
         _limit_cpu(None)
         gc.enable()
         gc.collect()  # between downloads, where nobody waits
+
+
+def _over_memory(memory_bytes: int) -> str:
+    return (f"the download needs more memory than the compile process's budget of "
+            f"{memory_bytes >> 20:,} MiB; it is refused")
+
+
+def _out_of_memory(conn: Connection, reply: bytes) -> None:
+    """The refusal made before the budget was set, sent as it is; then the process ends (a
+    new one takes the next download): once an allocation has failed at the limit, the heap
+    is still mapped and the next one fails too (measured: every later step raised)."""
+    with contextlib.suppress(BaseException):
+        conn.send_bytes(reply)
+    os._exit(OUT_OF_MEMORY_EXIT)
 
 
 class OutOfCpu(BaseException):
@@ -213,6 +227,7 @@ class CompileProcess:
         code = proc.exitcode if proc is not None else None
         self.close()
         how = (f"killed by signal {-code}" if code is not None and code < 0
+               else _over_memory(self.budgets[0]) if code == OUT_OF_MEMORY_EXIT
                else f"exit code {code}" if code is not None else "closed")
         self.last_failure = (f"the compile process ended while compiling ({how}); it restarts "
                              "with the next download")

@@ -62,7 +62,8 @@ class ScanLoop:
         self.watchdog = CycleWatchdog(
             self.budget_ns, config.watchdog_sensitivity, config.watchdog_hard_ns,
             config.stall_fault_ns if config.on_stall == "fault" else 0)
-        self.hang = HangWatch(self.watchdog.hard_ns, self._hung)  # started on a real clock
+        self.hang = HangWatch(self.watchdog.hard_ns, self._hung,  # started on a real clock
+                              lambda: self.clock.now_ns())  # the loop's, warm start included
         self.events: deque[dict[str, Any]] = deque(maxlen=256)
         self.event_seq = 0
         self.start_mode = "cold"

