@@ -78,6 +78,20 @@ class LifecycleMachine(RuleBasedStateMachine):
         self._end("SIGTERM")
         self._cold(program, start)
 
+    @rule(how=st.sampled_from(["SIGTERM", "SIGINT"]), delay_ms=st.integers(0, 1500),
+          start=st.booleans())
+    def signal_during_start(self, how: str, delay_ms: int, start: bool) -> None:
+        """A run told to stop while it starts (its children spawned, the program maybe not
+        loaded yet) stops as any other: exit 0 within 2 s, outputs safe; then a warm start."""
+        state_dir = self._end("SIGTERM")
+        run = self.rig.start(state_dir, None, True)
+        settle(run.children, bool, "the supervisor spawned its children", timeout_s=30)
+        time.sleep(delay_ms / 1000)
+        self.model.warm_start(True)
+        self._end(how)
+        self.model.warm_start(start)
+        self._begin(state_dir, None, start)
+
     def _cold(self, program: str | None, start: bool) -> None:
         self.model.cold_start(program, start)
         self._begin(self.rig.new_state_dir(), program, start)

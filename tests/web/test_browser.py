@@ -156,12 +156,12 @@ def test_transport_page_live_forcing_and_program_handling(
         browser: Any, shots: Path, tmp_path: Path) -> None:
     plc = Softplc("programs/transport.yaml", tmp_path / "state", start=False)
     try:
-        # m1 forced off before the program runs (a resume keeps forces, a start would drop
+        # m1 forced off before the program runs (a start keeps forces; only a reset drops
         # them): the first part, put at s1_i at 1 s, is taken on by c1.start but the belt
         # stands still, so it never reaches s1_o by itself. c1.arrive can then only fire
         # because the page forces s1_o, however slowly this machine runs the test.
         plc.client.force("m1", 0)
-        plc.client.resume()
+        plc.client.start()
         until(lambda: plc.client.status()["marking"].get("c1.moving"), 30, "c1 took a part on")
         assert fired_api(plc, "c1.arrive") == 0 and plc.client.read_symbol("s1_o") is False
         open_page(browser, plc)
