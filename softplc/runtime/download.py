@@ -4,7 +4,8 @@ its scans (docs/design.md section 12, the download job).
 Owns: the stages of every download and the table of the stages each may go to; stepping them
 without blocking (the compile process's answer polled, the net loaded and its engine built a
 step at a time, the devices' opening polled); the order of commands (a command sent after a
-download waits until the download is decided, except stop and kill, which are never held);
+download waits until the download is decided, except stop and kill, which are never held: the
+downloads still being prepared ahead of one are withdrawn);
 the burial of a replaced net, a step at a time.
 What blocks runs on one helper thread, and only that: the exchange with the compile process
 (send, wait, receive: runtime/compileproc.py) and the opening of a new io image's devices and
@@ -217,16 +218,14 @@ class Downloads:
                 self._queue.append(request)
 
     def _withdraw_before(self, urgent: CommandRequest) -> None:
-        """`urgent` goes before every download still being prepared; those are withdrawn."""
-        kept: deque[CommandRequest | DownloadJob] = deque()
+        """The downloads still being prepared ahead of `urgent` are withdrawn (refused, saying
+        why): nothing then holds it, and what was sent before it still applies before it."""
         for item in self._queue:
             if isinstance(item, DownloadJob) and not item.decided:
                 item.refuse(Withdrawn(f"withdrawn: a {urgent.command.value} sent after it was "
                                       "applied first (a stop or kill is never held behind a "
                                       "download)"))
-            kept.append(item)
-        self._queue = kept
-        self._queue.appendleft(urgent)
+        self._queue.append(urgent)
 
     @property
     def busy(self) -> bool:

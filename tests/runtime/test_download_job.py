@@ -105,9 +105,9 @@ def test_a_stop_or_kill_is_never_held_behind_a_download(urgent: Command) -> None
     downloads.put([CommandRequest(1, Command.DOWNLOAD, program_text=TRANSPORT.read_text()),
                    CommandRequest(2, Command.RESET), CommandRequest(3, urgent)])
     try:
-        first = downloads.take()
-        assert [d.request.id for d in first] == [3, 1, 2]
-        kind, message, _ = refusal_of(first[1].error or RuntimeError(), str)
+        first = downloads.take()  # nothing held, the order kept
+        assert [d.request.id for d in first] == [1, 2, 3]
+        kind, message, _ = refusal_of(first[0].error or RuntimeError(), str)
         assert kind is Refusal.WITHDRAWN and f"a {urgent.value} sent after it" in message
     finally:
         gate.set()
