@@ -52,7 +52,7 @@ FUZZ_SCALE ?= 50
 fuzz: $(DEV_STAMP) $(BENCH_STAMP)
 	rm -f fuzz-report.jsonl
 	SOFTPLC_FUZZ_SCALE=$(FUZZ_SCALE) SOFTPLC_FUZZ_REPORT=fuzz-report.jsonl \
-		$(PY) -m pytest tests/fuzz -q -p no:cacheprovider
+		$(PY) -m pytest tests/fuzz tests/system/test_lifecycle_model.py -q -p no:cacheprovider
 
 # A shell with the venv active: `softplc` is on the PATH there (`exit` leaves it). The same
 # without make: `. .venv/bin/activate`.

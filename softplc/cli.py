@@ -242,6 +242,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="warm restart of a program that was RUNNING: resume it (run) or "
                      "restore it and wait STOPPED for `softplc resume` (stop) "
                      "(default: %(default)s)")
+    run.add_argument("--boot-policy", choices=("stop", "warm", "cold"), default=None,
+                     help="what a restart of the machine or of softplc run does: stay stopped, "
+                     "warm start, cold start; kept in --state-dir for the next runs (default: "
+                     "the kept one, else stop; docs/retain.md)")
     run.add_argument("--modbus-writes", choices=("open", "symbols", "none"), default="open",
                      help="Modbus writes allowed: open (outputs and memory, as OpenPLC), "
                      "symbols (only the running program's output and memory symbols not declared "

@@ -21,6 +21,9 @@ from softplc.analysis.model import AnalysisNet, IntArray
 
 SEMANTICS = ("scan", "interleaving")
 DEFAULT_MAX_STATES = 200_000
+# States x places kept by an exploration (a marking is a tuple or a row of them): ~0.3 GB.
+# 20,000 states of a 16,000-place net would have been 2.5 GB.
+MAX_STATE_CELLS = 40_000_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,10 +117,14 @@ def analyze(net: AnalysisNet, semantics: str = "scan",
     pinv = p_invariants(net.pre, net.post)
     tinv = t_invariants(net.pre, net.post)
     bounds = _structural_bounds(net, pinv)
+    cap = min(max_states, MAX_STATE_CELLS // max(1, net.n_places + sum(net.timed)))
     if bounds is not None and semantics == "interleaving" and net.n_transitions < 32_000:
-        graph = explore_fast(net, bounds, max_states)
+        graph = explore_fast(net, bounds, cap)
     else:
-        graph = explore(net, semantics, max_states, accelerate=bounds is None)
+        graph = explore(net, semantics, cap, accelerate=bounds is None)
+    if cap < max_states and not graph.complete and not graph.stopped:
+        graph.stopped = (f"stopped at {graph.states} states (memory budget: "
+                         f"{MAX_STATE_CELLS:,} place entries over {net.n_places:,} places)")
     if semantics == "scan" and any(net.timed):
         graph.notes.append("timing abstracted: a delay may or may not have elapsed and a "
                            "running duration may end in any later scan")

@@ -45,7 +45,7 @@ def verify(net: CompiledNet, max_states: int = GATE_MAX_STATES,
     try:
         model = from_compiled(net)
     except TooLarge as exc:
-        return Verdict((f"{exc} (run `softplc analyze` offline on a smaller net)",), True, None)
+        return Verdict((str(exc),), True, None)
     return verdict_of(analyze(model, semantics, max_states))
 
 

@@ -58,7 +58,7 @@ class _Run:
     beam: bool = False  # some rows or pairs were left out: fewer invariants, each still one
 
     def support(self, rows: npt.NDArray[np.int64]) -> npt.NDArray[np.float32]:
-        return (rows[:, self.m:] != 0).astype(np.float32)
+        return np.asarray(rows[:, self.m:] != 0, dtype=np.float32)
 
     def stop(self, why: str) -> None:
         self.why = self.why or why
@@ -127,8 +127,8 @@ def _eliminate(run: _Run, col: int, max_work: int) -> None:
 def _pairs(run: _Run, pos: npt.NDArray[np.int64],
            neg: npt.NDArray[np.int64]) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
     """Every (pos, neg) pair, or the ones with the smallest supports that fit MAX_NEW_CELLS."""
-    i, j = np.meshgrid(np.arange(len(pos)), np.arange(len(neg)), indexing="ij")
-    i, j = i.ravel(), j.ravel()
+    i = np.repeat(np.arange(len(pos)), len(neg))
+    j = np.tile(np.arange(len(neg)), len(pos))
     width = max(1, pos.shape[1])
     if len(i) * width <= MAX_NEW_CELLS:
         return i, j

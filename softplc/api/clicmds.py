@@ -271,6 +271,8 @@ def format_status(status: dict[str, Any]) -> str:
         f"program     {program}" + (f"  hash {digest[:12]}" if digest else ""),
         f"start mode  {status.get('start_mode', '?')}"
         + (f" ({status['start_reason']})" if status.get("start_reason") else ""),
+        f"boot policy {status.get('boot_policy', '?')}"
+        + (f" ({status['boot_policy_source']})" if status.get("boot_policy_source") else ""),
         f"scans       {status.get('scan_count', 0)}, period {_us(status.get('period_us'))}",
         f"execution   median {_us(timing.get('exec_median_us'))}, "
         f"p99 {_us(timing.get('exec_p99_us'))}, max {_us(timing.get('exec_max_us'))}",

@@ -181,6 +181,7 @@ _SCHEMAS: Final[dict[str, Any]] = {
             "devices": {"type": "object", "additionalProperties": {"type": "object"}},
             "start_mode": {"type": "string", "enum": ["cold", "warm"]},
             "start_reason": {"type": "string"},
+            "boot_policy": {"type": "string", "enum": ["stop", "warm", "cold"]},
             "retain": {"type": ["object", "null"]},
             "diagnostics": {"type": "array", "items": {}},
             "last_event_seq": {"type": "integer"},

@@ -161,6 +161,7 @@ def live_frame(document: dict[str, Any], status: Any, image: Any,
         "board_scan_count": document.get("scan_count", 0),  # the scan of marking and net_live
         "program": document.get("program"), "program_hash": document.get("program_hash"),
         "start_mode": document.get("start_mode"), "start_reason": document.get("start_reason"),
+        "boot_policy": document.get("boot_policy"),
         "fault_reason": document.get("fault_reason", ""), "period_us": document.get("period_us"),
         "marking": document.get("marking") or {}, "net_live": document.get("net_live") or {},
         "forced": document.get("forced") or {}, "values": values, "events": events,

@@ -17,7 +17,7 @@ import numpy.typing as npt
 
 from softplc.core.expr import Compiled, Value
 from softplc.core.limits import DEFAULT, Limits
-from softplc.core.symbols import IoImage
+from softplc.core.symbols import IoImage, Retain
 
 IntArray = npt.NDArray[np.int64]
 Token = Mapping[str, Value]  # a coloured token: a small record
@@ -102,6 +102,7 @@ class CompiledNet:
     # (a subnet's places live in the subnet's file).
     place_where: tuple[tuple[str, int], ...] = ()
     transition_where: tuple[tuple[str, int], ...] = ()
+    retain: tuple[Retain, ...] = ()  # per place (docs/retain.md); () : every place retained
 
     @property
     def rank(self) -> dict[int, int]:
@@ -138,6 +139,26 @@ class NetState:
             tokens={p: list(toks) for p, toks in net.initial_tokens.items()},
         )
 
+    @classmethod
+    def fresh(cls, net: CompiledNet, old: CompiledNet | None, state: NetState | None) -> NetState:
+        """The initial state of `net`, its persistent places with their marking in `state` of
+        `old` when that is a program of the same name (a download of a new version, a reset):
+        IEC VAR PERSISTENT. A place whose kept marking no longer fits it starts initial."""
+        fresh = cls.initial(net)
+        if old is None or state is None or old.name != net.name:
+            return fresh
+        for p in persistent_places(net):
+            q = old.place_index.get(net.place_names[p])
+            if q is None or bool(old.coloured[q]) != bool(net.coloured[p]):
+                continue
+            count = int(state.marking[q])
+            if 0 <= net.capacity[p] < count:
+                continue
+            fresh.marking[p] = count
+            if net.coloured[p]:
+                fresh.tokens[p] = list(state.tokens.get(q, []))
+        return fresh
+
     def copy(self) -> NetState:
         return NetState(
             self.marking.copy(),
@@ -148,3 +169,12 @@ class NetState:
 
     def marking_by_name(self, net: CompiledNet) -> dict[str, int]:
         return {net.place_names[p]: int(n) for p, n in enumerate(self.marking) if n}
+
+
+def places_marked(net: CompiledNet, retain: Retain) -> tuple[int, ...]:
+    """The places of `net` declared `retain: <retain>`."""
+    return tuple(p for p, r in enumerate(net.retain) if r is retain)
+
+
+def persistent_places(net: CompiledNet) -> tuple[int, ...]:
+    return places_marked(net, Retain.PERSISTENT)

@@ -36,7 +36,7 @@ from softplc.core.online import CarryPlan
 from softplc.core.problems import FaultCode
 from softplc.core.result import ScanResult
 from softplc.core.snapshot import HmiWrite
-from softplc.core.symbols import Direction, DriverSpec, FaultPolicy
+from softplc.core.symbols import Direction, DriverSpec, FaultPolicy, unretained_memory
 
 # Kept for readers of older code and tests: the codes are FaultCode's.
 FAULT_NONE, FAULT_WATCHDOG, FAULT_DEVICE = FaultCode.NONE, FaultCode.WATCHDOG, FaultCode.DEVICE
@@ -135,10 +135,10 @@ class Plc:
                 raise CommandRejected(self.state, cmd.command, "download without a program")
             if self.state is PlcState.RUNNING:
                 return self._online_change(cmd)
-            self._load(cmd.net, NetState.initial(cmd.net), cmd.engine)
+            self._load(cmd.net, self._fresh(cmd.net, clear=True), cmd.engine)
         elif cmd.command is Command.START or cmd.command is Command.RESET:
             assert self.net is not None
-            self._load(self.net, NetState.initial(self.net))
+            self._load(self.net, self._fresh(self.net, clear=cmd.command is Command.RESET))
             if cmd.command is Command.RESET:  # a start keeps what was forced while READY
                 self.forces.release(None)  # a reset drops every force (docs/design.md 10)
         elif cmd.command is Command.RESUME:
@@ -158,6 +158,14 @@ class Plc:
         if target is not PlcState.FAULTED:
             self.fault_code, self.fault_reason = FAULT_NONE, ""
         return f"{cmd.command.value}: now {target.name}"
+
+    def _fresh(self, net: CompiledNet, clear: bool) -> NetState:
+        """`net`'s initial state, persistent places kept from a program of the same name; with
+        `clear` (download, reset) its non-retained memory symbols to 0 (docs/retain.md)."""
+        if clear and net.io.sizes == self.image.sizes:  # else _load makes a new image
+            for sym in unretained_memory(net.io):
+                self.image.set(sym.address, 0)
+        return NetState.fresh(net, self.net, self.engine.state if self.engine else None)
 
     def _load(self, net: CompiledNet, state: NetState, engine: Engine | None = None) -> None:
         if net.io.sizes != self.image.sizes:

@@ -27,6 +27,19 @@ DIRECTION_OF_AREA = {
 }
 
 
+class Retain(enum.Enum):
+    """What a place or memory symbol keeps across starts (docs/retain.md, retain per
+    variable): `none` is reset at every start, `retain` survives a warm start, `persistent`
+    also a cold start, a reset and a download of the same program (IEC VAR PERSISTENT)."""
+
+    NONE = "none"
+    RETAIN = "retain"
+    PERSISTENT = "persistent"
+
+
+RETAIN_WORDS = tuple(r.value for r in Retain)  # a tuple: `in` works on unhashable YAML too
+
+
 class SymType(enum.Enum):
     BOOL = "bool"
     WORD = "word"
@@ -46,6 +59,7 @@ class Symbol:
     channel: str | None = None  # driver-specific: plant signal name, or modbus table/offset
     hmi_writable: bool = True
     line: int = 0  # line in the io_images file, for messages
+    retain: Retain = Retain.RETAIN  # memory symbols only (program/io_image.py checks)
 
 
 class OnFailure(enum.Enum):
@@ -115,3 +129,12 @@ class IoImage:
 
     def lookup(self, name_or_address: str) -> Symbol | None:
         return self.symbols.get(name_or_address)
+
+
+def unretained_memory(io: IoImage) -> tuple[Symbol, ...]:
+    """The memory symbols declared `retain: none`: cleared at every start (docs/retain.md)."""
+    return tuple(s for s in io.symbols.values() if s.retain is Retain.NONE)
+
+
+def persistent_memory(io: IoImage) -> tuple[Symbol, ...]:
+    return tuple(s for s in io.symbols.values() if s.retain is Retain.PERSISTENT)

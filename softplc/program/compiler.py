@@ -29,7 +29,7 @@ from softplc.core.net import (
     Transition,
 )
 from softplc.core.problems import Problem, ProgramError
-from softplc.core.symbols import FIRST_SCAN, Direction, IoImage, SymType
+from softplc.core.symbols import FIRST_SCAN, RETAIN_WORDS, Direction, IoImage, Retain, SymType
 from softplc.core.values import MAX_FIELDS, field_name_problem
 from softplc.program import fields as token_fields
 from softplc.program.io_image import load_io_image
@@ -249,6 +249,9 @@ def _build(spec: ProgramSpec, io: IoImage, c: _Compiler) -> CompiledNet:
         c.outputs(p.outputs)
         if p.capacity is not None and p.tokens > p.capacity:
             c.problem(p.where, f"initial tokens ({p.tokens}) exceed the capacity ({p.capacity})")
+        if p.retain not in RETAIN_WORDS:
+            c.problem(p.where, f"retain {p.retain!r}: expected none, retain or persistent",
+                      f"{p.where.path}.retain")
     _initial_limits(spec, c)
     transitions = tuple(c.transition(i, t, coloured) for i, t in enumerate(spec.transitions))
     token_fields.check(spec, transitions, c.problem)  # `x.count` where tokens have `cnt`
@@ -298,6 +301,7 @@ def _build(spec: ProgramSpec, io: IoImage, c: _Compiler) -> CompiledNet:
         frozenset(c.events), tuple(spec.subnets), c.limits,
         place_where=tuple((p.where.file, p.where.line) for p in spec.places),
         transition_where=tuple((t.where.file, t.where.line) for t in spec.transitions),
+        retain=tuple(Retain(p.retain) for p in spec.places),
     )
 
 
@@ -342,7 +346,7 @@ def compile_text(text: str, filename: str, root: Path | None = None) -> Compiled
     problem; nothing is built unless the whole program is valid."""
     spec, problems = parse_program(text, filename, root)
     io = None
-    if spec.io_image is None and any("YAML" in p.message for p in problems):
+    if spec.too_large or (spec.io_image is None and any("YAML" in p.message for p in problems)):
         raise ProgramError(sorted(set(problems)))
     if spec.io_image is None:
         if not any(p.path == "io_image" for p in problems):
@@ -378,7 +382,7 @@ def compile_text_with_io(text: str, filename: str, io: IoImage,
     """Compile a program against an io image given by the caller (a PNML import, whose
     symbols come from beside the net, or none at all). Raises ProgramError like compile_text."""
     spec, problems = parse_program(text, filename, root)
-    if any("YAML" in p.message for p in problems):
+    if spec.too_large or any("YAML" in p.message for p in problems):
         raise ProgramError(sorted(set(problems)))
     return _compile_spec(spec, io, problems)
 

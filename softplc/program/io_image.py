@@ -22,6 +22,7 @@ from softplc.core.symbols import (
     FaultPolicy,
     IoImage,
     OnFailure,
+    Retain,
     Symbol,
     SymType,
 )
@@ -30,7 +31,8 @@ from softplc.program.yamlload import YMap, line_of, load_yaml, trap_hint
 
 DRIVER_KINDS = ("sim", "modbus", "opcua")
 POLICY_KEYS = ("on_failure", "hold_scans", "auto_recover", "startup_s")  # any kind of driver
-SYMBOL_KEYS = {"address", "type", "dir", "safe", "driver", "channel", "description", "hmi_writable"}
+SYMBOL_KEYS = {"address", "type", "dir", "safe", "driver", "channel", "description", "hmi_writable",
+               "retain"}
 
 
 class _Reader:
@@ -144,7 +146,22 @@ class _Reader:
         safe = self._safe(spec, path, sym_type)
         return Symbol(name, address, sym_type, direction, safe, str(spec.get("description", "")),
                       driver, str(spec.get("channel", name)),
-                      spec.get("hmi_writable", True) is True, line)
+                      spec.get("hmi_writable", True) is True, line,
+                      self._retain(spec, path, direction))
+
+    def _retain(self, spec: dict[Any, Any], path: str, direction: Direction) -> Retain:
+        """Memory only: inputs are read anew every scan, outputs are the program's."""
+        value = spec.get("retain", Retain.RETAIN.value)
+        words = ", ".join(r.value for r in Retain)
+        if direction is not Direction.MEMORY and value != Retain.RETAIN.value:
+            self.problem(line_of(spec, "retain"), f"{path}.retain",
+                         f"retain applies to memory symbols (%M) only, not {direction.value}")
+        elif isinstance(value, str) and value in words.split(", "):
+            return Retain(value)
+        else:
+            self.problem(line_of(spec, "retain"), f"{path}.retain",
+                         f"retain {value!r}: expected one of {words}")
+        return Retain.RETAIN
 
     def _type(self, spec: dict[Any, Any], path: str, natural: SymType) -> SymType:
         declared = spec.get("type", natural.value)

@@ -24,7 +24,7 @@ from softplc.program.yamlload import YList, YMap, line_of, load_yaml, trap_hint
 
 TOP_KEYS = {"program", "net", "description", "io_image", "params", "places", "transitions",
             "subnets", "events", "limits"}
-PLACE_KEYS = {"tokens", "capacity", "outputs", "coloured", "description"}
+PLACE_KEYS = {"tokens", "capacity", "outputs", "coloured", "description", "retain"}
 TRANSITION_KEYS = {"from", "to", "read", "inhibit", "priority", "when", "do", "delay",
                    "duration", "outputs", "description"}
 MAX_SUBNET_DEPTH = 4
@@ -173,7 +173,7 @@ class _Parser:
         self.count("places", 1, where)
         self.spec.places.append(PlaceSpec(self.prefix + name, tokens,
                                           records if coloured else None, coloured,
-                                          capacity, outputs, where))
+                                          capacity, outputs, where, data.get("retain", "retain")))
         self.spec.place_names.add(self.prefix + name)
 
     def records_ok(self, raw: list[Any], path: str) -> bool:
@@ -233,12 +233,13 @@ class _Parser:
             w = self.where(raw_do, i, f"{where.path}.do[{i}]")
             self.count("expression_chars", len(str(act)), w)  # before it is parsed
             actions.append((self.action(str(act)), w))
-        arcs = [self.arcs(data, key, where) for key in ("from", "to", "read", "inhibit")]
+        pre, post, test, inhibit = (self.arcs(data, key, where)
+                                    for key in ("from", "to", "read", "inhibit"))
         self.count("transitions", 1, where)
-        self.count("arcs", sum(map(len, arcs)), where)
-        self.count("expression_chars", sum(len(str(a.token or "")) for a in arcs[1]), where)
+        self.count("arcs", len(pre) + len(post) + len(test) + len(inhibit), where)
+        self.count("expression_chars", sum(len(str(a.token or "")) for a in post), where)
         self.spec.transitions.append(TransitionSpec(
-            self.prefix + name, *arcs, priority, when, tuple(actions),
+            self.prefix + name, pre, post, test, inhibit, priority, when, tuple(actions),
             self.duration(data, "delay", where), self.duration(data, "duration", where),
             self.outputs(data, where), where))
 
@@ -379,11 +380,10 @@ def resolve(base: Path, ref: str, root: Path | None) -> Path | str:
 
 def parse_program(text: str, filename: str, root: Path | None = None,
                   limits: SizeLimits = DEFAULT_SIZES) -> tuple[ProgramSpec, list[Problem]]:
-    """The flat spec and every problem. Past a size limit (program/sizes.py) the expansion
-    stops at once: the spec is then empty and the problems say which limit, where."""
+    """The flat spec and every problem; past a size limit (sizes.py) it stops, spec empty."""
     sizes = Sizes(limits)
     spec = ProgramSpec(Path(filename).stem, filename, None, texts=[text])
-    data, problems = None, []
+    data, problems = None, list[Problem]()
     try:
         sizes.add("text_chars", len(text), filename, 1, "")  # before it is parsed
         data, problems = load_yaml(text, filename)
@@ -393,7 +393,7 @@ def parse_program(text: str, filename: str, root: Path | None = None,
             problems.append(Problem(filename, 1, "", "empty program"))
     except SizeExceeded as exc:
         problems.append(exc.problem)
-        spec.places, spec.transitions = [], []  # nothing more is built of it
+        spec.places, spec.transitions, spec.too_large = [], [], True
     box = [data]  # the YAML document, let go of a piece at a time (teardown.py)
     del data
     bury(box)

@@ -37,6 +37,7 @@ class PlaceSpec:
     capacity: int | None
     outputs: tuple[tuple[str, Value, Where], ...]
     where: Where
+    retain: object = "retain"  # as written; the compiler checks it (none, retain, persistent)
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,3 +68,4 @@ class ProgramSpec:
     texts: list[str] = field(default_factory=list)  # every file's text, for the program hash
     place_names: set[str] = field(default_factory=set)  # of `places`, for lookups
     limits: dict[str, tuple[int, Where]] = field(default_factory=dict)  # `limits:` overrides
+    too_large: bool = False  # the expansion stopped at a size limit (sizes.py): build nothing

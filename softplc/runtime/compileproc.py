@@ -61,7 +61,7 @@ def compile_main(config: LoopConfig, conn: Connection,
     idle(0)
     teardown.piecewise(False)  # no scan thread here: temporaries are freed at once
     prep = Preparer(config, lambda: None, lambda: ())
-    no_memory = pickle.dumps(("error", CompilerFailed(_over_memory(memory_bytes))), protocol=5)
+    no_memory = pickle.dumps(("ended", CompilerFailed(_over_memory(memory_bytes))), protocol=5)
     _limit_memory(memory_bytes)
     signal.signal(signal.SIGXCPU, _out_of_cpu)
     while True:
@@ -214,7 +214,10 @@ class CompileProcess:
             kind, value = pickle.loads(conn.recv_bytes())
         except (EOFError, OSError, ValueError):
             raise CompilerFailed(self._died()) from None
-        if kind == "error":
+        if kind == "ended":  # its last reply (out of memory): the next download gets a new one
+            self.close()
+            self.last_failure = str(value)
+        if kind in ("error", "ended"):
             raise value
         assert isinstance(value, Built)
         return value
@@ -227,9 +230,13 @@ class CompileProcess:
         code = proc.exitcode if proc is not None else None
         self.close()
         how = (f"killed by signal {-code}" if code is not None and code < 0
-               else _over_memory(self.budgets[0]) if code == OUT_OF_MEMORY_EXIT
                else f"exit code {code}" if code is not None else "closed")
-        self.last_failure = (f"the compile process ended while compiling ({how}); it restarts "
+        if code is not None and -code in (signal.SIGSEGV, signal.SIGBUS, signal.SIGABRT):
+            # Some C code crashes where Python would raise a MemoryError (seen under RLIMIT_AS
+            # budgets of a few MiB): the cause is likely, not known.
+            how += f", perhaps at its memory budget of {self.budgets[0] >> 20:,} MiB"
+        self.last_failure = (_over_memory(self.budgets[0]) if code == OUT_OF_MEMORY_EXIT else
+                             f"the compile process ended while compiling ({how}); it restarts "
                              "with the next download")
         return self.last_failure
 

@@ -36,6 +36,11 @@ class LoopConfig:
     state_dir: str | None = None  # retain snapshots live here; None: no retain, always cold
     retain_interval_ns: int = 1_000_000_000  # 0: only on stop
     warm_start: str = "run"  # a warm restart of a RUNNING snapshot: "run" resumes, "stop" waits
+    # What a start of the scan process that is not the supervisor's restart of a crashed one
+    # does (docs/retain.md, boot policy): "stop", "warm" or "cold". `softplc run` resolves the
+    # installation's (default "stop"); a loop built directly gets today's warm restart.
+    boot_policy: str = "warm"
+    boot_policy_source: str = ""  # where softplc run took it from, for status
     realtime: Realtime = NORMAL  # SCHED_FIFO priority and CPU of the scan process
     on_stall: str = "fault"  # a stall long enough to fault (below): "fault" or "continue"
     # A cycle that starts period x watchdog late is a stall: counted, an event. It faults (with

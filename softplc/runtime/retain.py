@@ -34,6 +34,7 @@ from softplc.runtime.retain_codec import (
     encode,
     load_plant,
     restore,
+    restore_persistent,
 )
 from softplc.runtime.retain_store import (
     FORMAT,
@@ -59,7 +60,7 @@ __all__ = ["FORMAT", "KEEP", "LOCK_FILE", "PREFIX", "SUFFIX", "Capture", "Contin
            "FileOps", "FinalWrite", "Loaded", "RetainStore", "RetainValueError", "RetainWriter",
            "SnapshotInvalid", "Stage", "StartDecision", "StateDirBusy", "WriteFailed", "capture",
            "check_state_dir", "decide", "encode", "from_bytes", "load_plant", "lock_state_dir",
-           "restore", "secure_state_dir", "to_bytes"]
+           "restore", "restore_persistent", "secure_state_dir", "to_bytes"]
 
 
 class ContinuedClock:
@@ -85,26 +86,39 @@ class ContinuedClock:
 class StartDecision:
     mode: str  # "cold" or "warm"
     reason: str
-    snapshot: Loaded | None = None
+    snapshot: Loaded | None = None  # warm: the snapshot to restore
+    ran_before: bool = False  # the state directory held a snapshot, usable or not
+    persistent: Loaded | None = None  # cold: a snapshot of a program of the same name
 
 
-def decide(store: RetainStore, net: CompiledNet | None) -> StartDecision:
+def decide(store: RetainStore, net: CompiledNet | None, policy: str = "warm") -> StartDecision:
+    """Cold or warm, and why. `policy` "cold" (the boot policy, docs/retain.md) does not
+    restore a snapshot of the same program; persistent values come back at any cold start
+    from a snapshot of a program of the same name."""
     loaded, problems = store.load_newest()
     skipped = "; ".join(problems)
     if net is None:
-        return StartDecision("cold", "no program on the command line")
+        return StartDecision("cold", "no program on the command line", ran_before=bool(problems))
     if loaded is None:
-        return StartDecision("cold", skipped or f"no snapshot in {store.directory}")
+        return StartDecision("cold", skipped or f"no snapshot in {store.directory}",
+                             ran_before=bool(problems))
+    same_name = loaded if loaded.payload.get("program") == net.name else None
     snap_hash = loaded.payload["program_hash"]
     if snap_hash != net.program_hash:
         return StartDecision("cold", f"snapshot {loaded.path.name} program "
                              f"{loaded.payload.get('program')} hash {snap_hash[:12]} differs "
-                             f"from program {net.name} hash {net.program_hash[:12]}")
+                             f"from program {net.name} hash {net.program_hash[:12]}",
+                             ran_before=True, persistent=same_name)
+    if policy == "cold":
+        return StartDecision("cold", f"boot policy cold: snapshot {loaded.path.name} not "
+                             f"restored (was {loaded.payload['state']})", ran_before=True,
+                             persistent=loaded)
     # Wall-clock age, for a person to read; the scan clock continues regardless.
     age_s = (time.time_ns() - int(loaded.payload.get("written_unix_ns", 0))) / 1e9
     reason = (f"snapshot {loaded.path.name} from scan {loaded.payload['scan_count']}, "
               f"{age_s:.1f} s old, was {loaded.payload['state']}")
-    return StartDecision("warm", reason + (f" (skipped {skipped})" if skipped else ""), loaded)
+    return StartDecision("warm", reason + (f" (skipped {skipped})" if skipped else ""), loaded,
+                         ran_before=True)
 
 
 # -- the writer thread ----------------------------------------------------------------------

@@ -23,9 +23,17 @@ import numpy as np
 from softplc.core.events import EventMemory
 from softplc.core.image import AREAS, ProcessImage
 from softplc.core.lifecycle import PlcState
-from softplc.core.net import Busy, CompiledNet, NetState, Token
+from softplc.core.net import (
+    Busy,
+    CompiledNet,
+    NetState,
+    Token,
+    persistent_places,
+    places_marked,
+)
 from softplc.core.problems import FaultCode
 from softplc.core.scan import Plc
+from softplc.core.symbols import Retain, persistent_memory, unretained_memory
 from softplc.core.values import record_problems, value_problem
 from softplc.runtime.retain_store import SnapshotInvalid
 
@@ -153,11 +161,55 @@ def restore(plc: Plc, payload: dict[str, Any], resume: bool) -> PlcState:
                                           _unpack(held[1], plc.image.qw))
     plc.stopped_at_ns = payload["stopped_at_ns"]
     plc.state = was
+    _initial_unretained(plc)
     if was is PlcState.RUNNING and not resume:
         plc.state = PlcState.STOPPED
         plc.stopped_at_ns = payload["now_ns"]
         plc.held = (plc.image.qx.copy(), plc.image.qw.copy())
     return plc.state
+
+
+def _initial_unretained(plc: Plc) -> None:
+    """What is declared `retain: none` starts anew at a warm start: its place with the
+    initial marking, its memory symbol at 0 (docs/retain.md, retain per variable)."""
+    net, engine = plc.net, plc.engine
+    assert net is not None and engine is not None
+    state = engine.state
+    for p in places_marked(net, Retain.NONE):
+        state.marking[p] = net.initial[p]
+        if net.coloured[p]:
+            state.tokens[p] = list(net.initial_tokens.get(p, ()))
+    for sym in unretained_memory(net.io):
+        plc.image.set(sym.address, 0)
+    engine.invalidate()
+
+
+def restore_persistent(plc: Plc, payload: dict[str, Any]) -> list[str]:
+    """At a cold start: put in the persistent places and memory symbols of a snapshot of a
+    program of the same name (`plc` holds the downloaded program, READY); returns their names.
+    Places by name, memory symbols at their address in this program's io image."""
+    net, engine = plc.net, plc.engine
+    assert net is not None and engine is not None and net.name == payload["program"]
+    kept = []
+    for p in persistent_places(net):
+        name = net.place_names[p]
+        count = payload["marking"].get(name)
+        if count is None or 0 <= net.capacity[p] < count or \
+                bool(net.coloured[p]) != (name in payload["tokens"]):
+            continue
+        engine.state.marking[p] = count
+        if net.coloured[p]:
+            engine.state.tokens[p] = _tokens(name, payload["tokens"][name])
+        kept.append(name)
+    areas = {}
+    for sym in persistent_memory(net.io):
+        area, index = sym.address.attr, sym.address.index
+        if area not in areas:
+            areas[area] = _unpack(payload["image"][area], getattr(plc.image, area))
+        getattr(plc.image, area)[index] = areas[area][index]
+        kept.append(sym.name)
+    engine.invalidate()
+    return kept
 
 
 def _tokens(place: str, records: list[Any]) -> list[Token]:

@@ -38,6 +38,8 @@ from softplc.runtime.supervisor import (
 )
 
 EXIT_OK, EXIT_START, EXIT_USAGE, EXIT_GAVE_UP = 0, 1, 2, 3
+BOOT_POLICIES = ("stop", "warm", "cold")  # docs/retain.md, boot policy
+BOOT_POLICY_FILE = "boot_policy"  # in the state directory: the installation's choice
 
 
 def status_line(doc: dict[str, Any]) -> str:
@@ -82,6 +84,42 @@ def _startup_problem(args: argparse.Namespace) -> str | None:
     return None
 
 
+def resolve_boot_policy(args: argparse.Namespace) -> str | None:
+    """The installation's boot policy (docs/retain.md): `--boot-policy` is kept in the state
+    directory, so that a restart without it keeps it; else the kept one; else "stop" (a PLC
+    next to a machine does not start it on its own after a power loss). Sets
+    `args.boot_policy` and `args.boot_policy_source`; returns why it cannot keep it, or None."""
+    path = Path(args.state_dir) / BOOT_POLICY_FILE
+    given = getattr(args, "boot_policy", None)
+    if given is not None:
+        try:
+            temp = path.with_name(f".{BOOT_POLICY_FILE}.{os.getpid()}.tmp")
+            with temp.open("w") as out:
+                out.write(given + "\n")
+                out.flush()
+                os.fsync(out.fileno())
+            temp.replace(path)
+        except OSError as exc:
+            return f"boot policy not kept in {path}: {exc.strerror or exc}"
+        args.boot_policy_source = f"--boot-policy, kept in {path}"
+        return None
+    try:
+        kept = path.read_text().strip()
+    except FileNotFoundError:
+        kept = None
+    except (OSError, UnicodeDecodeError) as exc:
+        kept = f"unreadable ({exc})"
+    if kept in BOOT_POLICIES:
+        args.boot_policy, args.boot_policy_source = kept, f"kept in {path}"
+        return None
+    args.boot_policy, args.boot_policy_source = "stop", "default"
+    if kept is not None:  # bad content: the safe default, said where the operator looks
+        args.boot_policy_source = f"default ({path} holds {kept[:40]!r}, not one of " \
+                                  f"{', '.join(BOOT_POLICIES)})"
+        print(f"softplc: warning: boot policy {args.boot_policy_source}", file=sys.stderr)
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     if not (args.watchdog > 0 and math.isfinite(args.watchdog)):  # its budget: period x this
         print(f"softplc: --watchdog must be a number above 0, got {args.watchdog:g}",
@@ -100,6 +138,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"softplc: {exc}", file=sys.stderr)
         return EXIT_START
     if trouble := _startup_problem(args):
+        print(f"softplc: {trouble}", file=sys.stderr)
+        return EXIT_START
+    if trouble := resolve_boot_policy(args):
         print(f"softplc: {trouble}", file=sys.stderr)
         return EXIT_START
     remove_stale_segments()
@@ -174,6 +215,7 @@ def _banner(args: argparse.Namespace, doc: dict[str, Any]) -> None:
     print(f"softplc running {args.program or '(no program)'}"
           f" (period {args.period / 1e6:g} ms){' started' if args.start else ''}")
     print(f"  {doc.get('start_mode', '?')} start: {doc.get('start_reason', '?')}")
+    print(f"  boot policy {doc.get('boot_policy', '?')} ({doc.get('boot_policy_source', '?')})")
     print(f"  program: {doc.get('program_source', '?')}; restarts: scan process restarted "
           f"warm from the newest snapshot, at most {SCAN_RESTARTS} times in "
           f"{RESTART_WINDOW_S:g} s")

@@ -90,6 +90,8 @@ def document(loop: LoopView) -> dict[str, Any]:
         "fault_reason": plc.fault_reason, "devices": loop.runner.device_report(),
         "start_mode": loop.start_mode,
         "start_reason": loop.start_reason, "program_source": loop.boot.source,
+        "boot_policy": loop.config.boot_policy,
+        "boot_policy_source": loop.config.boot_policy_source,
         "realtime": loop.realtime,
         "restarts": loop.config.restarts, "restart_reason": loop.config.restart_reason,
         "scan_pid": os.getpid(),

@@ -134,6 +134,8 @@ class Supervisor:
             sizes=sizes, state_dir=args.state_dir,
             retain_interval_ns=getattr(args, "retain_interval", 1_000_000_000),
             warm_start=getattr(args, "warm_start", "run"),
+            boot_policy=getattr(args, "boot_policy", None) or "warm",  # runcmd resolves it
+            boot_policy_source=getattr(args, "boot_policy_source", ""),
             on_stall=getattr(args, "on_stall", "fault"), verify=getattr(args, "verify", "warn"),
             stall_fault_ns=getattr(args, "stall_fault_after", 3_000_000_000),
             watchdog_sensitivity=getattr(args, "watchdog_sensitivity", 3),

@@ -124,7 +124,8 @@ def test_a_net_over_the_cell_bound_is_refused_before_allocating() -> None:
     with pytest.raises(TooLarge, match=r"100,000 places x 100,000 transitions .* analysis "
                                        r"bound of 4,000,000"):
         from_pt("huge", "huge.pnml", [(f"p{i}", 0, 1) for i in range(P)],
-                [(f"t{i}", 1) for i in range(T)], np.zeros((1, 1)), np.zeros((1, 1)))
+                [(f"t{i}", 1) for i in range(T)], np.zeros((1, 1), np.int64),
+                np.zeros((1, 1), np.int64))
 
 
 def test_the_gate_refuses_a_net_over_the_cell_bound_as_one_finding() -> None:

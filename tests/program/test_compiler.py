@@ -88,7 +88,7 @@ CORPUS: dict[str, list[str]] = {
     ],
     "unknown_keys.yaml": [
         "{F}:3: places.idle.colour: unknown key 'colour' (did you mean 'coloured'?); expected "
-        "one of capacity, coloured, description, outputs, tokens",
+        "one of capacity, coloured, description, outputs, retain, tokens",
         "{F}:9: transitions.go.guard: unknown key 'guard' (did you mean 'when'?); expected one "
         "of delay, description, do, duration, from, inhibit, outputs, priority, read, to, when",
     ],

@@ -315,7 +315,8 @@ def test_softplc_run_restarts_warm_and_says_so(tmp_path: Path) -> None:
     first = softplc_run(state, "--duration", "1s")
     assert first.returncode == 0, first.stderr
     assert f"cold start: no snapshot in {state}" in first.stdout
-    second = softplc_run(state, "--duration", "500ms")
+    # the boot policy warm (docs/retain.md): a restart resumes what was RUNNING
+    second = softplc_run(state, "--duration", "500ms", "--boot-policy", "warm")
     assert second.returncode == 0, second.stderr
     assert "warm start: snapshot retain-" in second.stdout and "-> RUNNING" in second.stdout
     scans = [int(part.split("=")[1]) for line in (first.stdout, second.stdout)

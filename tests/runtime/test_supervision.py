@@ -320,7 +320,7 @@ def test_the_last_accepted_program_boots_after_a_stop(tmp_path: Path, runs: list
     eventually_reachable(lambda: first.status()["retain"]["writes"] > writes, 30,
                          "a retain snapshot of drilling")
     assert first.stop(signal.SIGINT) == 0
-    second = Run(ROOT, "", state)
+    second = Run(ROOT, "", state, "--boot-policy", "warm")  # resumes what was RUNNING
     runs.append(second)
     status = eventually_reachable(lambda: (s := second.status())["program"] == "drilling" and s, 30,
                         "the boot program")
@@ -344,8 +344,8 @@ def test_a_compile_process_killed_during_a_download_refuses_it_and_the_plc_runs_
     assert len(first) == 1
     killer = threading.Timer(0.5, os.kill, (first[0], signal.SIGKILL))
     killer.start()
-    with pytest.raises(ApiError) as refused:  # 20,000 transitions: compiles for over a second
-        run.api.download(ring_program(20_000, 0), online=True, replace=True, name="ring.yaml")
+    with pytest.raises(ApiError) as refused:  # 16,000 transitions: compiles for over a second
+        run.api.download(ring_program(16_000, 0), online=True, replace=True, name="ring.yaml")
     killer.join()
     assert "compile process ended while compiling (killed by signal 9)" in str(refused.value)
     after = run.status()

@@ -33,7 +33,8 @@ def runs() -> Iterator[list[Run]]:
 
 
 def warm_run(state: Path, runs: list[Run]) -> Run:
-    run = Run(ROOT, "programs/transport.yaml", state, "--plant", "transport")
+    run = Run(ROOT, "programs/transport.yaml", state, "--plant", "transport",
+              "--boot-policy", "warm")  # a restart resumes what was RUNNING
     runs.append(run)
     return run
 

@@ -14,14 +14,17 @@ from dataclasses import dataclass, field
 EMPTY, STOPPED, RUNNING, KILLED, FAULTED = "EMPTY", "STOPPED", "RUNNING", "KILLED", "FAULTED"
 
 # (state, command) -> next state; a pair that is absent is refused and changes nothing.
+# STOPPED is two stages (design.md section 4, issue 29): READY (initial marking: after a
+# download or a reset) takes `start`, SUSPENDED (a stop kept the marking) takes `resume`.
+READY, SUSPENDED = "STOPPED/READY", "STOPPED/SUSPENDED"
 TABLE: dict[tuple[str, str], str] = {
-    (STOPPED, "start"): RUNNING, (STOPPED, "resume"): RUNNING, (STOPPED, "reset"): STOPPED,
-    (STOPPED, "kill"): KILLED,
-    (RUNNING, "stop"): STOPPED, (RUNNING, "kill"): KILLED,
-    (KILLED, "reset"): STOPPED,
-    (FAULTED, "reset"): STOPPED, (FAULTED, "kill"): KILLED,
+    (READY, "start"): RUNNING, (READY, "reset"): READY, (READY, "kill"): KILLED,
+    (SUSPENDED, "resume"): RUNNING, (SUSPENDED, "reset"): READY, (SUSPENDED, "kill"): KILLED,
+    (RUNNING, "stop"): SUSPENDED, (RUNNING, "kill"): KILLED,
+    (KILLED, "reset"): READY,
+    (FAULTED, "reset"): READY, (FAULTED, "kill"): KILLED,
 }
-COLD = ("start", "reset")  # a cold start drops every force; a resume keeps them
+DROPS_FORCES = ("reset",)  # start (from READY) and resume keep them
 NAMES = {"v1": "lamp", "v2": "lamp", "other": "other"}
 IO_OF = {"v1": "io.yaml", "v2": "io.yaml", "other": "io2.yaml"}
 MARKED_ONLY_IN = {"v2": "spare"}  # a place with a token that the other version lacks
@@ -40,7 +43,7 @@ class Expect:
 class Model:
     state: str = EMPTY
     program: str | None = None  # the last program the PLC accepted (a key of PROGRAMS)
-    stopped_by: str | None = None  # "stop" (OPC UA Suspended), "load" (Ready), None: either
+    stopped_by: str = "load"  # in STOPPED: "stop" (SUSPENDED) or "load" (READY)
     forced: dict[str, int] = field(default_factory=dict)
     cmd: bool | None = False  # HMI memory; None: not known (not promised across a download)
     word: int | None = 0
@@ -49,10 +52,16 @@ class Model:
 
     # -- lifecycle commands -----------------------------------------------------------------
 
+    @property
+    def stage(self) -> str:
+        if self.state != STOPPED:
+            return self.state
+        return SUSPENDED if self.stopped_by == "stop" else READY
+
     def expect_command(self, command: str) -> Expect:
-        nxt = TABLE.get((self.state, command))
+        nxt = TABLE.get((self.stage, command))
         if nxt is None:
-            return Expect(False, self.state, f"{command} is not accepted in {self.state}")
+            return Expect(False, self.state, f"{command} is not accepted in {self.stage}")
         if nxt == RUNNING and not self.device_up:
             return Expect(True, FAULTED, "a start or resume with a failed device faults")
         return Expect(True, nxt)
@@ -60,10 +69,11 @@ class Model:
     def apply_command(self, command: str, expect: Expect) -> None:
         if not expect.applied:
             return
-        self.state = expect.state
-        if command in COLD:
+        self.state = expect.state.split("/")[0]
+        if command in DROPS_FORCES:
             self.forced.clear()
-        self.stopped_by = {"stop": "stop", "reset": "load"}.get(command, self.stopped_by)
+        if expect.state in (READY, SUSPENDED):
+            self.stopped_by = "stop" if expect.state == SUSPENDED else "load"
 
     # -- downloads ------------------------------------------------------------------------------
 
@@ -106,8 +116,8 @@ class Model:
         if self.program is None:  # nothing to restore: a cold start, counting from 0
             self.state, self.scan_floor = EMPTY, 0
             return
-        if self.state == RUNNING and not start:
-            self.state, self.stopped_by = STOPPED, None
+        if self.state == RUNNING and not start:  # restored, timers frozen: as after a stop
+            self.state, self.stopped_by = STOPPED, "stop"
         if self.state == RUNNING and not self.device_up:
             self.state = FAULTED
 
@@ -129,6 +139,5 @@ class Model:
         if self.state == RUNNING:
             return {"Running"}
         if self.state == STOPPED:
-            return {"stop": {"Suspended"}, "load": {"Ready"}}.get(self.stopped_by or "",
-                                                                  {"Suspended", "Ready"})
+            return {"Suspended"} if self.stopped_by == "stop" else {"Ready"}
         return {"Halted"}

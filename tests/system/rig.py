@@ -123,7 +123,8 @@ class Rig:
         self.dirs += 1
         return self.base / f"state{self.dirs}"
 
-    def start(self, state_dir: Path, program: str | None, start: bool) -> Run:
+    def start(self, state_dir: Path, program: str | None, start: bool,
+              cwd: Path | None = None) -> Run:
         assert self.run is None, "one run at a time"
         modbus, api, ua = free_port(), free_port(), free_port() if self.opcua else None
         log = self.base / f"run{len(self.ended) + 1}.log"
@@ -131,15 +132,17 @@ class Rig:
                 "--modbus", f"127.0.0.1:{modbus}", "--api", f"127.0.0.1:{api}",
                 "--opcua", f"127.0.0.1:{ua}" if ua else "off", "--state-dir", str(state_dir),
                 "--programs-dir", str(self.library.root), "--watchdog", "100",
-                "--on-stall", "continue"]
+                "--on-stall", "continue", "--boot-policy", "warm"]  # the model's restarts
         if program is not None:
             args.append(str(self.library.path(program)))
         if start:
             args.append("--start")
         env = {**os.environ, "TMPDIR": str(self.tmp)}
         with log.open("wb") as out:  # a pipe nobody reads would block the run
-            # cwd: a run without a program confines downloads to its cwd (see the report)
-            proc = subprocess.Popen(args, cwd=self.base, stdout=out, stderr=subprocess.STDOUT,
+            # A run without a program confines plain-text downloads to its cwd, even those of
+            # --programs-dir (test_lifecycle_regressions.py): the programs live under base.
+            proc = subprocess.Popen(args, cwd=cwd or self.base, stdout=out,
+                                    stderr=subprocess.STDOUT,
                                     env=env)
         self.run = Run(proc, state_dir, modbus, api, ua, log)
         self.run.pids.add(proc.pid)

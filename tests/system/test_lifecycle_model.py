@@ -321,7 +321,7 @@ class LifecycleMachine(RuleBasedStateMachine):
                             f"({outcome.detail}); the model: {want} ({expect.why})")
 
 
-def lifecycle_settings(examples: int = 3, steps: int = 10) -> settings:
+def lifecycle_settings(examples: int = 4, steps: int = 12) -> settings:
     """`examples` sequences of up to `steps` steps at scale 1; a long run (`make fuzz`) tries
     SOFTPLC_FUZZ_SCALE times the sequences, twice as long, and shrinks what fails."""
     long_run = scale() > 1

@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import pytest
 
+from tests.system import probe
+from tests.system.programs import PROGRAMS
+from tests.system.rig import ROOT, wait_api
 from tests.system.test_lifecycle_model import LifecycleMachine
 
 pytestmark = pytest.mark.slow
@@ -66,5 +69,35 @@ def test_a_cold_start_never_fires_on_inputs_no_device_delivered() -> None:
         state.views_agree_with_the_model()
         state.cold_restart(program="v1", start=True)
         state.views_agree_with_the_model()
+    finally:
+        state.teardown()
+
+
+def test_sigterm_while_the_run_starts_exits_cleanly() -> None:
+    """SIGTERM just after the supervisor spawned its children killed it (exit -15) instead
+    of stopping everything (exit 0)."""
+    state = LifecycleMachine()
+    try:
+        state.cold_start(program="v1", start=False)
+        state.views_agree_with_the_model()
+        state.signal_during_start(how="SIGTERM", delay_ms=0, start=False)
+        state.views_agree_with_the_model()
+    finally:
+        state.teardown()
+
+
+@pytest.mark.xfail(strict=True, reason="open defect: runtime/supervisor.py sets the download "
+                   "root to the cwd when no program is given; --programs-dir outside it is "
+                   "refused (remove this mark with the fix)")
+def test_a_run_without_a_program_takes_plain_downloads_from_its_programs_dir() -> None:
+    """`softplc run --programs-dir DIR` without a program argument (the systemd unit's way)
+    refused every plain-text download whose io image is in DIR when DIR is not under the
+    current directory: "io_image: path 'io.yaml' leaves the program directory"."""
+    state = LifecycleMachine()
+    try:
+        run = state.rig.start(state.rig.new_state_dir(), None, False, cwd=ROOT)
+        wait_api(run)
+        outcome, _ = probe.http_download(run, PROGRAMS["v1"], False, "v1.yaml")
+        assert outcome.kind == "applied", outcome.detail
     finally:
         state.teardown()

@@ -420,7 +420,7 @@ function updateHeader(frame) {
   text($("#program"), frame.program || "—");
   text($("#hash"), frame.program_hash ? frame.program_hash.slice(0, 12) : "—");
   $("#hash").title = frame.program_hash || "";
-  text($("#start-mode"), frame.start_mode || "—");
+  text($("#start-mode"), (frame.start_mode || "—") + (frame.boot_policy ? `, boot policy ${frame.boot_policy}` : ""));
   $("#start-mode").title = frame.start_reason || "";
   text($("#scan-count"), frame.scan_count);
   text($("#period"), frame.period_us ? (frame.period_us >= 1000 ? `${frame.period_us / 1000} ms`
