@@ -33,8 +33,10 @@ $(BENCH_STAMP): pyproject.toml $(RUN_STAMP)
 	$(PIP) -e '.[bench]'
 	touch $@
 
+# The simulated plant restarts with the PLC, so the demo resumes warm after a Ctrl-C; a PLC
+# next to a real machine keeps the default boot policy, stop (docs/retain.md).
 run: $(RUN_STAMP)
-	$(VENV)/bin/softplc run $(PROGRAM) --plant $(PLANT) --start
+	$(VENV)/bin/softplc run $(PROGRAM) --plant $(PLANT) --start --boot-policy warm
 
 test: $(DEV_STAMP) $(BENCH_STAMP)
 	$(PY) -m pytest
