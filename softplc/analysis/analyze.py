@@ -21,8 +21,9 @@ from softplc.analysis.model import AnalysisNet, IntArray
 
 SEMANTICS = ("scan", "interleaving")
 DEFAULT_MAX_STATES = 200_000
-# States x places kept by an exploration (a marking is a tuple or a row of them): ~0.3 GB.
-# 20,000 states of a 16,000-place net would have been 2.5 GB.
+# States x places kept by the general explorer (a marking is a tuple of them, 8 bytes an
+# entry): ~0.3 GB; 20,000 states of a 16,000-place net would have been 2.5 GB. The
+# vectorised one keeps about a byte per place: eight times as many.
 MAX_STATE_CELLS = 40_000_000
 
 
@@ -117,10 +118,12 @@ def analyze(net: AnalysisNet, semantics: str = "scan",
     pinv = p_invariants(net.pre, net.post)
     tinv = t_invariants(net.pre, net.post)
     bounds = _structural_bounds(net, pinv)
-    cap = min(max_states, MAX_STATE_CELLS // max(1, net.n_places + sum(net.timed)))
     if bounds is not None and semantics == "interleaving" and net.n_transitions < 32_000:
+        # About a byte per place and 16 more per state (docs/analysis.md, speed and memory).
+        cap = min(max_states, 8 * MAX_STATE_CELLS // (net.n_places + 16))
         graph = explore_fast(net, bounds, cap)
     else:
+        cap = min(max_states, MAX_STATE_CELLS // max(1, net.n_places + sum(net.timed)))
         graph = explore(net, semantics, cap, accelerate=bounds is None)
     if cap < max_states and not graph.complete and not graph.stopped:
         graph.stopped = (f"stopped at {graph.states} states (memory budget: "

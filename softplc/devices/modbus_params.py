@@ -1,16 +1,18 @@
 """The params of a `kind: modbus` driver, parsed and validated from DriverSpec.params.
 
-Owns: ModbusParams (connection and timing) and Heartbeat (the remote device's own
-communication watchdog: a counter register the driver keeps changing, and a timeout register
-written at every connect). Every bad value is a DriverConfigError naming the driver, the key
-and what was expected. Does not know: sockets, threads, the scan.
+Owns: ModbusParams (connection and timing), LinkParams (what the I/O cycle reads of any
+Modbus driver's params, TCP or RTU), parse_params (the checks every kind shares) and
+Heartbeat (the remote device's own communication watchdog: a counter register the driver
+keeps changing, and a timeout register written at every connect). Every bad value is a
+DriverConfigError naming the driver, the key and what was expected.
+Does not know: sockets, serial lines, threads, the scan.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
 from softplc.core.symbols import DriverSpec
 from softplc.core.units import parse_duration_ns
@@ -35,6 +37,69 @@ class Heartbeat:
     watchdog_value: int | None = None
 
 
+class LinkParams(Protocol):
+    """What the I/O cycle (modbus_link.py) reads of a Modbus driver's params."""
+
+    @property
+    def unit(self) -> int: ...
+    @property
+    def timeout_s(self) -> float: ...
+    @property
+    def reconnect_min_s(self) -> float: ...
+    @property
+    def reconnect_max_s(self) -> float: ...
+    @property
+    def heartbeat(self) -> Heartbeat | None: ...
+
+
+class _Checked(Protocol):
+    def _problem(self) -> str | None: ...
+
+
+P = TypeVar("P", bound=_Checked)
+
+
+def parse_params(cls: type[P], spec: DriverSpec, plan: IoPlan | None,
+                 required: tuple[str, ...]) -> P:
+    """`cls` (a dataclass of params) from spec.params: unknown or missing keys, the heartbeat
+    and every value checked. Raises DriverConfigError listing the first problem found."""
+    known = {f.name for f in fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(spec.params) - known)
+    if unknown:
+        raise DriverConfigError(
+            f"driver {spec.name!r}: unknown params {unknown}, expected {sorted(known)}"
+        )
+    missing = [key for key in required if key not in spec.params]
+    if missing:
+        raise DriverConfigError(f"driver {spec.name!r}: params {' and '.join(required)} "
+                                f"{'is' if len(required) == 1 else 'are'} required")
+    values = dict(spec.params)
+    if "heartbeat" in values:
+        values["heartbeat"] = parse_heartbeat(spec.name, values["heartbeat"], plan)
+    params = cls(**values)
+    problem = params._problem()
+    if problem:
+        raise DriverConfigError(f"driver {spec.name!r}: {problem}")
+    return params
+
+
+def timing_problem(params: LinkParams, poll: str, max_unit: int = 255) -> str | None:
+    """The checks of the keys every Modbus kind shares, or None."""
+    checks = (
+        (_is_int(params.unit) and 0 <= params.unit <= max_unit,
+         f"unit must be an integer in {1 if max_unit < 255 else 0}..{max_unit}"),
+        (_positive(params.timeout_s), "timeout_s must be a positive number"),
+        (_positive(params.reconnect_min_s), "reconnect_min_s must be a positive number"),
+        (
+            _positive(params.reconnect_max_s)
+            and params.reconnect_max_s >= params.reconnect_min_s,
+            "reconnect_max_s must be a number >= reconnect_min_s",
+        ),
+        (poll == "scan", f"poll {poll!r}: only 'scan' (one cycle per scan) exists"),
+    )
+    return next((msg for ok, msg in checks if not ok), None)
+
+
 @dataclass(frozen=True, slots=True)
 class ModbusParams:
     host: str
@@ -49,37 +114,14 @@ class ModbusParams:
     @classmethod
     def from_spec(cls, spec: DriverSpec, plan: IoPlan | None = None) -> ModbusParams:
         """Raises DriverConfigError (also a ValueError) listing the first problem found."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(spec.params) - known)
-        if unknown:
-            raise DriverConfigError(
-                f"driver {spec.name!r}: unknown params {unknown}, expected {sorted(known)}"
-            )
-        if "host" not in spec.params or "port" not in spec.params:
-            raise DriverConfigError(f"driver {spec.name!r}: params host and port are required")
-        values = dict(spec.params)
-        if "heartbeat" in values:
-            values["heartbeat"] = parse_heartbeat(spec.name, values["heartbeat"], plan)
-        params = cls(**values)
-        problem = params._problem()
-        if problem:
-            raise DriverConfigError(f"driver {spec.name!r}: {problem}")
-        return params
+        return parse_params(cls, spec, plan, ("host", "port"))
 
     def _problem(self) -> str | None:
         checks = (
             (isinstance(self.host, str) and bool(self.host), "host must be a non-empty string"),
             (_is_int(self.port) and 1 <= self.port <= 65535, "port must be an integer in 1..65535"),
-            (_is_int(self.unit) and 0 <= self.unit <= 255, "unit must be an integer in 0..255"),
-            (_positive(self.timeout_s), "timeout_s must be a positive number"),
-            (_positive(self.reconnect_min_s), "reconnect_min_s must be a positive number"),
-            (
-                _positive(self.reconnect_max_s) and self.reconnect_max_s >= self.reconnect_min_s,
-                "reconnect_max_s must be a number >= reconnect_min_s",
-            ),
-            (self.poll == "scan", f"poll {self.poll!r}: only 'scan' (one cycle per scan) exists"),
         )
-        return next((msg for ok, msg in checks if not ok), None)
+        return next((msg for ok, msg in checks if not ok), None) or timing_problem(self, self.poll)
 
 
 def parse_heartbeat(driver: str, value: Any, plan: IoPlan | None) -> Heartbeat:

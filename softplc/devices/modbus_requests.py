@@ -1,27 +1,26 @@
 """The Modbus requests a remote-I/O driver sends: one block read or written, one holding
-register written (heartbeat, watchdog setup), and the outputs written on a fresh synchronous
-connection within a deadline (go_safe's and close's fallback when the I/O thread cannot).
+register written (heartbeat, watchdog setup), and every output block written on a synchronous
+client (go_safe's and close's fallback when the I/O thread cannot).
 
-Owns: request and reply checking (a Modbus exception or a short reply is a RemoteError),
-pymodbus's log level. Does not know: threads, sequence numbers, the scan.
+Owns: Client and SyncClient (the requests a transport's client must answer: pymodbus's own
+clients, or one unit of a serial line), request and reply checking (a Modbus exception or a
+short reply is a RemoteError), pymodbus's log level.
+Does not know: threads, sequence numbers, the scan, which wire (TCP or serial) carries them.
 """
 
 from __future__ import annotations
 
 import logging
-import time
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Awaitable, Sequence
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
-from pymodbus.client import AsyncModbusTcpClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ModbusPDU
 
 from softplc.core.image import BoolArray, WordArray
 from softplc.devices.driver import DeviceError
-from softplc.devices.modbus_params import ModbusParams
 from softplc.devices.modbus_plan import Block, Table
 
 ERRORS = (TimeoutError, ModbusException, DeviceError, OSError)  # what a request may raise
@@ -31,7 +30,39 @@ class RemoteError(DeviceError):
     """The remote device answered a request with a Modbus exception or a short reply."""
 
 
-async def read_block(client: AsyncModbusTcpClient, block: Block, unit: int
+class Client(Protocol):
+    """The I/O thread's client: pymodbus's AsyncModbusTcpClient has this shape."""
+
+    @property
+    def connected(self) -> bool: ...
+    async def connect(self) -> bool: ...
+    def close(self) -> None: ...
+    def read_coils(self, address: int, *, count: int, device_id: int
+                   ) -> Awaitable[ModbusPDU]: ...
+    def read_discrete_inputs(self, address: int, *, count: int, device_id: int
+                             ) -> Awaitable[ModbusPDU]: ...
+    def read_holding_registers(self, address: int, *, count: int, device_id: int
+                               ) -> Awaitable[ModbusPDU]: ...
+    def read_input_registers(self, address: int, *, count: int, device_id: int
+                             ) -> Awaitable[ModbusPDU]: ...
+    def write_coils(self, address: int, values: list[bool], *, device_id: int
+                    ) -> Awaitable[ModbusPDU]: ...
+    def write_registers(self, address: int, values: list[int], *, device_id: int
+                        ) -> Awaitable[ModbusPDU]: ...
+    def write_register(self, address: int, value: int, *, device_id: int
+                       ) -> Awaitable[ModbusPDU]: ...
+
+
+class SyncClient(Protocol):
+    """A connected synchronous client, for the direct write (pymodbus's sync clients)."""
+
+    def write_coils(self, address: int, values: list[bool], *, device_id: int
+                    ) -> ModbusPDU: ...
+    def write_registers(self, address: int, values: list[int], *, device_id: int
+                        ) -> ModbusPDU: ...
+
+
+async def read_block(client: Client, block: Block, unit: int
                      ) -> BoolArray | WordArray:
     request = {
         Table.COIL: client.read_coils,
@@ -47,7 +78,7 @@ async def read_block(client: AsyncModbusTcpClient, block: Block, unit: int
     return np.asarray(values[: block.count], dtype=dtype)
 
 
-async def write_block(client: AsyncModbusTcpClient, block: Block, values: list[Any],
+async def write_block(client: Client, block: Block, values: list[Any],
                       unit: int) -> None:
     if block.table is Table.COIL:
         reply = await client.write_coils(block.start, values, device_id=unit)
@@ -56,38 +87,22 @@ async def write_block(client: AsyncModbusTcpClient, block: Block, values: list[A
     checked(reply, block)
 
 
-async def write_word(client: AsyncModbusTcpClient, register: int, value: int,
+async def write_word(client: Client, register: int, value: int,
                      unit: int) -> None:
     """One holding register (FC 6)."""
     reply = await client.write_register(register, value, device_id=unit)
     checked(reply, Block(Table.HR, register, (0,)))
 
 
-def write_direct(params: ModbusParams, blocks: Sequence[Block],
-                 outputs: Sequence[list[Any]], deadline: float) -> str:
-    """`outputs` (one value list per block) on a fresh connection, each request bounded by
-    what is left until `deadline` (time.monotonic()). "" when the device acknowledged every
-    write, else why not."""
-    left = deadline - time.monotonic()
-    if left <= 0:
-        return "no time left for a direct write"
-    p = params
-    client = ModbusTcpClient(p.host, port=p.port, timeout=min(p.timeout_s, left), retries=0,
-                             reconnect_delay=0)
-    try:
-        if not client.connect():  # type: ignore[no-untyped-call]
-            return f"cannot connect to {p.host}:{p.port}"
-        for block, values in zip(blocks, outputs, strict=True):
-            if block.table is Table.COIL:
-                reply = client.write_coils(block.start, values, device_id=p.unit)
-            else:
-                reply = client.write_registers(block.start, values, device_id=p.unit)
-            checked(reply, block)
-    except ERRORS as exc:
-        return f"direct write: {exc or type(exc).__name__}"
-    finally:
-        client.close()  # type: ignore[no-untyped-call]
-    return ""
+def write_all(client: SyncClient, unit: int, blocks: Sequence[Block],
+              outputs: Sequence[list[Any]]) -> None:
+    """`outputs` (one value list per block), each acknowledged or raising one of ERRORS."""
+    for block, values in zip(blocks, outputs, strict=True):
+        if block.table is Table.COIL:
+            reply = client.write_coils(block.start, values, device_id=unit)
+        else:
+            reply = client.write_registers(block.start, values, device_id=unit)
+        checked(reply, block)
 
 
 def checked(reply: ModbusPDU, block: Block) -> ModbusPDU:

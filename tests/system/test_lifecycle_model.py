@@ -55,7 +55,8 @@ class LifecycleMachine(RuleBasedStateMachine):
     def __init__(self) -> None:
         super().__init__()
         self.base = Path(tempfile.mkdtemp(prefix="softplc-system-"))
-        self.module = Module().start()
+        self.module = Module()
+        self.module.start()
         self.library = write_library(self.base / "programs", self.module.port)
         self.rig = Rig(self.base, self.library, self.module)
         self.model = Model()

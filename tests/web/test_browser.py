@@ -196,13 +196,13 @@ def test_transport_page_live_forcing_and_program_handling(
         until(lambda: "forced" not in row.get_attribute("class"), 15, "released")
         assert plc.client.forces() == {}
 
-        # Stop and start change the state shown; a refused command shows its reason.
+        # Stop and resume change the state shown; a refused command shows its reason.
         browser.find_element("css selector", 'button[data-command="stop"]').click()
         until(lambda: browser.find_element("id", "state").text == "STOPPED", 15)
         browser.find_element("css selector", 'button[data-command="stop"]').click()
         until(lambda: "stop refused: stop is not accepted in state STOPPED"
               in browser.find_element("id", "message").text, 15, "the refusal is shown")
-        browser.find_element("css selector", 'button[data-command="start"]').click()
+        browser.find_element("css selector", 'button[data-command="resume"]').click()
         until(lambda: browser.find_element("id", "state").text == "RUNNING", 15)
 
         # A download with a syntax error shows every problem at its file:line.
