@@ -58,6 +58,11 @@ def cmd_check(args: argparse.Namespace) -> int:
     symbols file, and the drivers' plants and channels. Given a symbols file, just that."""
     from softplc.devices.check import check_devices
 
+    if Path(args.program).suffix.lower() == ".pnml":
+        from softplc.analysis.cli import check_pnml
+
+        return check_pnml(args.program, lambda io: check_devices(io, args.plant,
+                                                                 need_plant=False))
     if _is_symbols_file(args.program):
         try:
             io = load_io_image(args.program)
@@ -208,7 +213,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     check = sub.add_parser("check", help="validate and compile a program (or check a symbols "
                            "file), its drivers' plants and channels; opens nothing")
-    check.add_argument("program", help="a program, or a symbols file (io_images/*.yaml)")
+    check.add_argument("program", help="a program, a PNML net (.pnml), or a symbols file "
+                       "(io_images/*.yaml)")
     check.add_argument("--plant", help="plant model for sim drivers that name none "
                        "(as run and simulate take it; default: the io image's)")
     check.set_defaults(func=cmd_check)

@@ -12,15 +12,17 @@ import argparse
 import json
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from softplc.analysis.analyze import DEFAULT_MAX_STATES, SEMANTICS, analyze
-from softplc.analysis.gate import Verdict, verdict_of, verify
+from softplc.analysis.gate import GATE_MAX_STATES, Verdict, verdict_of, verify
 from softplc.analysis.model import AnalysisNet, TooLarge, from_compiled
 from softplc.core.net import CompiledNet
-from softplc.core.problems import ProgramError
-from softplc.program.compiler import compile_file
+from softplc.core.problems import Problem, ProgramError
+from softplc.program.compiler import compile_file, summarize
+from softplc.program.io_image import IoImage
 
 
 def add_commands(sub: Any) -> None:
@@ -100,6 +102,41 @@ def check_summary(net: CompiledNet) -> None:
         print(f"warning: {finding}")
 
 
+def check_pnml(path: str, check_devices: Callable[[IoImage], list[Problem]]) -> int:
+    """`softplc check NET.pnml`: a net with softplc data is checked as a program (devices by
+    `check_devices`, which the caller owns); a bare P/T net gets its size and the summary of
+    its interleaving analysis. 0, or 1 for a net that cannot be read."""
+    from softplc.analysis.pnml import load_for_analysis
+
+    try:
+        net, compiled = load_for_analysis(path)
+        problems = [] if compiled is None else check_devices(compiled.io)
+    except ProgramError as exc:
+        problems = list(exc.problems)
+    except TooLarge as exc:
+        print(exc, file=sys.stderr)
+        return 1
+    if problems:
+        for problem in problems:
+            print(problem, file=sys.stderr)
+        print(f"{path}: {len(problems)} problem(s)", file=sys.stderr)
+        return 1
+    if compiled is not None:
+        print(summarize(compiled))
+        check_summary(compiled)
+        return 0
+    arcs = int((net.pre > 0).sum() + (net.post > 0).sum() + (net.inhibit > 0).sum())
+    print(f"P/T net {net.name} ({path}): {net.n_places} places, {net.n_transitions} "
+          f"transitions, {arcs} arcs")
+    verdict = verdict_of(analyze(net, "interleaving", GATE_MAX_STATES))
+    print(verdict.summary)
+    for finding in verdict.findings:
+        print(f"warning: {finding}")
+    for note in net.notes:
+        print(f"note: {note}")
+    return 0
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     from softplc.analysis.pnml import export_compiled
 
@@ -111,7 +148,9 @@ def cmd_export(args: argparse.Namespace) -> int:
         return 1
     out = Path(args.output)
     io_ref = os.path.relpath(Path(net.io.path).resolve(), out.resolve().parent)
-    out.write_text(export_compiled(net, io_image=io_ref), encoding="utf-8")
+    # Embedded so that the file analyses wherever it is copied (docs/analysis.md, PNML).
+    io_text = Path(net.io.path).read_text(encoding="utf-8")
+    out.write_text(export_compiled(net, io_image=io_ref, io_text=io_text), encoding="utf-8")
     print(f"{args.program} -> {out}: {len(net.place_names)} places, "
           f"{len(net.transitions)} transitions")
     return 0

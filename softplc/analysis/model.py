@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from softplc.core.errors import SoftplcError
 from softplc.core.expr import Compiled
 from softplc.core.net import ActionKind, CompiledNet
 from softplc.core.symbols import SymType
@@ -33,7 +34,7 @@ MAX_GUARD_EVALS = 1_000_000
 MAX_CELLS = 4_000_000
 
 
-class TooLarge(ValueError):
+class TooLarge(SoftplcError, ValueError):
     """A net too large for the analysis's dense arrays; the message says the bound."""
 
 

@@ -1,9 +1,10 @@
-"""PNML (ISO/IEC 15909-2, `ptnet` type) import; export lives in pnml_export.py, whose
-functions callers also import from here.
+"""PNML (ISO/IEC 15909-2) import; export lives in pnml_export.py, whose functions callers
+also import from here; other tools' net types and label styles in pnml_dialects.py.
 
-Owns: reading PNML (pages, reference places and transitions) into a bare P/T AnalysisNet,
+Owns: reading PNML (places and transitions under <net> or in pages, nested pages, reference
+places and transitions) into a bare P/T AnalysisNet (same-named nodes told apart by id),
 or, with softplc's data (in toolspecific, or a `NET.softplc.json` mapping beside the file),
-into a CompiledNet through the program compiler; `structure`, what a round trip must keep.
+into a CompiledNet through the program compiler (io image beside it, or embedded).
 Every problem is located (file:line).
 Does not know: how PNML is written, exploration, the CLI.
 """
@@ -12,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Iterator
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,14 +21,24 @@ from typing import Any
 import numpy as np
 
 from softplc.analysis.model import AnalysisNet, check_size, from_pt
-from softplc.analysis.pnml_export import PTNET, TOOL
+from softplc.analysis.pnml_dialects import (
+    PT_TYPES,
+    arc_kind,
+    elements,
+    label,
+    normal_type,
+    pipe_count,
+    type_problem,
+)
+from softplc.analysis.pnml_export import TOOL
 from softplc.analysis.pnml_export import export_compiled as export_compiled
 from softplc.analysis.pnml_export import export_pt as export_pt
+from softplc.analysis.pnml_export import structure as structure
 from softplc.analysis.xmltree import Node, parse_xml
 from softplc.core.net import CompiledNet
 from softplc.core.problems import Problem, ProgramError
 from softplc.program.compiler import compile_text_with_io
-from softplc.program.io_image import load_io_image
+from softplc.program.io_image import IoImage, load_io_image, parse_io_image
 from softplc.program.sizes import count_problem
 
 # -- import -------------------------------------------------------------------------------
@@ -51,6 +62,9 @@ class PnmlNet:
     transitions: list[_Item]
     arcs: list[tuple[int, int, int, bool, Node]]  # (place, transition, weight, to_place, node)
     tool: dict[str, Any] | None  # the net's softplc toolspecific data
+    inhibit: list[tuple[int, int, int]] = dataclasses.field(default_factory=list)  # p, t, w
+    capacity: list[int] = dataclasses.field(default_factory=list)  # per place, -1: none
+    notes: list[str] = dataclasses.field(default_factory=list)
 
 
 class _Reader:
@@ -79,29 +93,19 @@ class _Reader:
             return value
         return None
 
-    def count(self, node: Node, path: tuple[str, ...], default: int, what: str) -> int:
-        text = node.text_of(*path)
+    def count(self, node: Node, tag: str, default: int, what: str) -> int:
+        text = label(node, tag)
         if text is None or text == "":
             return default
+        text, why = pipe_count(text)
+        if why is not None:
+            self.problem(node.child(tag) or node, f"{what} {why}")
+            return default
         if not text.isdigit():
-            self.problem(node.child(path[0]) or node, f"{what} {text!r}: expected a whole "
+            self.problem(node.child(tag) or node, f"{what} {text!r}: expected a whole "
                          "number >= 0" + ("" if what == "initial marking" else " (> 0)"))
             return default
         return int(text)
-
-
-def _elements(page: Node) -> Iterator[Node]:
-    """The page's elements in document order, nested pages flattened (iteratively: pages
-    may nest as deep as xmltree.MAX_DEPTH allows)."""
-    stack = [iter(page.children)]
-    while stack:
-        child = next(stack[-1], None)
-        if child is None:
-            stack.pop()
-        elif child.tag == "page":
-            stack.append(iter(child.children))
-        else:
-            yield child
 
 
 def read_pnml(path: str | Path) -> PnmlNet:
@@ -121,15 +125,18 @@ def parse_pnml(data: bytes, file: str) -> PnmlNet:
     if net is None:
         raise ProgramError([Problem(file, root.line, root.tag,
                                     "expected <pnml> with a <net> element")])
-    if net.attrs.get("type", "").rstrip("#/") not in (PTNET, PTNET.replace("2009", "2011")):
-        r.problem(net, f"net type {net.attrs.get('type')!r}: only P/T nets ({PTNET}) are read")
+    why = type_problem(net.attrs.get("type"))
+    if why is not None:
+        raise ProgramError([Problem(file, net.line, "net", why)])
     items: dict[str, _Item] = {}
     refs: dict[str, tuple[str, Node]] = {}
     places: list[_Item] = []
     transitions: list[_Item] = []
     arcs_raw: list[Node] = []
     initial: list[int] = []
-    for el in (e for page in net.all("page") for e in _elements(page)):
+    capacity: list[int] = []
+    notes: list[str] = []
+    for el in elements(net):
         ident = el.attrs.get("id", "")
         if el.tag in ("place", "transition", "referencePlace", "referenceTransition"):
             if not ident:
@@ -139,39 +146,64 @@ def parse_pnml(data: bytes, file: str) -> PnmlNet:
                 r.problem(el, f"id {ident!r} is used twice")
                 continue
         if el.tag in ("place", "transition"):
-            item = _Item(ident, el.text_of("name", "text") or ident, el.line, el)
+            item = _Item(ident, label(el, "name") or ident, el.line, el)
             items[ident] = item
             if el.tag == "place":
                 places.append(item)
-                initial.append(r.count(el, ("initialMarking", "text"), 0, "initial marking"))
+                initial.append(r.count(el, "initialMarking", 0, "initial marking"))
+                capacity.append(r.count(el, "capacity", 0, "capacity") or -1)  # PIPE: 0 = none
+                if 0 <= capacity[-1] < initial[-1]:
+                    r.problem(el, f"initial marking {initial[-1]} exceeds the capacity "
+                              f"{capacity[-1]}")
             else:
                 transitions.append(item)
         elif el.tag in ("referencePlace", "referenceTransition"):
             refs[ident] = (el.attrs.get("ref", ""), el)
         elif el.tag == "arc":
             arcs_raw.append(el)
+        elif el.tag == "net":  # a WoPeD subprocess: <page id=TRANSITION><net>...
+            notes.append(f"{file}:{el.line}: a net inside a page (a WoPeD subprocess) is not "
+                         "read: its transition stands for it")
+    if not places and not transitions and not r.problems:
+        r.problem(net, "no place and no transition (looked under <net> and in its <page>s): "
+                  "an empty net is not analysed")
     resolved = {i: _resolve(i, items, refs, r) for i in refs}
     pindex = {p.ident: k for k, p in enumerate(places)}
     tindex = {t.ident: k for k, t in enumerate(transitions)}
     arcs = []
+    inhibit = []
     for el in arcs_raw:
         src = resolved.get(el.attrs.get("source", ""), el.attrs.get("source", ""))
         dst = resolved.get(el.attrs.get("target", ""), el.attrs.get("target", ""))
-        weight = r.count(el, ("inscription", "text"), 1, "arc inscription")
+        weight = r.count(el, "inscription", 1, "arc inscription")
+        kind = arc_kind(el)
         if weight == 0:
             r.problem(el, "arc inscription 0: expected a whole number > 0")
-        if src in pindex and dst in tindex:
-            arcs.append((pindex[src], tindex[dst], weight, False, el))
-        elif src in tindex and dst in pindex:
+        if kind not in ("normal", "inhibitor"):
+            r.problem(el, f"arc {el.attrs.get('id', '?')}: {kind} arcs are not read (only "
+                      "normal and inhibitor arcs)")
+        elif src in pindex and dst in tindex:
+            if kind == "inhibitor":
+                inhibit.append((pindex[src], tindex[dst], weight))
+            else:
+                arcs.append((pindex[src], tindex[dst], weight, False, el))
+        elif src in tindex and dst in pindex and kind == "normal":
             arcs.append((pindex[dst], tindex[src], weight, True, el))
         else:
             r.problem(el, f"arc {el.attrs.get('id', '?')}: source {src!r} and target {dst!r} "
-                      "must be a place and a transition of this net")
+                      "must be a place and a transition of this net" +
+                      (" (an inhibitor arc: place to transition)" if kind != "normal" else ""))
     tool = r.tool_json(net, "program")
     if r.problems:
         raise ProgramError(r.problems)
-    return PnmlNet(file, net.text_of("name", "text") or net.attrs.get("id", "net"), places,
-                   initial, transitions, arcs, tool)
+    dialect = PT_TYPES[normal_type(net.attrs.get("type", ""))]
+    if dialect == "pnmlcoremodel":
+        notes.append("pnmlcoremodel net: initial markings and inscriptions read as P/T "
+                     "(as ProM and pm4py write them)")
+    if dialect == "PIPE":
+        notes.append("PIPE net: rates, timing and priorities not read; analysed as a P/T net")
+    return PnmlNet(file, label(net, "name") or net.attrs.get("id", "net"), places,
+                   initial, transitions, arcs, tool, inhibit, capacity, notes)
 
 
 def _resolve(ident: str, items: dict[str, _Item], refs: dict[str, tuple[str, Node]],
@@ -189,16 +221,34 @@ def _resolve(ident: str, items: dict[str, _Item], refs: dict[str, tuple[str, Nod
     return target
 
 
-def pt_analysis_net(net: PnmlNet) -> AnalysisNet:
+def shown_names(items: list[_Item]) -> list[str]:
+    """Names to report nodes by: the name, or "name [id]" where names repeat (WoPeD's
+    operators, hand-drawn nets), so that no two places share a bound or a marking entry."""
+    counts = Counter(i.name for i in items)
+    shown = [i.name if counts[i.name] == 1 else f"{i.name} [{i.ident}]" for i in items]
+    if len(set(shown)) < len(shown):  # a name that looks like another's "name [id]"
+        shown = [f"{i.name} [{i.ident}]" for i in items]
+    return shown
+
+
+def pt_analysis_net(net: PnmlNet, *notes: str) -> AnalysisNet:
     """The bare P/T skeleton (softplc data, if any, ignored)."""
     P, T = len(net.places), len(net.transitions)
     check_size(net.file, P, T)
     pre, post = np.zeros((T, P), np.int64), np.zeros((T, P), np.int64)
+    inhibit = np.zeros((T, P), np.int64)
     for p, t, w, to_place, _ in net.arcs:
         (post if to_place else pre)[t, p] += w
-    return from_pt(net.name, net.file, [(p.name, k, p.line) for p, k in
-                                        zip(net.places, net.initial, strict=True)],
-                   [(t.name, t.line) for t in net.transitions], pre, post)
+    for p, t, w in net.inhibit:
+        inhibit[t, p] = w if inhibit[t, p] == 0 else min(int(inhibit[t, p]), w)
+    bare = from_pt(net.name, net.file,
+                   [(n, k, p.line) for n, p, k in
+                    zip(shown_names(net.places), net.places, net.initial, strict=True)],
+                   [(n, t.line) for n, t in zip(shown_names(net.transitions), net.transitions,
+                                                strict=True)], pre, post, inhibit)
+    capacity = np.array(net.capacity or [-1] * P, np.int64)
+    return dataclasses.replace(bare, capacity=capacity,
+                               notes=(*bare.notes, *net.notes, *notes))
 
 
 def mapping_beside(path: Path) -> dict[str, Any] | None:
@@ -232,7 +282,15 @@ def compiled_net(net: PnmlNet, mapping: dict[str, Any] | None = None) -> Compile
                                           "arcs": len(net.arcs)})
     if too_big is not None:  # before a program text of that size is written and parsed
         raise ProgramError([too_big])
-    io = load_io_image(Path(net.file).parent / str(io_ref))
+    for kind, items in (("place", net.places), ("transition", net.transitions)):
+        first: dict[str, str] = {}
+        for item in items:
+            if first.setdefault(item.name, item.ident) != item.ident:
+                r.problem(item.node, f"{kind} name {item.name!r} is also {kind} "
+                          f"{first[item.name]!r}'s: a program's {kind}s need distinct names")
+    if r.problems:
+        raise ProgramError(r.problems)
+    io = _io_image(net, str(io_ref), tool)
     places: dict[str, Any] = {}
     for item, tokens in zip(net.places, net.initial, strict=True):
         extra = r.tool_json(item.node, "place") or {}
@@ -245,6 +303,8 @@ def compiled_net(net: PnmlNet, mapping: dict[str, Any] | None = None) -> Compile
             spec["tokens"] = tokens
         if "capacity" in extra:
             spec["capacity"] = extra["capacity"]
+        elif net.capacity and net.capacity[len(places)] >= 0:
+            spec["capacity"] = net.capacity[len(places)]
         if extra.get("outputs"):
             spec["outputs"] = {s: v for s, v in extra["outputs"]}
         places[item.name] = spec
@@ -266,6 +326,9 @@ def compiled_net(net: PnmlNet, mapping: dict[str, Any] | None = None) -> Compile
         for key in ("read", "inhibit"):
             if data.get(key):
                 spec[key] = [{"place": p, "weight": w} for p, w in data[key]]
+        drawn = [{"place": net.places[p].name, "weight": w} for p, u, w in net.inhibit if u == t]
+        if drawn:
+            spec["inhibit"] = [*spec.get("inhibit", []), *drawn]
         transitions[item.name] = spec
     if r.problems:
         raise ProgramError(r.problems)
@@ -276,6 +339,25 @@ def compiled_net(net: PnmlNet, mapping: dict[str, Any] | None = None) -> Compile
     return dataclasses.replace(
         compiled, place_where=tuple((net.file, p.line) for p in net.places),
         transition_where=tuple((net.file, t.line) for t in net.transitions))
+
+
+def _io_image(net: PnmlNet, io_ref: str, tool: dict[str, Any]) -> IoImage:
+    """The symbols file named (relative to the PNML file) or, where it is missing, the copy
+    `softplc export` embeds (toolspecific `io_image_text`)."""
+    path = Path(net.file).parent / io_ref
+    embedded = tool.get("io_image_text")
+    if path.exists() or not isinstance(embedded, str):
+        return load_io_image(path)
+    return parse_io_image(embedded, f"{net.file}#{io_ref}")
+
+
+def _io_missing(path: Path, net: PnmlNet, mapping: dict[str, Any] | None) -> str | None:
+    """The io image a net's softplc data names when it is neither beside it nor embedded."""
+    tool = net.tool or {}
+    io_ref = (mapping or {}).get("io_image", tool.get("io_image"))
+    if not io_ref or (path.parent / str(io_ref)).exists() or "io_image_text" in tool:
+        return None
+    return str(io_ref)
 
 
 def _arc_spec(net: PnmlNet, r: _Reader, p: int, w: int, node: Node, key: str) -> Any:
@@ -294,26 +376,13 @@ def load_for_analysis(path: str | Path) -> tuple[AnalysisNet, CompiledNet | None
     path = Path(path)
     net = read_pnml(path)
     mapping = mapping_beside(path)
+    missing = _io_missing(path, net, mapping) if net.tool or mapping else None
+    if missing is not None:
+        return pt_analysis_net(net, f"io image {missing} not found beside {path.name} and not "
+                               "embedded: its P/T skeleton analysed (softplc's guards, "
+                               "actions, timing, priorities, test and inhibitor arcs "
+                               "ignored)"), None
     if net.tool is not None or mapping is not None:
         compiled = compiled_net(net, mapping)
         return from_compiled(compiled), compiled
     return pt_analysis_net(net), None
-
-
-def structure(net: CompiledNet) -> tuple[Any, ...]:
-    """Everything a CompiledNet runs by, in comparable form: export then import must give the
-    same (the program hash differs: it is a digest of the source files' text)."""
-    def trans(t: Any) -> tuple[Any, ...]:
-        return (t.name, t.priority, tuple((a.place, a.weight, a.var) for a in t.pre),
-                tuple((o.place, o.weight, o.var, None if o.fields is None else
-                       tuple(sorted((k, c.text) for k, c in o.fields.items()))) for o in t.post),
-                tuple(t.test), tuple(t.inhibit), None if t.guard is None else t.guard.text,
-                tuple((a.kind, a.target, a.value.text if a.value else None) for a in t.actions),
-                t.delay_ns, t.duration_ns, tuple(t.busy_outputs), t.coloured)
-    return (net.name, net.place_names, tuple(int(x) for x in net.initial),
-            tuple(int(x) for x in net.capacity), tuple(bool(x) for x in net.coloured),
-            tuple(sorted((p, tuple(dict(r).items() for r in toks))
-                         for p, toks in net.initial_tokens.items())),
-            tuple(trans(t) for t in net.transitions), net.order,
-            tuple(sorted(net.place_outputs.items())), tuple(sorted(net.emits)),
-            tuple(sorted((s.name, str(s.address), s.type.value) for s in net.io.symbols.values())))

@@ -4,7 +4,7 @@ Owns: writing a CompiledNet (or a bare PtNet) as PNML: the P/T skeleton any tool
 (places, transitions, weighted arcs, initial markings, names) plus softplc's own data in
 `toolspecific tool="softplc"` elements (guards, actions, timing, priorities, outputs,
 capacities, coloured tokens, test and inhibitor arcs, the io image); the namespaces and the
-tool name that pnml.py reads back.
+tool name that pnml.py reads back; `structure`, what a round trip must keep.
 Does not know: reading PNML, exploration, the CLI.
 """
 
@@ -41,12 +41,17 @@ def _action_text(kind: ActionKind, target: str, value_text: str | None) -> str:
     return f"{kind.value} {target}"
 
 
-def export_compiled(net: CompiledNet, io_image: str | None = None) -> str:
+def export_compiled(net: CompiledNet, io_image: str | None = None,
+                    io_text: str | None = None) -> str:
     """PNML text of `net`. `io_image`: the symbols file as the importer should find it
-    (relative to the PNML file); default: the path the program gave, made relative."""
+    (relative to the PNML file); default: the path the program gave, made relative.
+    `io_text`: that file's text, embedded so that the net still compiles where the file is
+    not beside it (a net copied elsewhere)."""
     io_ref = io_image if io_image is not None else net.io.path
-    head = _json_tag("program", {"name": net.name, "io_image": io_ref,
-                                 "events": sorted(net.emits)})
+    program: dict[str, Any] = {"name": net.name, "io_image": io_ref, "events": sorted(net.emits)}
+    if io_text is not None:
+        program["io_image_text"] = io_text
+    head = _json_tag("program", program)
     out = [f'<?xml version="1.0" encoding="UTF-8"?>\n<pnml xmlns="{PNML_NS}">\n',
            f'  <net id="{_id(net.name)}" type="{PTNET}">\n',
            f"    <name><text>{escape(net.name)}</text></name>\n", _tool(head, "    "),
@@ -134,3 +139,22 @@ def _arc(ident: str, source: str, target: str, weight: int, tool: str, ind: str)
 def _id(name: str) -> str:
     clean = "".join(c if c.isalnum() or c in "_-." else "_" for c in name)
     return clean if clean[:1].isalpha() else "n" + clean
+
+
+def structure(net: CompiledNet) -> tuple[Any, ...]:
+    """Everything a CompiledNet runs by, in comparable form: export then import must give the
+    same (the program hash differs: it is a digest of the source files' text)."""
+    def trans(t: Any) -> tuple[Any, ...]:
+        return (t.name, t.priority, tuple((a.place, a.weight, a.var) for a in t.pre),
+                tuple((o.place, o.weight, o.var, None if o.fields is None else
+                       tuple(sorted((k, c.text) for k, c in o.fields.items()))) for o in t.post),
+                tuple(t.test), tuple(t.inhibit), None if t.guard is None else t.guard.text,
+                tuple((a.kind, a.target, a.value.text if a.value else None) for a in t.actions),
+                t.delay_ns, t.duration_ns, tuple(t.busy_outputs), t.coloured)
+    return (net.name, net.place_names, tuple(int(x) for x in net.initial),
+            tuple(int(x) for x in net.capacity), tuple(bool(x) for x in net.coloured),
+            tuple(sorted((p, tuple(dict(r).items() for r in toks))
+                         for p, toks in net.initial_tokens.items())),
+            tuple(trans(t) for t in net.transitions), net.order,
+            tuple(sorted(net.place_outputs.items())), tuple(sorted(net.emits)),
+            tuple(sorted((s.name, str(s.address), s.type.value) for s in net.io.symbols.values())))

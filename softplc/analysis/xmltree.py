@@ -16,6 +16,7 @@ from xml.sax.xmlreader import AttributesImpl, Locator
 import defusedxml.sax  # type: ignore[import-untyped]
 from defusedxml import DefusedXmlException
 
+from softplc.core.errors import SoftplcError
 from softplc.core.problems import Problem, ProgramError
 
 # PNML nests pnml/net/page/place/name/text and pages in pages; 100,000 nested <page>s once
@@ -24,7 +25,7 @@ from softplc.core.problems import Problem, ProgramError
 MAX_DEPTH = 100
 
 
-class _TooDeep(Exception):
+class _TooDeep(SoftplcError):
     def __init__(self, line: int) -> None:
         super().__init__(line)
         self.line = line

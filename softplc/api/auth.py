@@ -17,12 +17,14 @@ from pathlib import Path
 from typing import Final
 from urllib.parse import urlsplit
 
+from softplc.core.errors import SoftplcError
+
 TOKEN_FILE: Final = "api_token"
 TOKEN_ENV: Final = "SOFTPLC_API_TOKEN"
 _TOKEN_BYTES: Final = 32  # 256 bits, 43 URL-safe characters
 
 
-class TokenFileError(OSError):
+class TokenFileError(SoftplcError, OSError):
     """The token file exists but cannot be used (unreadable, empty, not a regular file)."""
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, Final
 
 from softplc.api import auth
+from softplc.core.errors import SoftplcError
 
 DEFAULT_URL: Final = "http://127.0.0.1:8080"
 API: Final = "/api/v1"
@@ -27,7 +28,7 @@ _SILENCE_S: Final = 30.0  # two server heartbeats
 DOWNLOAD_TIMEOUT_S: Final = 65.0  # the server waits up to 60 s for a big compile
 
 
-class ApiError(Exception):
+class ApiError(SoftplcError):
     """The service answered with an error status: `problems` lists every problem line of a
     refused program (FILE:LINE: path: message)."""
 
@@ -38,7 +39,7 @@ class ApiError(Exception):
         super().__init__(f"HTTP {status}: {message}")
 
 
-class ApiUnreachable(ConnectionError):
+class ApiUnreachable(SoftplcError, ConnectionError):
     """Nothing answers at the API URL (refused, unresolvable, timed out, connection lost)."""
 
 

@@ -31,12 +31,13 @@ from typing import Any, Final
 
 from aiohttp import web
 
+from softplc.core.errors import SoftplcError
+
 log = logging.getLogger(__name__)
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
-_REFUSAL_BODY: Final = json.dumps(
-    {"error": "too many connections: every connection is in a request; retry", "problems": []}
-).encode()
+_REFUSAL_BODY: Final = json.dumps({"error": "too many connections: every connection is in a "
+                                   "request; retry", "problems": []}).encode()
 REFUSAL: Final = (
     b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
     b"Retry-After: 1\r\nConnection: close\r\n"
@@ -139,7 +140,7 @@ class ConnectionStats:
     body_timeouts: int = 0  # 408: the body did not arrive within body_timeout_s
 
 
-class Refused(Exception):
+class Refused(SoftplcError):
     """A request over its class's bound: answered 503, Retry-After: 1."""
 
 

@@ -16,6 +16,8 @@ from typing import Any, Final
 
 from aiohttp import web
 
+from softplc.core.errors import SoftplcError
+
 _KEY: Final = re.compile(r"[\x21-\x7e]{1,64}")
 _TRUE: Final = frozenset({"1", "true", "yes", "on"})
 _FALSE: Final = frozenset({"0", "false", "no", "off", ""})
@@ -29,7 +31,7 @@ _TOKEN: Final = re.compile(rb'[\[\]{}"]|-?[0-9][-+0-9.eE]*')
 _STRING_REST: Final = re.compile(rb'(?:[^"\\]++|\\.)*+"', re.DOTALL)
 
 
-class ApiProblem(Exception):
+class ApiProblem(SoftplcError):
     """A request the service refuses: rendered as {"error", "problems"} with `status`."""
 
     def __init__(self, status: int, error: str, problems: Iterable[str] = (),

@@ -24,6 +24,7 @@ from softplc.bench.netgen import FAMILIES, GenNet, to_compiled
 from softplc.bench.refengine import RefEngine
 from softplc.bench.snakes_net import SnakesEngine
 from softplc.core.engine import Engine
+from softplc.core.errors import SoftplcError
 from softplc.core.expr import Value
 
 SIZES = (10, 100, 1_000, 10_000, 100_000)
@@ -34,7 +35,7 @@ OURS, REFERENCE = "ours", "reference"
 SNAKES, SNAKES_INCREMENTAL = "snakes", "snakes_incremental"
 
 
-class EngineMismatch(Exception):
+class EngineMismatch(SoftplcError):
     """Two engines fired different steps or reached different markings: a bug, not a figure."""
 
 

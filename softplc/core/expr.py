@@ -15,6 +15,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from softplc.core.errors import SoftplcError
+
 Value = int | bool | str
 Thunk = Callable[["EvalContext"], Value]
 
@@ -24,7 +26,7 @@ INT_LIMIT = 1 << 63  # results beyond +-2**63 are an error: no unbounded integer
 MAX_STR = 256  # characters of a text value (core/values.py MAX_TEXT: the same language)
 
 
-class ExprError(ValueError):
+class ExprError(SoftplcError, ValueError):
     """An expression that is not in the language. `col` is 0-based within the text."""
 
     def __init__(self, message: str, col: int = 0) -> None:

@@ -23,11 +23,12 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
+from softplc.core.errors import SoftplcError
 from softplc.core.image import WORD_MAX, ProcessImage
 from softplc.core.symbols import Symbol, SymType
 
 
-class ForceRefused(ValueError):
+class ForceRefused(SoftplcError, ValueError):
     """A force the program cannot take: unknown symbol or a value outside its type."""
 
 

@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from softplc.core.errors import SoftplcError
+
 BoolArray = npt.NDArray[np.bool_]
 WordArray = npt.NDArray[np.uint16]
 
@@ -23,7 +25,7 @@ AREAS = ("ix", "qx", "mx", "iw", "qw", "mw")
 OUTPUT_AREAS = ("qx", "qw", "mx", "mw")  # what a scan writes: outputs and memory
 
 
-class AddressError(ValueError):
+class AddressError(SoftplcError, ValueError):
     """An IEC address that does not parse or lies outside the configured image."""
 
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 import enum
 from typing import Final
 
+from softplc.core.errors import SoftplcError
+
 
 class PlcState(enum.IntEnum):
     """Numeric values are part of the Modbus status block: never renumber."""
@@ -66,7 +68,7 @@ class Command(enum.Enum):
     UNFORCE = "unforce"
 
 
-class CommandRejected(Exception):
+class CommandRejected(SoftplcError):
     """A command that the current state does not accept. The state is unchanged."""
 
     def __init__(self, state: PlcState, command: Command, reason: str = "") -> None:

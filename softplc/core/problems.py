@@ -10,7 +10,8 @@ from __future__ import annotations
 import enum
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+
+from softplc.core.errors import SoftplcError
 
 
 @dataclass(frozen=True, slots=True, order=True)
@@ -25,15 +26,12 @@ class Problem:
         return f"{self.file}:{self.line}: {where}{self.message}"
 
 
-class ProgramError(Exception):
+class ProgramError(SoftplcError):
     """Every problem found in a program (validation collects them all before raising)."""
 
     def __init__(self, problems: Sequence[Problem]) -> None:
         self.problems = tuple(problems)
         super().__init__("\n".join(str(p) for p in self.problems))
-
-    def __reduce__(self) -> tuple[Any, ...]:  # crosses from the compile process intact
-        return ProgramError, (self.problems,)
 
 
 class FaultCode(enum.IntEnum):
@@ -49,7 +47,7 @@ class FaultCode(enum.IntEnum):
     INTERNAL = 6  # any other exception inside a scan (a bug of softplc itself)
 
 
-class PlcFault(Exception):
+class PlcFault(SoftplcError):
     """Raised inside a scan by the program's execution (the engine, a limit) to fault the PLC:
     the scan turns it into FAULTED with safe outputs, `code` and `reason` in status. Any other
     exception inside a scan faults the PLC too, as FaultCode.INTERNAL."""

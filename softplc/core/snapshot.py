@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import Protocol
 
+from softplc.core.errors import SoftplcError
 from softplc.core.image import Address, ProcessImage
 from softplc.core.lifecycle import Command, PlcState
 
@@ -134,21 +135,21 @@ def age_ns(snapshot: Snapshot, now_ns: int) -> int:
     return now_ns - published if published else -1
 
 
-class SnapshotUnavailable(RuntimeError):
+class SnapshotUnavailable(SoftplcError, RuntimeError):
     """No consistent snapshot could be read: the writer stayed mid-publish (stuck or dead)."""
 
 
-class ChannelFull(Exception):
+class ChannelFull(SoftplcError):
     """A command or HMI write was refused at once because the scan process has not drained its
     queue (the scan is overloaded or not running), or no reply lane is free. Nothing of it is
     applied. The HTTP API answers 503; the Modbus slave answers 04 (its write sink raised)."""
 
 
-class NotQueued(TimeoutError):
+class NotQueued(SoftplcError, TimeoutError):
     """A command that could not be put in the queue in time: the scan process will never see
     it whole, so it is never applied."""
 
 
-class NoReply(TimeoutError):
+class NoReply(SoftplcError, TimeoutError):
     """A command queued whose reply did not come in time: it may still be decided later (but
     never applied after its deadline, if it has one)."""

@@ -32,7 +32,7 @@ def check_devices(io: IoImage, plant: str | None = None, need_plant: bool = True
         mine = [s for s in io.symbols.values() if s.driver == spec.name]
         if spec.kind == "sim" and (need_plant or plant or spec.params.get("plant")):
             problems += _check_sim(io.path, spec, mine, plant)
-        elif spec.kind == "modbus":
+        elif spec.kind in ("modbus", "modbus_rtu"):
             problems += _check_modbus(io.path, spec, mine)
     return sorted(problems)
 
@@ -83,10 +83,11 @@ def _check_sim(file: str, spec: DriverSpec, symbols: Sequence[Symbol],
 def _check_modbus(file: str, spec: DriverSpec, symbols: Sequence[Symbol]) -> list[Problem]:
     # Imported here: pymodbus is loaded only for io images that have a Modbus driver.
     from softplc.devices.modbus_io import ModbusParams, channel_problems
+    from softplc.devices.modbus_rtu import RtuParams
 
     problems = []
     try:
-        ModbusParams.from_spec(spec)
+        (RtuParams if spec.kind == "modbus_rtu" else ModbusParams).from_spec(spec)
     except (TypeError, ValueError) as exc:
         problems.append(Problem(file, spec.line, f"drivers.{spec.name}", str(exc)))
     problems += [Problem(file, sym.line, f"symbols.{sym.name}", f"driver {spec.name}: {issue}")

@@ -16,10 +16,11 @@ import time
 from collections.abc import Sequence
 from typing import Protocol, runtime_checkable
 
+from softplc.core.errors import SoftplcError
 from softplc.core.image import ProcessImage
 
 
-class DeviceError(Exception):
+class DeviceError(SoftplcError):
     """Base of every device-interface failure."""
 
 

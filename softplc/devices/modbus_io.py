@@ -1,10 +1,11 @@
-"""Modbus TCP remote I/O: the PLC is the client, a remote I/O module is the server.
+"""Modbus remote I/O: the PLC is the client (master), a remote I/O module is the server.
 
 Owns: the driver the scan calls (read_inputs, write_outputs, go_safe: a confirmed write
 within a bound, health and stats). The I/O thread (its asyncio loop and pymodbus client, the
 heartbeat that keeps the device's own watchdog alive) and the state it shares with the scan
 thread are modbus_link.py; channel planning is modbus_plan.py, params modbus_params.py, the
-requests themselves modbus_requests.py.
+requests themselves modbus_requests.py, the wire (TCP here, RTU in modbus_rtu.py)
+modbus_transport.py.
 Does not know: the scan, the Petri net, the HMI.
 
 Threading: read_inputs/write_outputs never touch the network; they swap values with the I/O
@@ -52,7 +53,8 @@ from softplc.devices.modbus_plan import (
     parse_channel,
     plan_channels,
 )
-from softplc.devices.modbus_requests import RemoteError, quiet_pymodbus, write_direct
+from softplc.devices.modbus_requests import RemoteError, quiet_pymodbus
+from softplc.devices.modbus_transport import TCP, Wire
 
 __all__ = [
     "DROP_AFTER", "MAX_OFFSET", "Block", "Channel", "Heartbeat", "IoPlan", "IoStats",
@@ -89,20 +91,21 @@ _HEALTH = {(True, True): Health.OK, (True, False): Health.DEGRADED}
 class ModbusIoDriver:
     """Driver for one remote I/O module. See the module docstring for threading and health."""
 
-    def __init__(self, spec: DriverSpec, symbols: Sequence[Symbol]) -> None:
-        if spec.kind != "modbus":
-            raise ValueError(f"driver {spec.name!r}: kind {spec.kind!r}, expected 'modbus'")
+    def __init__(self, spec: DriverSpec, symbols: Sequence[Symbol], wire: Wire = TCP) -> None:
+        if spec.kind != wire.kind:
+            raise ValueError(f"driver {spec.name!r}: kind {spec.kind!r}, expected {wire.kind!r}")
         foreign = [s.name for s in symbols if s.driver != spec.name]
         if foreign:
             raise ValueError(f"driver {spec.name!r}: symbols {foreign} belong to another driver")
         self.name = spec.name
         self.spec = spec  # what the runtime opened, for the start-up gate (docs/faults.md)
         self.plan = plan_channels(symbols)
-        self.params = ModbusParams.from_spec(spec, self.plan)
+        self.transport = wire.transport(spec, self.plan)
+        self.params = self.transport.params
         self._read_index = [np.array(b.image_index, dtype=np.intp) for b in self.plan.reads]
         self._write_index = [np.array(b.image_index, dtype=np.intp) for b in self.plan.writes]
         self._shared = LinkState(has_writes=bool(self.plan.writes))
-        self._link = IoLink(self.name, self.params, self.plan, self._shared)
+        self._link = IoLink(self.name, self.transport, self.plan, self._shared)
         # Scan thread only.
         self._seen_seq = 0
         self._last_ok_ns: int | None = None
@@ -122,6 +125,7 @@ class ModbusIoDriver:
         with self._shared.lock:  # inputs of an earlier opening are not this one's first image
             self._shared.closing, self._shared.inputs = False, None
         self._delivered = False
+        self.transport.attach()
         self._link.start()
 
     def close(self) -> None:
@@ -150,6 +154,7 @@ class ModbusIoDriver:
             self._direct(*pending, time.monotonic() + CLOSE_DIRECT_S)
         with shared.lock:
             shared.connected = shared.last_cycle_ok = False
+        self.transport.detach()
 
     def read_inputs(self, image: ProcessImage, now_ns: int) -> None:
         with self._shared.lock:
@@ -212,7 +217,7 @@ class ModbusIoDriver:
                 return ""
             if shared.last_error:
                 return shared.last_error
-            where = f"{self.params.host}:{self.params.port}"
+            where = self.transport.where
             return "no cycle completed yet" if shared.connected else f"not connected to {where}"
 
     def stats(self) -> IoStats:
@@ -250,7 +255,7 @@ class ModbusIoDriver:
     def _direct(self, outputs: Outputs, seq: int, deadline: float) -> str:
         """Write `outputs` on a fresh connection of our own (the I/O thread's may be wedged)
         within `deadline`; acknowledge `seq` when the device answered. "" or why not."""
-        why = write_direct(self.params, self.plan.writes, outputs, deadline)
+        why = self.transport.write_direct(self.plan.writes, outputs, deadline)
         if not why:
             self._shared.ack(seq)
         return why

@@ -1,12 +1,13 @@
-"""The network side of a Modbus TCP remote I/O driver: its I/O thread and what it shares with
-the scan thread.
+"""The device side of a Modbus remote I/O driver (TCP or RTU): its I/O thread and what it
+shares with the scan thread.
 
 Owns: LinkState (values swapped between the scan thread and the I/O thread under one lock:
 the last good inputs, the latest outputs and their acknowledgement, health counters) and
-IoLink (the I/O thread with its own asyncio loop and pymodbus client: connect with backoff,
+IoLink (the I/O thread with its own asyncio loop and its transport's client: connect with backoff,
 one cycle per wake-up (every write range, the heartbeat when due, every read range), drop a
 connection after DROP_AFTER failed cycles, flush the latest outputs on close).
-Does not know: the process image, the scan, go_safe's fallback (modbus_io.py has them).
+Does not know: the process image, the scan, go_safe's fallback (modbus_io.py has them), the
+wire (TCP socket or serial line: modbus_transport.py, modbus_rtu.py).
 """
 
 from __future__ import annotations
@@ -19,12 +20,10 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from pymodbus.client import AsyncModbusTcpClient
-
 from softplc.core.image import BoolArray, WordArray
-from softplc.devices.modbus_params import ModbusParams
 from softplc.devices.modbus_plan import IoPlan
-from softplc.devices.modbus_requests import ERRORS, read_block, write_block, write_word
+from softplc.devices.modbus_requests import ERRORS, Client, read_block, write_block, write_word
+from softplc.devices.modbus_transport import Transport
 
 log = logging.getLogger("softplc.devices.modbus_io")  # one logger for the whole driver
 
@@ -89,8 +88,9 @@ class LinkState:
 class IoLink:
     """The I/O thread of one driver; start() runs it, the driver stops it (see close())."""
 
-    def __init__(self, name: str, params: ModbusParams, plan: IoPlan, state: LinkState) -> None:
-        self.name, self.params, self.plan, self.state = name, params, plan, state
+    def __init__(self, name: str, transport: Transport, plan: IoPlan, state: LinkState) -> None:
+        self.name, self.transport, self.plan, self.state = name, transport, plan, state
+        self.params = transport.params
         # Thread plumbing; None while closed.
         self.thread: threading.Thread | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -155,15 +155,7 @@ class IoLink:
             self.state.last_error = f"I/O task crashed: {exc!r}"
 
     async def _run(self) -> None:
-        p = self.params
-        client = AsyncModbusTcpClient(
-            p.host,
-            port=p.port,
-            timeout=p.timeout_s,
-            retries=0,
-            reconnect_delay=0,  # reconnection and its backoff are ours, below
-            trace_connect=self._on_link,
-        )
+        client = self.transport.client(self._on_link)  # reconnection and backoff are ours
         try:
             await self._serve(client)
             await self._flush(client)
@@ -172,13 +164,14 @@ class IoLink:
             self._on_link(False)
             await asyncio.sleep(0)  # let the transport's close callback release the socket
 
-    async def _serve(self, client: AsyncModbusTcpClient) -> None:
+    async def _serve(self, client: Client) -> None:
         p = self.params
         backoff = p.reconnect_min_s
         while not self.state.closing:
             if not client.connected:
                 if not await client.connect():
-                    self._note_failure(f"cannot connect to {p.host}:{p.port}", cycle=False)
+                    self._note_failure(f"cannot connect to {self.transport.where}",
+                                       cycle=False)
                     await self._pause(backoff)
                     backoff = min(2 * backoff, p.reconnect_max_s)
                 continue
@@ -205,7 +198,7 @@ class IoLink:
             await asyncio.wait_for(self._urgent.wait(), seconds)
         self._urgent.clear()
 
-    async def _flush(self, client: AsyncModbusTcpClient) -> None:
+    async def _flush(self, client: Client) -> None:
         """On close: the latest outputs, if the device has not acknowledged them."""
         pending = self.state.pending()
         if pending is None:
@@ -226,11 +219,10 @@ class IoLink:
         if not connected:
             self._wake.set()  # so that _run notices and reconnects
         if changed:
-            p = self.params
             state = "connected to" if connected else "disconnected from"
-            log.info("modbus driver %s: %s %s:%s", self.name, state, p.host, p.port)
+            log.info("modbus driver %s: %s %s", self.name, state, self.transport.where)
 
-    async def _cycle(self, client: AsyncModbusTcpClient) -> bool:
+    async def _cycle(self, client: Client) -> bool:
         shared = self.state
         with shared.lock:
             outputs, seq = shared.outputs, shared.out_seq
@@ -252,7 +244,7 @@ class IoLink:
             shared.last_cycle_ok = True
         return True
 
-    async def _write_outputs(self, client: AsyncModbusTcpClient, outputs: Outputs,
+    async def _write_outputs(self, client: Client, outputs: Outputs,
                              seq: int) -> None:
         """Every write range of `outputs`, then acknowledge `seq`. A safe image handed over
         meanwhile replaces a stale one before its next request goes out."""
@@ -267,7 +259,7 @@ class IoLink:
             i += 1
         shared.ack(seq)
 
-    async def _arm_watchdog(self, client: AsyncModbusTcpClient) -> None:
+    async def _arm_watchdog(self, client: Client) -> None:
         beat = self.params.heartbeat
         if not self._fresh_link or beat is None or beat.watchdog_register is None:
             return
@@ -275,7 +267,7 @@ class IoLink:
                          self.params.unit)
         self._fresh_link = False
 
-    async def _heartbeat(self, client: AsyncModbusTcpClient) -> None:
+    async def _heartbeat(self, client: Client) -> None:
         beat = self.params.heartbeat
         now = time.monotonic()
         if beat is None or now < self._beat_due:

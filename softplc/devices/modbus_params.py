@@ -83,11 +83,11 @@ def parse_params(cls: type[P], spec: DriverSpec, plan: IoPlan | None,
     return params
 
 
-def timing_problem(params: LinkParams, poll: str, max_unit: int = 255) -> str | None:
+def timing_problem(params: LinkParams, poll: str, units: range = range(256)) -> str | None:
     """The checks of the keys every Modbus kind shares, or None."""
     checks = (
-        (_is_int(params.unit) and 0 <= params.unit <= max_unit,
-         f"unit must be an integer in {1 if max_unit < 255 else 0}..{max_unit}"),
+        (_is_int(params.unit) and params.unit in units,
+         f"unit must be an integer in {units.start}..{units.stop - 1}"),
         (_positive(params.timeout_s), "timeout_s must be a positive number"),
         (_positive(params.reconnect_min_s), "reconnect_min_s must be a positive number"),
         (

@@ -14,6 +14,7 @@ from functools import partial
 
 import numpy as np
 
+from softplc.core.errors import SoftplcError
 from softplc.core.modbus import (
     MAX_READ_BITS,
     MAX_READ_REGISTERS,
@@ -34,7 +35,7 @@ COIL_ON, COIL_OFF = 0xFF00, 0x0000
 Sink = Callable[[HmiWrite], None]
 
 
-class FramingError(Exception):
+class FramingError(SoftplcError):
     """The byte stream cannot be split into ADUs any more: the connection must be closed."""
 
 

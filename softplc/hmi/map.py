@@ -11,6 +11,7 @@ import enum
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
+from softplc.core.errors import SoftplcError
 from softplc.core.image import WORD_MAX, Address, Area, ImageSizes, Width
 from softplc.core.snapshot import HmiWrite, Snapshot, Status
 
@@ -31,7 +32,7 @@ class ExceptionCode(enum.IntEnum):
     SERVER_DEVICE_FAILURE = 0x04
 
 
-class MapError(Exception):
+class MapError(SoftplcError):
     """A request the map refuses; `code` is the Modbus exception to answer with."""
 
     def __init__(self, code: ExceptionCode, message: str) -> None:

@@ -4,14 +4,20 @@ board, and OPC UA events for what changed.
 Owns: writing only changed values into the address space (subscribers are told of changes
 only), rebuilding the program's nodes when the snapshot shows a new program hash and the
 board describes it, the Part 10 state that follows the PLC state, and events for board
-events, downloads, state changes, faults and refused commands.
+events, downloads, state changes, faults and refused commands; each value's quality (Good
+while the scan process publishes, Uncertain_LastUsableValue once its snapshot is stale,
+Bad_WaitingForInitialData before its first publish) and timestamps (Source: the publish of the
+snapshot that carried the value, converted from CLOCK_MONOTONIC to wall-clock time; Server:
+when it was written here).
 Does not know: sessions, who may write, the channel, when to poll (server.py does).
 """
 
 from __future__ import annotations
 
 import contextlib
+import time
 from collections.abc import Mapping
+from datetime import UTC, datetime
 from typing import Any, Final
 
 from asyncua import Server, ua
@@ -40,12 +46,15 @@ class Mirror:
         self._modbus_writes = modbus_writes
         self.by_node: dict[ua.NodeId, SymbolNode] = {}
         self.built_hash: str | None = None  # the program whose nodes are built
-        self._values: dict[Any, Any] = {}  # node id -> last value pushed
+        self._values: dict[Any, Any] = {}  # node id -> last (value, status) pushed
+        self._fed: dict[ua.NodeId, ua.Variant] = {}  # the nodes fed by the scan process
         self._part10: PartState | None = None
         self.part10: Part10 | None = None  # LastTransition, Executable, transition events
         self._state: PlcState | None = None
         self._fault = 0
         self._event_seq = 0
+        self._quality = ua.StatusCodes.BadWaitingForInitialData  # of the last snapshot pushed
+        self._source: datetime | None = None  # its publish, wall-clock
 
     async def first_look(self, document: Mapping[str, Any], snapshot: Snapshot | None) -> None:
         """Nodes of the program that runs now; events from now on (no replay of old ones)."""
@@ -77,7 +86,7 @@ class Mirror:
             return  # the board does not describe this program yet: next board poll
         await self.space.build_program(document, self._modbus_writes)
         self.by_node = {s.node.nodeid: s for s in self.space.symbols.values()}
-        self._values = {}
+        self._values, self._fed = {}, {}
         previous, self.built_hash = self.built_hash, program_hash
         if previous is not None and program_hash:
             await self.emit("download", f"program {document.get('program')} loaded "
@@ -99,10 +108,12 @@ class Mirror:
 
     async def push(self, snapshot: Snapshot) -> None:
         image, status = snapshot.image, snapshot.status
+        self._quality, self._source = quality(snapshot), source_time(snapshot)
         for symbol in self.by_node.values():
             if symbol.location is not None:
                 with contextlib.suppress(AddressError, IndexError):
-                    await self.set(symbol.node.nodeid, symbol.variant(image.get(symbol.location)))
+                    await self.set(symbol.node.nodeid, symbol.variant(image.get(symbol.location)),
+                                   fed=True)
         nodes = self.space.status
         for name, value in (("State", status.state.name), ("ProgramHash", status.program_hash),
                             ("ScanCount", status.scan_count), ("PeriodUs", status.period_us),
@@ -111,19 +122,29 @@ class Mirror:
                             ("P99LatenessUs", status.p99_lateness_us),
                             ("Overruns", status.overruns), ("FaultCode", status.fault_code),
                             ("WaitingForIo", status.waiting_for_io)):
-            await self.set(nodes[name].nodeid, _status_variant(name, value))
+            await self.set(nodes[name].nodeid, _status_variant(name, value), fed=True)
+
+    async def lost(self) -> None:
+        """No snapshot can be read (the scan process died while publishing): every value it
+        fed is the last usable one, Uncertain, until a snapshot is read again."""
+        if self._quality == ua.StatusCodes.Good:
+            self._quality = ua.StatusCodes.UncertainLastUsableValue
+            for nodeid, variant in list(self._fed.items()):
+                await self.set(nodeid, variant, fed=True)
 
     async def board_values(self, document: dict[str, Any]) -> None:
         if not document:
             return
         nodes = self.space.status
-        await self.set(nodes["Program"].nodeid, _status_variant("Program",
-                                                                document.get("program") or ""))
+        await self.set(nodes["Program"].nodeid, _status_variant(
+            "Program", document.get("program") or ""), fed=True)
         await self.set(nodes["FaultReason"].nodeid,
-                       _status_variant("FaultReason", document.get("fault_reason") or ""))
+                       _status_variant("FaultReason", document.get("fault_reason") or ""),
+                       fed=True)
         restarts = document.get("restarts")
         if isinstance(restarts, int):
-            await self.set(nodes["Restarts"].nodeid, _status_variant("Restarts", restarts))
+            await self.set(nodes["Restarts"].nodeid, _status_variant("Restarts", restarts),
+                           fed=True)
         if document.get("program_hash") == self.built_hash:
             marking = document.get("marking") or {}
             for place in marking:
@@ -131,7 +152,7 @@ class Mirror:
             for place, node in self.space.places.items():  # unmarked places are absent: 0
                 count = marking.get(place, 0)
                 await self.set(node.nodeid, ua.Variant(count if isinstance(count, int) else 0,
-                                                       ua.VariantType.UInt32))
+                                                       ua.VariantType.UInt32), fed=True)
         await self._board_events(document)
 
     async def _board_events(self, document: dict[str, Any]) -> None:
@@ -165,13 +186,21 @@ class Mirror:
             # marking; of anything else, it holds the initial one).
             self.space.part10 = part10_state(PlcState[outcome.state], method == "Suspend")
 
-    async def set(self, nodeid: ua.NodeId, variant: ua.Variant) -> None:
-        """Write a value into the address space only when it changed (subscribers are told
-        of changes only; an unchanged write would still cost a comparison per item)."""
-        if self._values.get(nodeid) == variant.Value:
+    async def set(self, nodeid: ua.NodeId, variant: ua.Variant, *, fed: bool = False) -> None:
+        """Write a value into the address space only when it or its quality changed
+        (subscribers are told of changes only). `fed`: the value comes from the scan process
+        (snapshot or board), so it carries the last snapshot's quality and publish time; else
+        it is this process's own (Good, Source = now)."""
+        status = self._quality if fed else ua.StatusCodes.Good
+        if self._values.get(nodeid) == (variant.Value, status):
             return
-        self._values[nodeid] = variant.Value
-        await self._server.write_attribute_value(nodeid, ua.DataValue(variant))
+        self._values[nodeid] = (variant.Value, status)
+        if fed:
+            self._fed[nodeid] = variant
+        now = datetime.now(UTC)
+        await self._server.write_attribute_value(nodeid, ua.DataValue(
+            variant, StatusCode=ua.StatusCode(status),
+            SourceTimestamp=(self._source or now) if fed else now, ServerTimestamp=now))
 
     async def emit(self, name: str, message: str, *, seq: int = 0, scan: int = 0,
                    severity: int = 500) -> None:
@@ -184,6 +213,27 @@ class Mirror:
 def newest_seq(document: Mapping[str, Any]) -> int:
     return max((int(e["seq"]) for e in document.get("events") or []
                 if isinstance(e, dict) and isinstance(e.get("seq"), int)), default=0)
+
+
+def quality(snapshot: Snapshot) -> int:
+    """Part 8's quality of the values of `snapshot`: Good while fresh; a stale one (the scan
+    process stopped publishing: frozen, dead, restarting; runtime/fresh.py) holds the last
+    usable values, and one never published holds none."""
+    if not snapshot.status.stale:
+        return ua.StatusCodes.Good
+    if not snapshot.status.published_ns:
+        return ua.StatusCodes.BadWaitingForInitialData
+    return ua.StatusCodes.UncertainLastUsableValue
+
+
+def source_time(snapshot: Snapshot) -> datetime | None:
+    """The publish of `snapshot` in wall-clock time: CLOCK_MONOTONIC (machine-wide) mapped by
+    the offset between the two clocks now (a wall-clock step since the publish shifts it)."""
+    published = snapshot.status.published_ns
+    if not published:
+        return None
+    wall_ns = time.time_ns() - (time.monotonic_ns() - published)
+    return datetime.fromtimestamp(wall_ns / 1e9, UTC)
 
 
 def _status_variant(name: str, value: object) -> ua.Variant:

@@ -13,7 +13,10 @@ Does not know: the scan, Modbus, HTTP, how a command acts (the scan process does
 asyncua gives a method callback no session and stores a client's write in the address space;
 both are wrong here (methods need the caller's identity; a written symbol takes its value from
 the next scan, not from the client), so each session's `write` and `call` are wrapped at
-session creation (`_hook_sessions`): ours are answered here, others go to asyncua.
+session creation (`_hook_sessions`): ours are answered here, others go to asyncua (whose
+write answers BadUserAccessDenied for a node that does not exist: BadNodeIdUnknown here).
+Read and Republish are answered per session by sessions.py. The server names itself softplc
+(ApplicationUri, ProductUri, BuildInfo with the package's version), not FreeOpcUa.
 """
 
 from __future__ import annotations
@@ -21,7 +24,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import socket
 from collections.abc import Callable
+from datetime import UTC, datetime
 from functools import partial
 from pathlib import Path
 from typing import Any, Final, Protocol
@@ -30,6 +35,7 @@ from asyncua import ua
 from asyncua.crypto.permission_rules import User, UserRole
 from asyncua.server.internal_session import InternalSession
 
+import softplc
 from softplc.api import auth
 from softplc.core.snapshot import (
     ChannelFull,
@@ -43,6 +49,7 @@ from softplc.opcua.ids import status_code, string_id
 from softplc.opcua.limits import DoorStats, OpcUaLimits
 from softplc.opcua.mirror import Mirror
 from softplc.opcua.program import CommandChannel, Outcome, ProgramHandling, arguments
+from softplc.opcua.sessions import hook, written_value
 from softplc.opcua.space import METHODS, NAMESPACE_URI, PROGRAM, Space, SymbolNode
 
 log = logging.getLogger(__name__)
@@ -106,7 +113,7 @@ class OpcUaServer:
                             user_manager=TokenUsers(token, auth.is_loopback(self.host)))
         await server.init()
         server.set_endpoint(f"opc.tcp://{self.host}:{self.port}")
-        server.set_server_name("softplc")
+        await _identify(server, self.port)
         server.set_security_policy([ua.SecurityPolicyType.NoSecurity], ClientServices())
         server.set_identity_tokens([ua.AnonymousIdentityToken, ua.UserNameIdentityToken])
         ns = await server.register_namespace(NAMESPACE_URI)
@@ -167,6 +174,7 @@ class OpcUaServer:
             if external:  # the server's own session keeps asyncua's behaviour
                 session.write = partial(self._write, session, session.write)  # type: ignore
                 session.call = partial(self._call, session, session.call)  # type: ignore
+                hook(session)  # Read per session, Republish as the spec says
             return session
 
         iserver.create_session = create_session  # type: ignore[method-assign]
@@ -186,7 +194,9 @@ class OpcUaServer:
         others: list[ua.WriteValue] = []
         for value in params.NodesToWrite:
             symbol = self._mirror.by_node.get(value.NodeId) if self._mirror else None
-            if symbol is None:
+            if symbol is None and value.NodeId not in session.iserver.aspace:
+                results.append(status_code(ua.StatusCodes.BadNodeIdUnknown))
+            elif symbol is None:
                 others.append(value)
                 results.append(None)
             else:
@@ -208,7 +218,7 @@ class OpcUaServer:
             if self._snapshots.latest().status.program_hash != self._built_hash():
                 return ua.StatusCodes.BadInvalidState  # a download is being rebuilt: browse again
         variant = value.Value.Value if value.Value is not None else None
-        number = _written_value(symbol, variant.Value if variant is not None else None)
+        number = written_value(symbol.name, symbol.is_bool, variant)
         if isinstance(number, str):
             log.info("OPC UA write to %s refused: %s", symbol.name, number)
             return ua.StatusCodes.BadTypeMismatch
@@ -274,6 +284,7 @@ class OpcUaServer:
         try:
             snapshot = self._snapshots.latest()
         except SnapshotUnavailable:
+            await mirror.lost()
             return
         status = snapshot.status
         if status.program_hash != mirror.built_hash:
@@ -294,6 +305,22 @@ async def _end_clock(server: DoorServer) -> None:
             await task
 
 
+async def _identify(server: DoorServer, port: int) -> None:
+    """softplc's own ApplicationUri (per host and port: several softplcs may share a host),
+    ProductUri and BuildInfo (the package's version; BuildDate: when the package's
+    __init__.py was written, i.e. installed or checked out)."""
+    server.set_server_name("softplc")
+    server.product_uri = NAMESPACE_URI
+    server.manufacturer_name = "softplc"
+    uri = f"urn:softplc:{socket.gethostname()}:{port}"
+    await server.set_application_uri(uri)  # NamespaceArray[1]; ServerArray[0] too (Part 5)
+    await server.get_node(ua.NodeId(ua.ObjectIds.Server_ServerArray)).write_value(
+        ua.Variant([uri], ua.VariantType.String))
+    built = datetime.fromtimestamp(Path(softplc.__file__).stat().st_mtime, UTC)
+    await server.set_build_info(NAMESPACE_URI, "softplc", "softplc", softplc.__version__,
+                                softplc.__version__, built)
+
+
 def _quiet_asyncua() -> None:
     """asyncua logs a traceback at ERROR for every malformed message and INFO for every
     request: a peer could flood the log (and block a process whose stderr is a full pipe).
@@ -306,14 +333,3 @@ def _quiet_asyncua() -> None:
 async def _unguarded(parent: ua.NodeId, *args: ua.Variant) -> ua.StatusCode:
     """Reached only by asyncua's own session (sessions of clients are hooked)."""
     return status_code(ua.StatusCodes.BadUserAccessDenied)
-
-
-def _written_value(symbol: SymbolNode, value: object) -> int | str:
-    """The image value of a client's write, or why it does not fit the symbol's type."""
-    if symbol.is_bool:
-        if isinstance(value, bool):
-            return int(value)
-        return f"{symbol.name} is Boolean, got {type(value).__name__}"
-    if isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 0xFFFF:
-        return value
-    return f"{symbol.name} is UInt16 (0..65535), got {value!r}"

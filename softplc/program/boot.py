@@ -18,13 +18,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Final
 
+from softplc.core.errors import SoftplcError
 from softplc.program import bundle as bundles
 
 BOOT_FILE: Final = "boot_program.json"
 FORMAT: Final = 1
 
 
-class BootUnreadable(ValueError):
+class BootUnreadable(SoftplcError, ValueError):
     """The boot program file exists but cannot be used (truncated, edited, wrong format)."""
 
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Any, Final
 
+from softplc.core.errors import SoftplcError
 from softplc.core.problems import Problem, ProgramError
 from softplc.program.yamlload import load_yaml
 
@@ -40,7 +41,7 @@ CONTENT_TYPE: Final = "application/zip"
 _EPOCH: Final = (1980, 1, 1, 0, 0, 0)  # zip's earliest date: deterministic archives
 
 
-class BundleError(ValueError):
+class BundleError(SoftplcError, ValueError):
     """A bundle that cannot be used: the message says what is wrong and what was expected."""
 
 

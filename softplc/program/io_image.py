@@ -29,7 +29,7 @@ from softplc.core.symbols import (
 from softplc.program.suggest import did_you_mean, did_you_mean_key
 from softplc.program.yamlload import YMap, line_of, load_yaml, trap_hint
 
-DRIVER_KINDS = ("sim", "modbus", "opcua")
+DRIVER_KINDS = ("sim", "modbus", "modbus_rtu", "opcua")
 POLICY_KEYS = ("on_failure", "hold_scans", "auto_recover", "startup_s")  # any kind of driver
 SYMBOL_KEYS = {"address", "type", "dir", "safe", "driver", "channel", "description", "hmi_writable",
                "retain"}

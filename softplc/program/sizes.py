@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+from softplc.core.errors import SoftplcError
 from softplc.core.problems import Problem
 
 
@@ -38,7 +39,7 @@ WHAT = {"places": "places", "transitions": "transitions", "arcs": "arcs",
 assert set(WHAT) == {f.name for f in fields(SizeLimits)}
 
 
-class SizeExceeded(Exception):
+class SizeExceeded(SoftplcError):
     """The expansion stopped: `problem` is located at the item that went over."""
 
     def __init__(self, problem: Problem) -> None:

@@ -16,6 +16,7 @@ from typing import Any
 
 import yaml
 
+from softplc.core.errors import SoftplcError
 from softplc.core.problems import Problem
 from softplc.program.yamlref import BOOL_TAG, Loader, YList, YMap, key_problem
 
@@ -90,11 +91,11 @@ def found(pattern: re.Pattern[str], text: str) -> bool:
     return any(pattern.search(text, a, b) is not None for a, b in lines_in_pieces(text))
 
 
-class TooDeep(Exception):
+class TooDeep(SoftplcError):
     """The document nests collections deeper than MAX_NESTING."""
 
 
-class Unsupported(Exception):
+class Unsupported(SoftplcError):
     """What `build` leaves to the reference loader: explicit tags, bad literals, undefined
     or recursive aliases, several documents, every syntax error (for its exact message)."""
 

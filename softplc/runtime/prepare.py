@@ -21,6 +21,7 @@ from typing import Any, Protocol
 
 from softplc.core import online
 from softplc.core.engine import Engine
+from softplc.core.errors import SoftplcError
 from softplc.core.image import ImageSizes
 from softplc.core.lifecycle import Command, CommandRejected, PlcState, Stage, next_stage
 from softplc.core.net import CompiledNet, NetState
@@ -38,18 +39,15 @@ from softplc.runtime.runner import open_drivers
 GATE_MAX_TRANSITIONS = 2_000  # larger nets are not analysed on download (see _analyse)
 
 
-class AnalysisRefused(Exception):
+class AnalysisRefused(SoftplcError):
     """A download the analysis gate refuses (--verify refuse): every blocking finding."""
 
     def __init__(self, findings: tuple[str, ...]) -> None:
         super().__init__("\n".join(findings))
         self.findings = findings
 
-    def __reduce__(self) -> tuple[Any, ...]:  # crosses from the compile process
-        return AnalysisRefused, (self.findings,)
 
-
-class DownloadRefused(Exception):
+class DownloadRefused(SoftplcError):
     """A download refused for a reason its message says whole (not its program's problems)."""
 
 

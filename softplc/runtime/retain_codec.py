@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from softplc.core.errors import SoftplcError
 from softplc.core.events import EventMemory
 from softplc.core.image import AREAS, ProcessImage
 from softplc.core.lifecycle import PlcState
@@ -38,7 +39,7 @@ from softplc.core.values import record_problems, value_problem
 from softplc.runtime.retain_store import SnapshotInvalid
 
 
-class RetainValueError(ValueError):
+class RetainValueError(SoftplcError, ValueError):
     """A token in the PLC's state holds a value the runtime cannot carry (core/values.py)."""
 
 

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from softplc.core.errors import SoftplcError
+
 FORMAT = 1
 PREFIX, SUFFIX = "retain-", ".json"
 LOCK_FILE = "lock"
@@ -31,11 +33,11 @@ KEEP = 2  # a crash or a failed write of the newest leaves the one before it val
 READ_CHUNK = 1 << 20
 
 
-class StateDirBusy(RuntimeError):
+class StateDirBusy(SoftplcError, RuntimeError):
     """Another live runtime holds the state directory's lock."""
 
 
-class SnapshotInvalid(ValueError):
+class SnapshotInvalid(SoftplcError, ValueError):
     """A snapshot file that is partial, corrupt or of an unknown format."""
 
 
@@ -50,7 +52,7 @@ class Stage(enum.Enum):
     OTHER = "other"  # anything else (a bug): counted, and the writer goes on
 
 
-class WriteFailed(OSError):
+class WriteFailed(SoftplcError, OSError):
     """A snapshot that is not on disk; `stage` says where it failed. Nothing older was
     deleted, the temporary was removed."""
 

@@ -50,6 +50,10 @@ def open_drivers(io: IoImage, seed: int = 0, plant: str | None = None) -> list[D
                 from softplc.devices.modbus_io import ModbusIoDriver
 
                 drivers.append(ModbusIoDriver(spec, [s for s in symbols if s.driver == spec.name]))
+            elif spec.kind == "modbus_rtu":
+                from softplc.devices.modbus_rtu import ModbusRtuDriver
+
+                drivers.append(ModbusRtuDriver(spec, [s for s in symbols if s.driver == spec.name]))
             elif spec.kind == "opcua":
                 from softplc.opcua.driver import OpcUaIoDriver
 

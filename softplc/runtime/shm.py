@@ -46,6 +46,7 @@ from typing import Any, Final
 import numpy as np
 import numpy.typing as npt
 
+from softplc.core.errors import SoftplcError
 from softplc.core.image import ImageSizes, ProcessImage
 from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import Snapshot, SnapshotUnavailable, Status
@@ -63,7 +64,7 @@ _WORD_AREAS: Final = ("iw", "qw", "mw")
 _STATES: Final = {int(s): s for s in PlcState}  # 20x faster than PlcState(value)
 
 
-class SnapshotLayoutError(ValueError):
+class SnapshotLayoutError(SoftplcError, ValueError):
     """The segment is not a softplc snapshot of the expected version and image sizes."""
 
 

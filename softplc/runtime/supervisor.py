@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
+from softplc.core.errors import SoftplcError
 from softplc.core.image import ImageSizes
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
@@ -51,7 +52,7 @@ STOP_S: Final = 2.0  # SIGTERM/SIGINT: every process gone within this (then SIGK
 SAFE_WAIT_S: Final = 1.0
 
 
-class GaveUp(RuntimeError):
+class GaveUp(SoftplcError, RuntimeError):
     """The scan process died too often: the supervisor stops instead of looping."""
 
 

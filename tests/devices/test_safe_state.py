@@ -117,7 +117,12 @@ def test_go_safe_with_a_wedged_io_thread_writes_on_a_fresh_connection(
     plc = lamp_on(device, drv)
     assert drv._loop is not None
     wedge, wedged = threading.Event(), threading.Event()
-    drv._loop.call_soon_threadsafe(lambda: (wedged.set(), wedge.wait(30)))  # the loop is stuck
+
+    def stuck() -> None:  # the I/O thread's loop is stuck until the test lets it go
+        wedged.set()
+        wedge.wait(30)
+
+    drv._loop.call_soon_threadsafe(stuck)
     assert wedged.wait(5)
     plc.image.qx[0] = True
     drv.write_outputs(plc.image, plc.now_ns)  # lamp-on queued behind the wedge

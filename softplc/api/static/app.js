@@ -267,6 +267,7 @@ async function fetchNetOnce(wanted) {
   } else if (!answer.ok && !page.cy) {
     $("#net-summary").textContent = (answer.data.error || "net unavailable") + ", retrying";
   }
+  return answer.status;
 }
 
 async function loadNet() {
@@ -274,7 +275,7 @@ async function loadNet() {
   try {
     while (page.netWanted !== page.netHash) {
       const wanted = page.netWanted;
-      await fetchNetOnce(wanted);
+      if (await fetchNetOnce(wanted) === 401) break;  // the token dialog; its stream asks again
       if (page.netWanted !== page.netHash && page.netWanted === wanted) {
         await new Promise((resolve) => setTimeout(resolve, NET_RETRY_MS));
       }

@@ -1,0 +1,103 @@
+"""What each client session is told, where asyncua answers the same for everyone or not as
+the spec says (issue 29).
+
+Owns: the Read answer per session (UserAccessLevel without the write bits and UserExecutable
+false for a session that may not act; the timestamps the request asked for), Republish as
+Part 4 says (BadSubscriptionIdInvalid for a subscription the session does not hold,
+BadMessageNotAvailable for a message no longer kept: asyncua 2.1.0 answers Good and an empty
+message, so a client whose server restarted republishes for ever instead of re-creating its
+subscriptions), and which value a symbol write carries (exactly the node's DataType).
+Does not know: the address space layout, the channel, which symbols exist (server.py does).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Awaitable, Callable
+from functools import partial
+from typing import Final
+
+from asyncua import ua
+from asyncua.common.utils import ServiceError
+from asyncua.server.internal_session import InternalSession
+
+from softplc.opcua.access import may_act
+
+# The AccessLevel bits that let a session change something (Part 3, AccessLevelType).
+_WRITE_BITS: Final = sum(1 << int(bit) for bit in (
+    ua.AccessLevel.CurrentWrite, ua.AccessLevel.HistoryWrite, ua.AccessLevel.StatusWrite,
+    ua.AccessLevel.TimestampWrite))
+
+Reader = Callable[[ua.ReadParameters], Awaitable[list[ua.DataValue]]]
+
+
+def hook(session: InternalSession) -> None:
+    """Wrap `session`'s Read and Republish (asyncua's own session keeps its behaviour)."""
+    session.read = partial(read, session, session.read)  # type: ignore[method-assign]
+    session.republish = partial(republish, session,  # type: ignore[method-assign]
+                                session.republish)
+
+
+async def read(session: InternalSession, inner: Reader,
+               params: ua.ReadParameters) -> list[ua.DataValue]:
+    results = await inner(params)
+    acts = may_act(session)
+    wanted = params.TimestampsToReturn
+    return [_told(item.AttributeId, value, acts, wanted)
+            for item, value in zip(params.NodesToRead, results, strict=True)]
+
+
+def _told(attribute: int, value: ua.DataValue, acts: bool,
+          wanted: ua.TimestampsToReturn) -> ua.DataValue:
+    if attribute == ua.AttributeIds.Value:
+        return _timestamps(value, wanted)
+    if acts or value.Value is None:
+        return value
+    if attribute == ua.AttributeIds.UserAccessLevel and isinstance(value.Value.Value, int):
+        level = value.Value.Value & ~_WRITE_BITS
+        return dataclasses.replace(value, Value=ua.Variant(level, ua.VariantType.Byte))
+    if attribute == ua.AttributeIds.UserExecutable:
+        return dataclasses.replace(value, Value=ua.Variant(False, ua.VariantType.Boolean))
+    return value
+
+
+def _timestamps(value: ua.DataValue, wanted: ua.TimestampsToReturn) -> ua.DataValue:
+    """Part 4 (TimestampsToReturn): only the timestamps asked for; Invalid is refused by the
+    stack before this point in spec terms, asyncua lets it through: answered as Neither."""
+    source = wanted in (ua.TimestampsToReturn.Source, ua.TimestampsToReturn.Both)
+    server = wanted in (ua.TimestampsToReturn.Server, ua.TimestampsToReturn.Both)
+    if source and server:
+        return value
+    return dataclasses.replace(
+        value, SourceTimestamp=value.SourceTimestamp if source else None,
+        SourcePicoseconds=value.SourcePicoseconds if source else None,
+        ServerTimestamp=value.ServerTimestamp if server else None,
+        ServerPicoseconds=value.ServerPicoseconds if server else None)
+
+
+def republish(session: InternalSession,
+              inner: Callable[[ua.RepublishParameters], ua.NotificationMessage],
+              params: ua.RepublishParameters) -> ua.NotificationMessage:
+    """A ServiceError becomes the ServiceFault with its code (asyncua's uaprocessor)."""
+    subscription = session.subscription_service.subscriptions.get(params.SubscriptionId)
+    if subscription is None or subscription.session_id != session.session_id:
+        raise ServiceError(ua.StatusCodes.BadSubscriptionIdInvalid)
+    if params.RetransmitSequenceNumber not in subscription._not_acknowledged_results:
+        raise ServiceError(ua.StatusCodes.BadMessageNotAvailable)
+    return inner(params)
+
+
+def written_value(name: str, is_bool: bool, variant: ua.Variant | None) -> int | str:
+    """The image value of a client's write, or why it does not fit: the variant's type must be
+    the node's DataType exactly (Boolean for bits, UInt16 for words: no conversions, so an
+    Int32 is refused like a UInt16 written to a Boolean)."""
+    want = ua.VariantType.Boolean if is_bool else ua.VariantType.UInt16
+    if variant is None or variant.VariantType is not want or variant.is_array:
+        got = "nothing" if variant is None else variant.VariantType.name
+        return f"{name} is {want.name}, got {got}"
+    value = variant.Value
+    if is_bool:
+        return int(bool(value))
+    if isinstance(value, int) and 0 <= value <= 0xFFFF:
+        return value
+    return f"{name} is UInt16 (0..65535), got {value!r}"
