@@ -27,7 +27,7 @@ from softplc.devices.driver import DriverConfigError, Health
 from softplc.devices.modbus_rtu import FAST_GAP_S, ModbusRtuDriver, RtuParams
 from softplc.program.io_image import load_io_image
 from softplc.runtime.loop import LoopConfig, ScanLoop
-from tests.devices.rtu_line import FC_COIL, FC_DI, FC_HR, FC_IR, RtuLine
+from tests.devices.rtu_line import FC_DI, FC_HR, FC_IR, RtuLine
 from tests.devices.test_modbus_io import Scanner, sym
 from tests.support import eventually, free_port
 
