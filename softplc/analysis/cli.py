@@ -21,8 +21,8 @@ from softplc.analysis.gate import GATE_MAX_STATES, Verdict, verdict_of, verify
 from softplc.analysis.model import AnalysisNet, TooLarge, from_compiled
 from softplc.core.net import CompiledNet
 from softplc.core.problems import Problem, ProgramError
+from softplc.core.symbols import IoImage
 from softplc.program.compiler import compile_file, summarize
-from softplc.program.io_image import IoImage
 
 
 def add_commands(sub: Any) -> None:

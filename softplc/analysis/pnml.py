@@ -37,8 +37,9 @@ from softplc.analysis.pnml_export import structure as structure
 from softplc.analysis.xmltree import Node, parse_xml
 from softplc.core.net import CompiledNet
 from softplc.core.problems import Problem, ProgramError
+from softplc.core.symbols import IoImage
 from softplc.program.compiler import compile_text_with_io
-from softplc.program.io_image import IoImage, load_io_image, parse_io_image
+from softplc.program.io_image import load_io_image, parse_io_image
 from softplc.program.sizes import count_problem
 
 # -- import -------------------------------------------------------------------------------

@@ -8,7 +8,7 @@ the module lost and back. After every step tests/system/checks.py holds every vi
 to the model (tests/system/model.py); at the end nothing may be left behind.
 
 Bounded in `make test` (a fixed seed, a few short sequences, no shrinking: about 2-3 minutes
-here); `SOFTPLC_FUZZ_SCALE=N` (`make fuzz`) runs N times the sequences and shrinks a failure.
+here, 2.5 at load 15); `SOFTPLC_FUZZ_SCALE=N` (`make fuzz`) runs N times the sequences and shrinks a failure.
 A failure prints the steps as Python (`state = LifecycleMachine()`, `state.rule(...)`, ...):
 paste them into a test (tests/system/test_lifecycle_regressions.py shows how) to replay.
 """
@@ -322,7 +322,7 @@ class LifecycleMachine(RuleBasedStateMachine):
                             f"({outcome.detail}); the model: {want} ({expect.why})")
 
 
-def lifecycle_settings(examples: int = 4, steps: int = 12) -> settings:
+def lifecycle_settings(examples: int = 3, steps: int = 12) -> settings:
     """`examples` sequences of up to `steps` steps at scale 1; a long run (`make fuzz`) tries
     SOFTPLC_FUZZ_SCALE times the sequences, twice as long, and shrinks what fails."""
     long_run = scale() > 1
