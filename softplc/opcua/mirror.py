@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Mapping
-from datetime import UTC, datetime
+from datetime import UTC
 from typing import Any, Final
 
 from asyncua import Server, ua
@@ -25,6 +25,7 @@ from asyncua import Server, ua
 from softplc.core.image import AddressError
 from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import Snapshot
+from softplc.opcua.ids import status_code
 from softplc.opcua.part10 import Part10, notifier_chain, trigger_everywhere
 from softplc.opcua.program import Outcome
 from softplc.opcua.space import PartState, Space, SymbolNode, part10_state
@@ -54,7 +55,7 @@ class Mirror:
         self._fault = 0
         self._event_seq = 0
         self._quality = ua.StatusCodes.BadWaitingForInitialData  # of the last snapshot pushed
-        self._source: datetime | None = None  # its publish, wall-clock
+        self._source: ua.DateTime | None = None  # its publish, wall-clock
 
     async def first_look(self, document: Mapping[str, Any], snapshot: Snapshot | None) -> None:
         """Nodes of the program that runs now; events from now on (no replay of old ones)."""
@@ -197,10 +198,10 @@ class Mirror:
         self._values[nodeid] = (variant.Value, status)
         if fed:
             self._fed[nodeid] = variant
-        now = datetime.now(UTC)
+        now = ua.DateTime.now(UTC)
+        source = self._source if fed and self._source is not None else now
         await self._server.write_attribute_value(nodeid, ua.DataValue(
-            variant, StatusCode=ua.StatusCode(status),
-            SourceTimestamp=(self._source or now) if fed else now, ServerTimestamp=now))
+            variant, StatusCode=status_code(status), SourceTimestamp=source, ServerTimestamp=now))
 
     async def emit(self, name: str, message: str, *, seq: int = 0, scan: int = 0,
                    severity: int = 500) -> None:
@@ -226,14 +227,14 @@ def quality(snapshot: Snapshot) -> int:
     return ua.StatusCodes.UncertainLastUsableValue
 
 
-def source_time(snapshot: Snapshot) -> datetime | None:
+def source_time(snapshot: Snapshot) -> ua.DateTime | None:
     """The publish of `snapshot` in wall-clock time: CLOCK_MONOTONIC (machine-wide) mapped by
     the offset between the two clocks now (a wall-clock step since the publish shifts it)."""
     published = snapshot.status.published_ns
     if not published:
         return None
     wall_ns = time.time_ns() - (time.monotonic_ns() - published)
-    return datetime.fromtimestamp(wall_ns / 1e9, UTC)
+    return ua.DateTime.fromtimestamp(wall_ns / 1e9, UTC)
 
 
 def _status_variant(name: str, value: object) -> ua.Variant:

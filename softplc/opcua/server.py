@@ -45,7 +45,7 @@ from softplc.core.snapshot import (
 )
 from softplc.opcua.access import ClientServices, TokenUsers, may_act
 from softplc.opcua.door import DoorServer
-from softplc.opcua.ids import status_code, string_id
+from softplc.opcua.ids import numeric_id, status_code, string_id
 from softplc.opcua.limits import DoorStats, OpcUaLimits
 from softplc.opcua.mirror import Mirror
 from softplc.opcua.program import CommandChannel, Outcome, ProgramHandling, arguments
@@ -314,7 +314,7 @@ async def _identify(server: DoorServer, port: int) -> None:
     server.manufacturer_name = "softplc"
     uri = f"urn:softplc:{socket.gethostname()}:{port}"
     await server.set_application_uri(uri)  # NamespaceArray[1]; ServerArray[0] too (Part 5)
-    await server.get_node(ua.NodeId(ua.ObjectIds.Server_ServerArray)).write_value(
+    await server.get_node(numeric_id(ua.ObjectIds.Server_ServerArray)).write_value(
         ua.Variant([uri], ua.VariantType.String))
     built = datetime.fromtimestamp(Path(softplc.__file__).stat().st_mtime, UTC)
     await server.set_build_info(NAMESPACE_URI, "softplc", "softplc", softplc.__version__,

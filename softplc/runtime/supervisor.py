@@ -127,7 +127,11 @@ class Supervisor:
     def from_args(cls, args: argparse.Namespace) -> Supervisor:
         """`softplc run`'s flags. Raises ValueError for --rt-priority / --scan-cpu."""
         sizes = ImageSizes()
-        root = Path(args.program).resolve().parent.parent if args.program else Path.cwd()
+        # Downloads may reference files under root only: the program's folder's parent (its
+        # programs/ and io_images/ beside each other), else that of --programs-dir, else here.
+        programs_dir = getattr(args, "programs_dir", None)
+        root = (Path(args.program).resolve().parent.parent if args.program
+                else Path(programs_dir).resolve().parent if programs_dir else Path.cwd())
         loop_config = LoopConfig(
             program=args.program, start=args.start, period_ns=args.period, plant=args.plant,
             seed=args.seed, trace=args.trace, watchdog=args.watchdog, root=str(root),

@@ -17,6 +17,7 @@ import pytest
 from asyncua import Client, ua
 
 import softplc
+from softplc.opcua.ids import string_id
 from tests.opcua.conftest import Plc, start_plc, stop_plc
 from tests.opcua.pids import api_status
 from tests.support import free_port
@@ -70,8 +71,8 @@ def test_timestamps_and_quality_follow_the_snapshot(plc_with_api: tuple[Plc, int
         nonlocal scan_pid
         async with _client(plc) as client:
             ns = await client.get_namespace_index(NS_URI)
-            count = ua.NodeId("PLC.Status.ScanCount", ns)
-            symbol = ua.NodeId("PLC.Symbols.s1_i", ns)
+            count = string_id("PLC.Status.ScanCount", ns)
+            symbol = string_id("PLC.Symbols.s1_i", ns)
             for nodeid in (count, symbol):
                 value = await _until_status(client, nodeid, ua.StatusCodes.Good)
                 now = datetime.now(UTC)
@@ -83,7 +84,7 @@ def test_timestamps_and_quality_follow_the_snapshot(plc_with_api: tuple[Plc, int
             assert bare.SourceTimestamp is None and bare.ServerTimestamp is None
             source_only = await _read(client, count, ua.TimestampsToReturn.Source)
             assert source_only.SourceTimestamp and source_only.ServerTimestamp is None
-            scan_pid = int(api_status(api_port, plc.token)["scan_pid"])
+            scan_pid = int(str(api_status(api_port, plc.token)["scan_pid"]))
             frozen_at = datetime.now(UTC)
             os.kill(scan_pid, signal.SIGSTOP)
             try:
@@ -118,21 +119,24 @@ def test_identity_access_levels_and_writes(plc_with_api: tuple[Plc, int]) -> Non
                 ua.ObjectIds.Server_ServerStatus_BuildInfo).read_value()
             assert (build.ProductName, build.SoftwareVersion, build.ManufacturerName) == (
                 "softplc", softplc.__version__, "softplc")
-            hold, start = ua.NodeId("PLC.Symbols.hold", ns), ua.NodeId("PLC.Program.Start", ns)
+            hold, start = string_id("PLC.Symbols.hold", ns), string_id("PLC.Program.Start", ns)
             write = 1 << int(ua.AccessLevel.CurrentWrite)
             for client, may in ((anonymous, False), (operator, True)):
                 level = await _read(client, hold, ua.TimestampsToReturn.Neither,
                                     ua.AttributeIds.AccessLevel)
                 user = await _read(client, hold, ua.TimestampsToReturn.Neither,
                                    ua.AttributeIds.UserAccessLevel)
+                assert level.Value is not None and user.Value is not None
                 assert level.Value.Value & write  # the node is writable
                 assert bool(user.Value.Value & write) is may  # by this session?
-            assert (await _read(anonymous, start, ua.TimestampsToReturn.Neither,
-                                ua.AttributeIds.UserExecutable)).Value.Value is False
+            theirs = await _read(anonymous, start, ua.TimestampsToReturn.Neither,
+                                 ua.AttributeIds.UserExecutable)
+            assert theirs.Value is not None and theirs.Value.Value is False
             stopped = await _read(operator, start, ua.TimestampsToReturn.Neither,
                                   ua.AttributeIds.Executable)
             mine = await _read(operator, start, ua.TimestampsToReturn.Neither,
                                ua.AttributeIds.UserExecutable)
+            assert mine.Value is not None and stopped.Value is not None
             assert mine.Value.Value is stopped.Value.Value  # Start: not while Running
             await _writes(operator, ns)
 
@@ -141,15 +145,15 @@ def test_identity_access_levels_and_writes(plc_with_api: tuple[Plc, int]) -> Non
 
 async def _writes(client: Client, ns: int) -> None:
     """Exactly the node's DataType: Int32 to UInt16 refused like UInt16 to Boolean."""
-    counter = client.get_node(ua.NodeId("PLC.Symbols.parts_delivered", ns))
-    hold = client.get_node(ua.NodeId("PLC.Symbols.hold", ns))
+    counter = client.get_node(string_id("PLC.Symbols.parts_delivered", ns))
+    hold = client.get_node(string_id("PLC.Symbols.hold", ns))
     with pytest.raises(ua.uaerrors.BadTypeMismatch):
         await counter.write_value(ua.Variant(7, ua.VariantType.Int32))
     with pytest.raises(ua.uaerrors.BadTypeMismatch):
         await hold.write_value(ua.Variant(1, ua.VariantType.UInt16))
     await counter.write_value(ua.Variant(7, ua.VariantType.UInt16))
     with pytest.raises(ua.uaerrors.BadNodeIdUnknown):
-        await client.get_node(ua.NodeId("PLC.Symbols.no_such", ns)).write_value(
+        await client.get_node(string_id("PLC.Symbols.no_such", ns)).write_value(
             ua.Variant(True, ua.VariantType.Boolean))
 
 

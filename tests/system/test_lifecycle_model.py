@@ -7,8 +7,9 @@ reconfiguration), lifecycle commands over HTTP, OPC UA and the CLI, HMI writes, 
 the module lost and back. After every step tests/system/checks.py holds every view of the PLC
 to the model (tests/system/model.py); at the end nothing may be left behind.
 
-Bounded in `make test` (a fixed seed, a few short sequences, no shrinking: about 2-3 minutes
-here, 2.5 at load 15); `SOFTPLC_FUZZ_SCALE=N` (`make fuzz`) runs N times the sequences and shrinks a failure.
+Bounded in `make test` (a fixed seed, 3 sequences of up to 12 steps, no shrinking: 2.5-3 min
+at load 12-15 on 2 cores); `SOFTPLC_FUZZ_SCALE=N` (`make fuzz`) runs N times the sequences,
+twice as long, and shrinks a failure.
 A failure prints the steps as Python (`state = LifecycleMachine()`, `state.rule(...)`, ...):
 paste them into a test (tests/system/test_lifecycle_regressions.py shows how) to replay.
 """

@@ -86,9 +86,6 @@ def test_sigterm_while_the_run_starts_exits_cleanly() -> None:
         state.teardown()
 
 
-@pytest.mark.xfail(strict=True, reason="open defect: runtime/supervisor.py sets the download "
-                   "root to the cwd when no program is given; --programs-dir outside it is "
-                   "refused (remove this mark with the fix)")
 def test_a_run_without_a_program_takes_plain_downloads_from_its_programs_dir() -> None:
     """`softplc run --programs-dir DIR` without a program argument (the systemd unit's way)
     refused every plain-text download whose io image is in DIR when DIR is not under the
