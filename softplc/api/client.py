@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import re
+import time
 import urllib.error
 import urllib.parse
 import urllib.request
@@ -26,16 +27,23 @@ DEFAULT_URL: Final = "http://127.0.0.1:8080"
 API: Final = "/api/v1"
 _SILENCE_S: Final = 30.0  # two server heartbeats
 DOWNLOAD_TIMEOUT_S: Final = 65.0  # the server waits up to 60 s for a big compile
+# A command the service did not send because the PLC was not publishing is asked again for
+# this long: a scan process starved for a moment on a busy host (stale after 200 ms) gets the
+# command; a frozen or dead one is still reported within about a second.
+NOT_SENT_WINDOW_S: Final = 1.0
+NOT_SENT_RETRY_S: Final = 0.1
 
 
 class ApiError(SoftplcError):
     """The service answered with an error status: `problems` lists every problem line of a
     refused program (FILE:LINE: path: message)."""
 
-    def __init__(self, status: int, message: str, problems: Sequence[str] = ()) -> None:
+    def __init__(self, status: int, message: str, problems: Sequence[str] = (),
+                 not_sent: bool = False) -> None:
         self.status = status
         self.message = message
         self.problems = tuple(problems)
+        self.not_sent = not_sent  # a command the service did not send (the PLC was stale)
         super().__init__(f"HTTP {status}: {message}")
 
 
@@ -200,7 +208,19 @@ class ApiClient:
     def _json(self, method: str, path: str, body: bytes | None = None,
               content_type: str | None = None, query: dict[str, str] | None = None,
               timeout_s: float | None = None) -> dict[str, Any]:
-        with self._open(method, path, body, content_type, query, timeout_s=timeout_s) as response:
+        # A command refused because the PLC was not publishing (a starved or restarting scan
+        # process) was never sent: asking again until the timeout cannot apply it twice.
+        give_up = time.monotonic() + min(timeout_s or self.timeout_s, NOT_SENT_WINDOW_S)
+        while True:
+            try:
+                response = self._open(method, path, body, content_type, query,
+                                      timeout_s=timeout_s)
+                break
+            except ApiError as exc:
+                if not exc.not_sent or time.monotonic() + NOT_SENT_RETRY_S > give_up:
+                    raise
+                time.sleep(NOT_SENT_RETRY_S)
+        with response:
             try:
                 status, raw = response.status, response.read()
             except OSError as exc:
@@ -259,4 +279,5 @@ def _api_error(exc: urllib.error.HTTPError) -> ApiError:
         text = raw.decode("utf-8", "replace").strip()[:200] or str(exc.reason)
     if exc.code == 401:
         text += f" (give --token, set ${auth.TOKEN_ENV}, or --state-dir of the server)"
-    return ApiError(exc.code, text, problems)
+    not_sent = exc.code == 503 and isinstance(body, dict) and body.get("stale") is True
+    return ApiError(exc.code, text, problems, not_sent)

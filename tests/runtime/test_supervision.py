@@ -222,6 +222,25 @@ def test_a_frozen_scan_is_stale_takes_no_command_and_counts_the_stall(
     assert not status_flags(run.modbus) & FLAG_STALE
 
 
+def test_a_command_during_a_moment_of_staleness_is_applied_not_refused(
+        tmp_path: Path, runs: list[Run]) -> None:
+    """A scan process starved for a moment (here: stopped for 0.4 s) makes the snapshot stale
+    and the service refuses commands unsent (503); the client asks again for about a second,
+    so the operator's stop is applied instead of failing on a busy host."""
+    run = Run(ROOT, "programs/transport.yaml", tmp_path / "state", *RELAXED)
+    runs.append(run)
+    eventually_reachable(lambda: run.status()["scan_count"] > 20, 30, "scans")
+    scan = run.scan_pid()
+    os.kill(scan, signal.SIGSTOP)
+    try:
+        eventually_reachable(lambda: run.status()["stale"], 3, "stale status")
+        threading.Timer(0.4, os.kill, (scan, signal.SIGCONT)).start()
+        stopped = run.api.stop()
+    finally:
+        os.kill(scan, signal.SIGCONT)
+    assert stopped["ok"] and stopped["state"] == "STOPPED", stopped
+
+
 @pytest.mark.slow
 def test_a_scan_process_that_keeps_dying_makes_the_supervisor_give_up(
         tmp_path: Path, runs: list[Run]) -> None:
