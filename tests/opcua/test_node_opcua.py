@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
 import subprocess
 from collections.abc import Iterator
@@ -59,10 +60,13 @@ def plc(tmp_path: Path) -> Iterator[Plc]:
 
 def _run_script(node_modules: Path, plc: Plc) -> dict[str, Any]:
     pid = listener_pid(plc.port)
-    done = subprocess.run(["node", str(NODE_DIR / "interop.js"), plc.url, plc.token, str(pid)],
+    node = shutil.which("node") or "node"
+    # HOME in the test's directory: whatever node-opcua keeps (a PKI folder) stays there.
+    env = {"NODE_PATH": str(node_modules), "PATH": os.environ.get("PATH", "/usr/bin:/bin"),
+           "HOME": str(plc.state_dir)}
+    done = subprocess.run([node, str(NODE_DIR / "interop.js"), plc.url, plc.token, str(pid)],
                           capture_output=True, text=True, timeout=SCRIPT_BOUND_S, check=False,
-                          env={"NODE_PATH": str(node_modules), "PATH": "/usr/bin:/bin"},
-                          cwd=plc.state_dir)
+                          env=env, cwd=plc.state_dir)
     lines = done.stdout.strip().splitlines()
     assert lines, f"node wrote no report (exit {done.returncode}):\n{done.stderr[-3000:]}"
     report: dict[str, Any] = json.loads(lines[-1])
