@@ -22,7 +22,7 @@ from softplc.api.openapi import API_PREFIX
 from softplc.api.problems import ApiProblem, flag, idempotency_key
 from softplc.api.service import ApiService
 from softplc.core.lifecycle import Command
-from softplc.core.snapshot import CommandReply
+from softplc.core.snapshot import DOWNLOAD_REFUSED, CommandReply
 from softplc.program import boot
 from softplc.program import bundle as bundles
 
@@ -66,7 +66,7 @@ class _Routes:
             try:  # checked here, so that a bad archive never reaches the scan process
                 bundle = await asyncio.to_thread(bundles.unpack, body)
             except bundles.BundleError as exc:
-                raise ApiProblem(422, "download refused: unusable bundle", [str(exc)]) from None
+                raise ApiProblem(422, f"{DOWNLOAD_REFUSED}: unusable bundle", [str(exc)]) from None
             reply = await self._api.command(Command.DOWNLOAD, None, bundle.program, online,
                                             idempotency_key(request), replace=replace,
                                             bundle=body, dry_run=dry_run)
@@ -77,10 +77,10 @@ class _Routes:
             raise ApiProblem(400, f"the program must be UTF-8 text ({exc.reason} at byte "
                                   f"{exc.start})") from None
         if not text.strip():
-            raise ApiProblem(422, "download refused: empty program",
+            raise ApiProblem(422, f"{DOWNLOAD_REFUSED}: empty program",
                              [f"{name or 'program'}:1: the request body holds no program"])
         if problems := unprintable(text, name or "program"):
-            raise ApiProblem(422, "download refused: not YAML text", problems)
+            raise ApiProblem(422, f"{DOWNLOAD_REFUSED}: not YAML text", problems)
         reply = await self._api.command(Command.DOWNLOAD, text, name, online,
                                         idempotency_key(request), replace=replace,
                                         dry_run=dry_run)

@@ -80,6 +80,11 @@ class CommandRequest:
     dry_run: bool = False  # a download answered with its plan, never applied
 
 
+# The head of every refused download's message, whoever refuses it (the scan process, or a
+# service that finds the request unusable before sending it).
+DOWNLOAD_REFUSED = "download refused"
+
+
 class Refusal(Enum):
     """Why a command was not applied, as data: the services choose their answer (an HTTP
     status, an OPC UA status code) from it, never from the message's text."""

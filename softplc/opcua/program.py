@@ -21,7 +21,13 @@ from typing import Final, Protocol
 from asyncua import ua
 
 from softplc.core.lifecycle import Command
-from softplc.core.snapshot import ChannelFull, CommandReply, CommandRequest, HmiWrite
+from softplc.core.snapshot import (
+    DOWNLOAD_REFUSED,
+    ChannelFull,
+    CommandReply,
+    CommandRequest,
+    HmiWrite,
+)
 from softplc.opcua.ids import numeric_id, status_code, string_id
 from softplc.opcua.part10 import TYPE_METHODS, refusal
 from softplc.opcua.space import METHODS, PROGRAM, Space
@@ -175,7 +181,7 @@ def _download_args(values: list[object]) -> tuple[str, bool, str | None] | Outco
         return Outcome(ua.StatusCodes.BadInvalidArgument,
                        "Name must be a plain file name (letters, digits, . _ -)")
     if not text.strip():
-        return Outcome(ua.StatusCodes.BadInvalidArgument, "download refused: empty program",
+        return Outcome(ua.StatusCodes.BadInvalidArgument, f"{DOWNLOAD_REFUSED}: empty program",
                        problems=(f"{name or 'program'}:1: the request holds no program",))
     return text, online, name or None
 

@@ -27,7 +27,7 @@ from typing import Any
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
 from softplc.core.problems import ProgramError
-from softplc.core.snapshot import CommandRequest, Refusal
+from softplc.core.snapshot import DOWNLOAD_REFUSED, CommandRequest, Refusal
 from softplc.core.steps import Steps, drain
 from softplc.devices.driver import DeviceError
 from softplc.program.teardown import burying
@@ -324,11 +324,11 @@ def refusal_of(error: BaseException,
                relative: Callable[[str], str]) -> tuple[Refusal, str, tuple[str, ...]]:
     """A refused download's kind, message and problems (paths as the sender knows them)."""
     if isinstance(error, AnalysisRefused):
-        return (Refusal.ANALYSIS, "download refused by the analysis gate (--verify refuse):\n"
+        return (Refusal.ANALYSIS, f"{DOWNLOAD_REFUSED} by the analysis gate (--verify refuse):\n"
                 + "\n".join(error.findings), error.findings)
     if isinstance(error, ProgramError):
         text = relative(str(error))
-        return (Refusal.PROGRAM, f"download refused:\n{text}",
+        return (Refusal.PROGRAM, f"{DOWNLOAD_REFUSED}:\n{text}",
                 tuple(line.strip() for line in text.splitlines() if line.strip()))
     kind = (Refusal.WITHDRAWN if isinstance(error, Withdrawn)
             else Refusal.BOOT if isinstance(error, BootNotKept)
@@ -336,7 +336,7 @@ def refusal_of(error: BaseException,
             else Refusal.DEVICE if isinstance(error, DeviceError | ValueError | OSError)
             else Refusal.COMPILER)
     why = relative(describe_error(error))
-    return kind, f"download refused: {why}", (why,)
+    return kind, f"{DOWNLOAD_REFUSED}: {why}", (why,)
 
 
 # The longest a step takes (a piece of a net loaded: ~150 µs, a table block: ~200 µs, on a
