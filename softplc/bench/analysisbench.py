@@ -88,6 +88,7 @@ def run(quick: bool, progress: Progress) -> dict[str, Any]:
         for _ in range(20):
             verdict = verify(program)
         cases[name] = round((time.perf_counter() - began) / 20 * 1000, 3)
+        assert verdict.analysis is not None, f"{name}: not analysed"  # a shipped program fits
         cases[f"{name}_states"] = verdict.analysis.graph.states
     return {
         "nets": rows,
