@@ -40,7 +40,7 @@ class MonotonicClock:
     but the CPU is not given away). On a virtual machine a sleeping virtual CPU halts, and
     the hypervisor wakes it up to several ms late: measured here, an empty 1 ms loop missed
     0-27 slots in 8 s sleeping and 0 busy (BENCHMARKS.md, online_change floor). Not
-    sched_yield(): it handed the CPU to any runnable task there, the SCHED_IDLE compile
+    sched_yield(): it handed the CPU to any runnable task there, the background compile
     process included, for a whole time slice (slots missed 3 ms late).
     """
 
