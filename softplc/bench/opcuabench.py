@@ -54,8 +54,10 @@ symbols:
   lamp_far:   {{address: "%IX0.0", type: bool, channel: PLC.Symbols.lamp}}
   start_done: {{address: "%IX0.1", type: bool, channel: "done:start"}}
   stop_done:  {{address: "%IX0.2", type: bool, channel: "done:stop"}}
+  resume_done: {{address: "%IX0.3", type: bool, channel: "done:resume"}}
   start:      {{address: "%QX0.0", type: bool, channel: "call:PLC.Program.Start"}}
   stop:       {{address: "%QX0.1", type: bool, channel: "call:PLC.Program.Suspend"}}
+  resume:     {{address: "%QX0.2", type: bool, channel: "call:PLC.Program.Resume"}}
 """
 
 
@@ -145,7 +147,7 @@ def _scans_until(driver: OpcUaIoDriver, image: ProcessImage, address: Any, want:
 
 
 def _call_to_effect(repeats: int, realtime: Realtime, progress: Progress) -> list[int]:
-    progress(f"opcua: call-to-effect, {repeats} Start calls at 10 ms")
+    progress(f"opcua: call-to-effect, {repeats} Start/Resume calls at 10 ms")
     with tempfile.TemporaryDirectory(prefix="softplc-bench-lamp-") as tmp:
         (Path(tmp) / "lamp.yaml").write_text(LAMP_PROGRAM)
         (Path(tmp) / "lamp_io.yaml").write_text(LAMP_IO)
@@ -172,11 +174,13 @@ def _calls(runtime: LiveRuntime, repeats: int) -> list[int]:
         while driver.problem() and time.monotonic() < deadline:
             time.sleep(0.05)
         scans = []
-        for _ in range(repeats):
-            image.set(sym["start"], 1)  # the rising edge: the call is issued
+        for k in range(repeats):
+            # Part 10: Start from Ready (the first time), Resume from Suspended (after that).
+            call, done = ("start", "start_done") if k == 0 else ("resume", "resume_done")
+            image.set(sym[call], 1)  # the rising edge: the call is issued
             scans.append(_scans_until(driver, image, sym["lamp_far"], 1, 2000))
-            _scans_until(driver, image, sym["start_done"], 1, 2000)
-            image.set(sym["start"], 0)
+            _scans_until(driver, image, sym[done], 1, 2000)
+            image.set(sym[call], 0)
             image.set(sym["stop"], 1)  # Suspend: the lamp goes to its safe value, off
             _scans_until(driver, image, sym["lamp_far"], 0, 2000)
             _scans_until(driver, image, sym["stop_done"], 1, 2000)
