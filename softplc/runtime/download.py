@@ -95,8 +95,14 @@ class DownloadJob:
 
     def refuse(self, error: BaseException) -> None:
         self._close_steps()
-        if self.prepared is not None:
-            self.prepared.discard()
+        prepared, waiting = self.prepared, self._waiting
+        if prepared is not None:
+            prepared.discard()
+            if waiting is not None and not waiting.done():
+                # Withdrawn while the helper thread opens its devices or stages its boot
+                # program: what that work opens or writes is let go of when it ends.
+                waiting.add_done_callback(lambda _: prepared.discard())
+        self._waiting = None
         self.error = error
         self._to(Stage.REFUSED)
 
@@ -222,9 +228,9 @@ class Downloads:
         why): nothing then holds it, and what was sent before it still applies before it."""
         for item in self._queue:
             if isinstance(item, DownloadJob) and not item.decided:
-                item.refuse(Withdrawn(f"withdrawn: a {urgent.command.value} sent after it was "
-                                      "applied first (a stop or kill is never held behind a "
-                                      "download)"))
+                item.refuse(Withdrawn(f"withdrawn: a {urgent.command.value}, sent after it, "
+                                      "was applied first (a stop or kill is never held behind "
+                                      "a download)"))
         self._queue.append(urgent)
 
     @property

@@ -23,7 +23,7 @@ from softplc.runtime.clock import VirtualClock
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.download import TABLE, Decided, Downloads, Stage, refusal_of
 from softplc.runtime.loop import ScanLoop
-from softplc.runtime.prepare import Built, Preparer
+from softplc.runtime.prepare import Built, Prepared, Preparer
 from softplc.runtime.retain import ContinuedClock
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -108,7 +108,43 @@ def test_a_stop_or_kill_is_never_held_behind_a_download(urgent: Command) -> None
         first = downloads.take()  # nothing held, the order kept
         assert [d.request.id for d in first] == [1, 2, 3]
         kind, message, _ = refusal_of(first[0].error or RuntimeError(), str)
-        assert kind is Refusal.WITHDRAWN and f"a {urgent.value} sent after it" in message
+        assert kind is Refusal.WITHDRAWN
+        assert f"a {urgent.value}, sent after it, was applied first" in message
+    finally:
+        gate.set()
+        downloads.close()
+
+
+def test_a_download_withdrawn_while_its_blocking_part_runs_leaves_nothing_behind(
+        tmp_path: Path) -> None:
+    """A stop withdraws a download whose boot program the helper thread is staging: what
+    that work writes (or the devices it opens) is let go of when it ends, not leaked."""
+    gate, written, staged = threading.Event(), threading.Event(), tmp_path / ".boot-staged"
+
+    def keep(prepared: Prepared) -> None:  # the staging, held until the gate opens
+        assert gate.wait(20)
+        staged.write_text("boot program")
+        prepared.staged = staged
+        written.set()
+
+    prep = Preparer(LoopConfig(root=str(ROOT)), lambda: None, lambda: ())
+    prep.keep = keep
+    downloads = Downloads(prep)
+    downloads.put([CommandRequest(1, Command.DOWNLOAD, program_text=TRANSPORT.read_text(),
+                                  program_path=str(TRANSPORT))])
+    try:
+        deadline = time.monotonic() + 20
+        while downloads.stage(1) is not Stage.OPENING and time.monotonic() < deadline:
+            downloads.work(None, time.monotonic_ns)
+        assert downloads.stage(1) is Stage.OPENING
+        downloads.put([CommandRequest(2, Command.STOP)])
+        assert [d.request.id for d in downloads.take()] == [1, 2]
+        gate.set()
+        assert written.wait(20)
+        deadline = time.monotonic() + 5  # the done-callback runs right after the work
+        while staged.exists() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not staged.exists()
     finally:
         gate.set()
         downloads.close()
