@@ -107,6 +107,8 @@ def plc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ports]:
         stop_plc(started.proc)
 
 
+ABUSE_LIMIT_S = 120.0  # the longest a hostile client may run (each finishes in seconds)
+
 def _modbus_probe(port: int) -> float:
     began = time.monotonic()
     with socket.create_connection(("127.0.0.1", port), timeout=PROBE_TIMEOUT_S) as sock:
@@ -134,10 +136,13 @@ def _http_probe(port: int) -> float:
 
 
 def _probe(ports: Ports, *, count: int = 0, until: Callable[[], bool] | None = None,
-           ) -> dict[str, list[float]]:
-    """Alternate Modbus and HTTP probes, `count` of each or while `until()` is false."""
+           limit_s: float = ABUSE_LIMIT_S) -> dict[str, list[float]]:
+    """Alternate Modbus and HTTP probes, `count` of each or while `until()` is false (at most
+    `limit_s`: a hostile client that hangs fails the test instead of holding it for ever)."""
     seen: dict[str, list[float]] = {"modbus": [], "http": []}
+    give_up = time.monotonic() + limit_s
     while (len(seen["http"]) < count) if until is None else not until():
+        assert time.monotonic() < give_up, f"the hostile client ran past {limit_s:g} s"
         seen["modbus"].append(_modbus_probe(ports.modbus))
         seen["http"].append(_http_probe(ports.api))
         time.sleep(0.02)
@@ -156,21 +161,27 @@ def _neighbours_answer(idle: dict[str, list[float]], busy: dict[str, list[float]
                                  f"bound {bound * 1e3:.1f} ms (idle {floor * 1e3:.1f} ms)")
 
 
-def _abuse(ports: Ports, target: Callable[..., None], *args: Any) -> tuple[
+def _abuse(ports: Ports, target: Callable[..., None], *args: Any, nice: int = 10) -> tuple[
         dict[str, Any], dict[str, list[float]], dict[str, list[float]]]:
     """The idle figures, then `target(port, *args, pipe)` in a niced child while probing:
     (what the child reported, idle, busy)."""
     idle = _probe(ports, count=IDLE_PROBES)
     ctx = mp.get_context("spawn")
     mine, theirs = ctx.Pipe()
-    child = ctx.Process(target=_niced, args=(target, ports.opcua, *args, theirs), daemon=True)
+    child = ctx.Process(target=_niced, args=(nice, target, ports.opcua, *args, theirs),
+                        daemon=True)
     child.start()
+    theirs.close()  # the child's end: a child that dies reads as end of file here
     try:
         assert mine.poll(30), "the hostile client did not start"
         assert mine.recv() == "started"
         busy = _probe(ports, until=lambda: mine.poll(0))
         assert mine.poll(30), "the hostile client did not finish"
-        report: dict[str, Any] = mine.recv()
+        try:
+            report: dict[str, Any] = mine.recv()
+        except EOFError:
+            raise AssertionError(f"the hostile client died (exit code {child.exitcode})") \
+                from None
     finally:
         child.join(5)
         if child.is_alive():
@@ -178,8 +189,8 @@ def _abuse(ports: Ports, target: Callable[..., None], *args: Any) -> tuple[
     return report, idle, busy
 
 
-def _niced(target: Callable[..., None], *args: Any) -> None:
-    os.nice(10)
+def _niced(nice: int, target: Callable[..., None], *args: Any) -> None:
+    os.nice(nice)
     target(*args)
 
 
@@ -283,7 +294,8 @@ def big_read(port: int, pipe: Connection) -> None:
 
 
 async def _session(port: int, items: int) -> Client | None:
-    client = Client(f"opc.tcp://127.0.0.1:{port}", timeout=5)
+    # A generous timeout: on a loaded host sessions come slowly; what is tested is the cap.
+    client = Client(f"opc.tcp://127.0.0.1:{port}", timeout=20)
     try:
         await client.connect()
         subscription = await client.create_subscription(10, None)  # asks for 10 ms
@@ -295,13 +307,9 @@ async def _session(port: int, items: int) -> Client | None:
     return client
 
 
-async def _many_sessions(port: int, sessions: int) -> dict[str, Any]:
-    clients: list[Client] = []
-    for _ in range(0, sessions, 8):  # in waves, as clients coming back after an outage do
-        got = await asyncio.gather(*(_session(port, 50) for _ in range(8)))
-        clients += [c for c in got if c is not None]
-    found: dict[str, Any] = {"sessions": len(clients)}
-    first = clients[0]
+async def _subscriptions_on(first: Client) -> dict[str, Any]:
+    """Subscriptions past the per-session cap, then items past the total cap, on `first`."""
+    found: dict[str, Any] = {}
     subscriptions, revised = [], []
     with contextlib.suppress(ua.UaStatusCodeError):
         for _ in range(LIMITS.max_subscriptions_per_session + 1):
@@ -319,6 +327,24 @@ async def _many_sessions(port: int, sessions: int) -> dict[str, Any]:
     for subscription in subscriptions[:3]:
         results += await subscription.subscribe_data_change([node] * 1_000)
     found["items_refused"] = sum(1 for r in results if isinstance(r, ua.StatusCode))
+    return found
+
+
+async def _many_sessions(port: int, sessions: int) -> dict[str, Any]:
+    clients: list[Client] = []
+    for _ in range(0, sessions, 8):  # in waves, as clients coming back after an outage do
+        got = await asyncio.gather(*(_session(port, 50) for _ in range(8)))
+        clients += [c for c in got if c is not None]
+    found: dict[str, Any] = {"sessions": len(clients)}
+    # On a loaded host the server's caps may have closed some of them (the oldest idle ones
+    # go first): the subscription checks run on a session that is still there.
+    for first in reversed(clients):
+        try:
+            found.update(await _subscriptions_on(first))
+            break
+        except (TimeoutError, ConnectionError, ua.UaError) as exc:
+            found["closed_sessions"] = found.get("closed_sessions", 0) + 1
+            found["last_error"] = f"{type(exc).__name__}: {exc}"
     await asyncio.sleep(ABUSE_S / 2)  # publishing under load while the parent probes
     for client in clients:
         with contextlib.suppress(Exception):
@@ -376,8 +402,11 @@ def test_a_read_of_too_many_nodes_is_refused(plc: Ports) -> None:
 
 
 def test_sessions_subscriptions_and_items_are_capped(plc: Ports) -> None:
-    report, idle, busy = _abuse(plc, many_sessions, 40)
+    # Not niced: the sessions must stay live (a request within the live window) to be held;
+    # a starved client's sessions look idle and its own later connections evict them.
+    report, idle, busy = _abuse(plc, many_sessions, 40, nice=0)
     assert 1 <= report["sessions"] <= LIMITS.max_per_peer, report  # all from 127.0.0.1
+    assert "subscriptions_on_one" in report, report  # a session kept for the checks
     assert report["subscriptions_on_one"] == LIMITS.max_subscriptions_per_session, report
     assert report["revised_ms"] >= LIMITS.min_publishing_interval_ms, report
     held = report["sessions"] * 50
