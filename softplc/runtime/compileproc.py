@@ -59,9 +59,9 @@ def compile_main(config: LoopConfig, conn: Connection,
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the supervisor's business
     die_with_parent()
-    idle(0)
     teardown.piecewise(False)  # no scan thread here: temporaries are freed at once
     prep = Preparer(config, lambda: None, lambda: ())
+    idle(0)  # imports done at normal priority (see starting()); every compile in background
     no_memory = pickle.dumps(("ended", CompilerFailed(_over_memory(memory_bytes))), protocol=5)
     _limit_memory(memory_bytes)
     signal.signal(signal.SIGXCPU, _out_of_cpu)
@@ -162,6 +162,17 @@ def idle(pid: int) -> None:
         os.setpriority(os.PRIO_PROCESS, pid, COMPILE_NICE)
 
 
+def starting(pid: int) -> None:
+    """A new compile process's scheduling while it imports (~0.35 s of CPU, once per
+    process): SCHED_OTHER at the scan process's niceness, never the SCHED_FIFO it inherited.
+    Not nice COMPILE_NICE yet: beside 4 busy loops on 2 cores, a tenth of a share stretched
+    those imports to over 10 s, and the first download after every start waited for them
+    (the API's clients gave up). It lowers itself once imported (compile_main)."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
+        os.setpriority(os.PRIO_PROCESS, pid, os.getpriority(os.PRIO_PROCESS, 0))
+
+
 class CompileProcess:
     """The scan process's side: `build()` on the download helper thread (runtime/download.py,
     the one blocking exchange of a download); `start()` ahead of the first
@@ -190,7 +201,7 @@ class CompileProcess:
             proc.start()
             theirs.close()
             assert proc.pid is not None  # started
-            idle(proc.pid)  # at once, not after its imports: it inherited the scan's policy
+            starting(proc.pid)  # at once: it inherited the scan's policy (maybe SCHED_FIFO)
             keep_off_scan_cpu(proc.pid, self.config.realtime)
             self._proc, self._conn = proc, mine
             self.started += 1

@@ -49,6 +49,8 @@ class ScanThread:
             time.sleep(0.002)
 
     def __enter__(self) -> ScanThread:
+        if self.loop.compiler is not None:
+            self.loop.compiler.start()  # as ScanLoop.run does: ready before the first download
         self._thread.start()
         return self
 
