@@ -3,10 +3,11 @@ its scans (docs/design.md section 12, the download job).
 
 Owns: the stages of every download and the table of the stages each may go to; stepping them
 without blocking (the compile process's answer polled, the net loaded and its engine built a
-step at a time, the devices' opening polled); the order of commands (a command sent after a
-download waits until the download is decided, except stop and kill, which are never held: the
-downloads still being prepared ahead of one are withdrawn);
-the burial of a replaced net, a step at a time.
+step at a time, the devices' opening polled; at its turn, a dry run's answer built from the
+PLC copied at that boundary, a stale carry plan made again); the order of commands (a command
+sent after a download waits until the download is decided, except stop and kill, which are
+never held: the downloads still being prepared ahead of one are withdrawn); the burial of a
+replaced net, a step at a time.
 What blocks runs on one helper thread, and only that: the exchange with the compile process
 (send, wait, receive: runtime/compileproc.py) and the opening of a new io image's devices and
 the staging of the boot program (runtime/prepare.py). It holds the interpreter lock only to
@@ -27,7 +28,7 @@ from typing import Any
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
 from softplc.core.problems import ProgramError
-from softplc.core.snapshot import DOWNLOAD_REFUSED, CommandRequest, Refusal
+from softplc.core.snapshot import DOWNLOAD_REFUSED, CommandReply, CommandRequest, Refusal
 from softplc.core.steps import Steps, drain
 from softplc.devices.driver import DeviceError
 from softplc.program.teardown import burying
@@ -48,7 +49,10 @@ class Stage(Enum):
     COMPILING = "compiling"  # compiled and analysed by the compile process (or here)
     LOADING = "loading"  # its net loaded, engine built and primed, carry plan: steps here
     OPENING = "opening"  # new devices opened and the boot program staged: the helper thread
-    READY = "ready"  # handed to the scan at the next boundary
+    PLANNING = "planning"  # its carry plan made again (another net runs now): steps here
+    READY = "ready"  # its turn at the next boundary: handed to the scan (a dry run: DESCRIBING)
+    DESCRIBING = "describing"  # a dry run's answer, from the PLC copied at its turn: steps here
+    ANSWERED = "answered"  # a dry run's reply, handed to the scan to send
     REFUSED = "refused"  # handed to the scan to be answered, with its typed error
 
 
@@ -57,7 +61,10 @@ TABLE: dict[Stage, frozenset[Stage]] = {
     Stage.COMPILING: frozenset({Stage.LOADING, Stage.REFUSED}),
     Stage.LOADING: frozenset({Stage.OPENING, Stage.READY, Stage.REFUSED}),
     Stage.OPENING: frozenset({Stage.READY, Stage.REFUSED}),
-    Stage.READY: frozenset(),
+    Stage.PLANNING: frozenset({Stage.READY, Stage.REFUSED}),
+    Stage.READY: frozenset({Stage.PLANNING, Stage.DESCRIBING}),  # at its turn (Downloads.take)
+    Stage.DESCRIBING: frozenset({Stage.ANSWERED, Stage.REFUSED}),
+    Stage.ANSWERED: frozenset(),
     Stage.REFUSED: frozenset(),
 }
 
@@ -81,13 +88,14 @@ class DownloadJob:
     stage: Stage = Stage.COMPILING
     prepared: Prepared | None = None
     error: BaseException | None = None
+    reply: CommandReply | None = None  # a dry run's, once ANSWERED
     _waiting: Future[Any] | None = None
-    _steps: Steps[Prepared] | None = None
+    _steps: Steps[Any] | None = None
     _gc_was: bool = field(default=False)
 
     @property
     def decided(self) -> bool:
-        return self.stage in (Stage.READY, Stage.REFUSED)
+        return self.stage in (Stage.READY, Stage.ANSWERED, Stage.REFUSED)
 
     def _to(self, stage: Stage) -> None:
         assert stage in TABLE[self.stage], f"download job: {self.stage} -> {stage}"
@@ -121,7 +129,25 @@ class DownloadJob:
             return self._loading()
         if self.stage is Stage.OPENING:
             return self._opening()
+        if self.stage in (Stage.PLANNING, Stage.DESCRIBING):
+            return self._turn_step()
         return False
+
+    def at_turn(self, stage: Stage, steps: Steps[Any]) -> None:
+        """READY at the head of the queue, at a scan boundary: `steps` (its plan again, or
+        a dry run's answer) to be stepped between scans before it is handed out."""
+        self._steps = steps
+        self._to(stage)
+
+    def _turn_step(self) -> bool:
+        assert self._steps is not None
+        try:
+            next(self._steps)
+        except StopIteration as done:
+            self._steps, answered = None, self.stage is Stage.DESCRIBING
+            self.reply = done.value if answered else None
+            self._to(Stage.ANSWERED if answered else Stage.READY)
+        return True
 
     def _compiling(self) -> bool:
         if self.prep.remote is None:  # a virtual clock: compiled here, deterministically
@@ -199,6 +225,12 @@ class Decided:
     request: CommandRequest
     prepared: Prepared | None = None
     error: BaseException | None = None
+    reply: CommandReply | None = None  # a dry run's answer, to send as it is
+
+
+# At a dry run's turn, on the scan thread at the boundary: its answer's steps, from the PLC
+# copied now; None: handed out as any download (the loop refuses or expires it).
+Turn = Callable[[Prepared], Steps[CommandReply] | None]
 
 
 class Downloads:
@@ -234,8 +266,7 @@ class Downloads:
         self._queue.append(urgent)
 
     @property
-    def busy(self) -> bool:
-        """Work to step between scans."""
+    def busy(self) -> bool:  # work to step between scans
         return bool(self._burials) or any(
             isinstance(item, DownloadJob) and not item.decided for item in self._queue)
 
@@ -257,31 +288,50 @@ class Downloads:
             except StopIteration:
                 self._burials.popleft()
 
-    def take(self) -> list[Decided]:
+    def take(self, turn: Turn = lambda _: None) -> list[Decided]:
         """The requests at the head of the queue that are decided, in arrival order; stops
-        at the first download not yet decided."""
+        at the first download not yet decided. A download whose turn comes first gets its
+        carry plan again if another net runs now, a dry run its answer (`turn`), stepped
+        between scans (on a virtual clock: here, now); at most one download is handed out
+        per boundary (the next one is planned against it)."""
         decided: list[Decided] = []
         while self._queue:
             item = self._queue[0]
             if isinstance(item, DownloadJob):
+                if item.stage is Stage.READY and self._at_turn(item, turn):
+                    while not self._threaded and not item.decided and item.step():
+                        pass
                 if not item.decided:
                     break
-                decided.append(Decided(item.request, item.prepared, item.error))
+                if item.reply is not None:  # a dry run's net and engine: freed between scans
+                    box, item.prepared = [item.prepared], None
+                    self.discard(box)
+                decided.append(Decided(item.request, item.prepared, item.error, item.reply))
             else:
                 decided.append(Decided(item))
             self._queue.popleft()
+            if isinstance(item, DownloadJob) and self._threaded and item.stage is Stage.READY \
+                    and not item.request.dry_run and self._queue \
+                    and isinstance(self._queue[0], DownloadJob):
+                break
         return decided
+
+    def _at_turn(self, job: DownloadJob, turn: Turn) -> bool:
+        assert job.prepared is not None
+        dry = job.request.dry_run  # its answer, else its carry plan if another net runs now
+        steps: Steps[Any] | None = turn(job.prepared) if dry \
+            else self.prep.replanning(job.prepared)
+        if steps is not None:
+            job.at_turn(Stage.DESCRIBING if dry else Stage.PLANNING, steps)
+        return steps is not None
 
     def stage(self, request_id: int) -> Stage | None:
         """Where a download is (status, tests)."""
-        for item in self._queue:
-            if isinstance(item, DownloadJob) and item.request.id == request_id:
-                return item.stage
-        return None
+        return next((item.stage for item in self._queue if isinstance(item, DownloadJob)
+                     and item.request.id == request_id), None)
 
     @property
-    def waiting(self) -> int:
-        """Requests not yet handed out (a download being prepared and what queued behind)."""
+    def waiting(self) -> int:  # requests not yet handed out (downloads and what queued behind)
         return len(self._queue)
 
     def discard(self, box: list[Any]) -> None:

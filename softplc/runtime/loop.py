@@ -3,12 +3,11 @@
 Owns: absolute deadlines on the monotonic clock, skipped slots counted as overruns, the
 cycle supervision (scans over period x watchdog, a cycle that starts that late: a stall),
 measured here and judged by the PLC (core/judge.py's CycleWatchdog; a scan that never ends:
-scanwatch.py); commands and HMI writes drained
-at the scan boundary, expired commands refused unapplied; downloads stepped between scans
-on this thread (download.py: the job table), so the scan only swaps; the snapshot published
-after every scan;
-retain captures at scan boundaries; the cold or warm start; safe outputs, confirmed by the
-devices, on every way out.
+scanwatch.py); commands and HMI writes drained at the scan boundary, expired commands refused
+unapplied; downloads stepped between scans on this thread (download.py: the job table), so
+the scan only swaps, and a dry run only copies the PLC at its turn; the snapshot published
+after every scan; retain captures at scan boundaries; the cold or warm start; safe outputs,
+confirmed by the devices, on every way out.
 The boot program: bootkeeper.py; the process around the loop: scanproc.py.
 Does not know: Modbus, HTTP (the communication process), terminals (the CLI).
 """
@@ -27,6 +26,7 @@ from softplc.core.lifecycle import Command, PlcState
 from softplc.core.problems import FaultCode
 from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Refusal, Status
+from softplc.core.steps import Steps
 from softplc.runtime import netview, statusdoc, warmstart
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.bootkeeper import BootKeeper
@@ -35,12 +35,9 @@ from softplc.runtime.clock import Clock, MonotonicClock, Schedule
 from softplc.runtime.compileproc import CompileProcess
 from softplc.runtime.config import LoopConfig as LoopConfig  # importable from here too
 from softplc.runtime.download import Downloads, refusal_of
-from softplc.runtime.prepare import Prepared, Preparer, dry_run
+from softplc.runtime.prepare import Prepared, Preparer, answering, boundary
 from softplc.runtime.procs import Flag as Event
-from softplc.runtime.retain import (
-    RetainWriter,
-    capture,
-)
+from softplc.runtime.retain import RetainWriter, capture
 from softplc.runtime.runner import ScanRunner, open_drivers
 from softplc.runtime.scanwatch import HangWatch
 from softplc.runtime.shm import SnapshotWriter
@@ -124,7 +121,7 @@ class ScanLoop:
         the scan, download.py) or refused with every problem listed; commands past their
         deadline refused unapplied (their sender has told its user so)."""
         commands = []
-        for item in self.downloads.take():
+        for item in self.downloads.take(self._dry_run):
             req, prepared = item.request, item.prepared
             if req.deadline_ns and time.monotonic_ns() > req.deadline_ns:
                 late_ms = (time.monotonic_ns() - req.deadline_ns) / 1e6
@@ -135,7 +132,9 @@ class ScanLoop:
                 if prepared is not None:
                     prepared.discard()
                 continue
-            if req.command is not Command.DOWNLOAD:
+            if item.reply is not None:  # a dry run's, built between scans since its turn
+                self._reply(item.reply)
+            elif req.command is not Command.DOWNLOAD:
                 commands.append(ProgramCommand(req.command, online=req.online, id=req.id,
                                                symbol=req.symbol, value=req.value))
             elif item.error is not None or prepared is None:
@@ -144,17 +143,21 @@ class ScanLoop:
                 self._refuse(req, message, kind, problems)
             elif prepared.net.io.sizes != self.config.sizes:
                 prepared.discard()
-                why = (f"the program's image sizes {prepared.net.io.sizes} differ from the "
-                       "runtime's")
+                why = f"the program's image sizes {prepared.net.io.sizes} differ from the runtime's"
                 self._refuse(req, f"download refused: {why}", Refusal.SIZES, (why,))
-            elif req.dry_run:
-                self._reply(dry_run(self.runner.plc, prepared, self.config.sizes))
             else:
                 self._prepared[req.id] = prepared
                 commands.append(ProgramCommand(
                     Command.DOWNLOAD, prepared.net, req.online, req.id, replace=req.replace,
                     engine=prepared.engine, plan=prepared.plan))
         return commands
+
+    def _dry_run(self, prepared: Prepared) -> Steps[CommandReply] | None:
+        """A dry run's turn: the PLC copied now, answered between scans (None: refused above)."""
+        late = prepared.request.deadline_ns and time.monotonic_ns() > prepared.request.deadline_ns
+        if late or prepared.net.io.sizes != self.config.sizes:
+            return None
+        return answering(prepared, boundary(self.runner.plc, self.config.sizes))
 
     def _refuse(self, req: CommandRequest, message: str, kind: Refusal,
                 problems: tuple[str, ...]) -> None:

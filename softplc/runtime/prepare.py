@@ -19,6 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
+import numpy as np
+
 from softplc.core import online
 from softplc.core.engine import Engine
 from softplc.core.errors import SoftplcError
@@ -28,7 +30,7 @@ from softplc.core.net import CompiledNet, NetState
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.scan import Plc
 from softplc.core.snapshot import CommandReply, CommandRequest
-from softplc.core.steps import Steps
+from softplc.core.steps import Steps, drain
 from softplc.devices.driver import DeviceError, Driver
 from softplc.program import boot, wire
 from softplc.program import bundle as bundles
@@ -215,6 +217,19 @@ class Preparer:
             and (running.name == net.name or req.dry_run) else None
         return Prepared(net, req, None, engine, plan, analysis)
 
+    def replanning(self, prepared: Prepared) -> Steps[None] | None:
+        """The carry plan of a download made again, a step at a time, when the net running
+        now is not the one it was planned against (another download was applied since); None
+        when it holds or none is needed (a replacement carries nothing)."""
+        running, net = self._running(), prepared.net
+        if running is None or running.name != net.name or (
+                prepared.plan is not None and prepared.plan.old is running):
+            return None
+
+        def steps() -> Steps[None]:
+            prepared.plan = yield from online.planning(running, net)
+        return steps()
+
     def analyse(self, net: CompiledNet, gate: bool = True) -> dict[str, Any] | None:
         """The analysis gate (docs/analysis.md), off the scan. Refuses by raising
         AnalysisRefused under --verify refuse (when `gate`); otherwise the findings go along."""
@@ -241,42 +256,73 @@ class Preparer:
                 "policy": self.config.verify}
 
 
+@dataclass(frozen=True, slots=True)
+class Boundary:
+    """The PLC as a dry run's answer reads it, copied at the scan boundary where its turn came
+    (the marking array, the token lists, the busy transitions: microseconds), so that the
+    answer can be built between the scans that follow."""
+
+    net: CompiledNet | None
+    net_state: NetState | None  # without its enabling timers: the answer does not read them
+    state: PlcState
+    stage: Stage
+    sizes: ImageSizes
+
+
+def boundary(plc: Plc, sizes: ImageSizes) -> Boundary:
+    """`plc` now, for a dry run's answer (on the scan thread, at a scan boundary)."""
+    copy = None
+    if plc.net is not None and plc.engine is not None:
+        live = plc.engine.state
+        copy = NetState(live.marking.copy(), {p: list(t) for p, t in live.tokens.items()},
+                        {}, dict(live.busy))
+    return Boundary(plc.net, copy, plc.state, plc.stage, sizes)
+
+
 def dry_run(plc: Plc, prepared: Prepared, sizes: ImageSizes) -> CommandReply:
     """What the download would do now, against the running state; nothing applied."""
+    return drain(answering(prepared, boundary(plc, sizes)))
+
+
+def answering(prepared: Prepared, at: Boundary) -> Steps[CommandReply]:
+    """A dry run's reply, a step at a time (the job steps it between scans: the carry plan
+    again when another net runs since it was made, the plan described, the verdict), against
+    the PLC as it was at the boundary `at`; nothing applied."""
     net, req = prepared.net, prepared.request
-    old, state = plc.net, plc.state
-    if old is None or plc.engine is None:
+    if at.net is None or at.net_state is None:
+        marked = np.flatnonzero(net.initial)
+        taken = yield from online.driving(net)
         detail: dict[str, Any] = {
             "from": None, "to": net.name, "replacement": False, "kept": {}, "dropped": {},
-            "new": plc_marking(net), "records": {}, "outputs": {
-                "released": [], "taken": sorted(online.driven(net))}}
+            "new": (yield from online.counting(net, net.initial, marked)), "records": {},
+            "outputs": {"released": [], "taken": sorted(taken)}}
     else:
         carry_plan = prepared.plan if prepared.plan is not None \
-            and prepared.plan.old is old else online.plan(old, net)
-        detail = online.describe(carry_plan, plc.engine.state)
-    detail["verdict"] = _verdict(plc, prepared, detail, sizes)
+            and prepared.plan.old is at.net else (yield from online.planning(at.net, net))
+        detail = yield from online.describing(carry_plan, at.net_state)
+    detail["verdict"] = _verdict(at, prepared, detail)
     detail["accepted"] = not detail["verdict"].startswith(("refused", "online change "
                                                            "refused"))
-    detail["state"] = state.name
+    detail["state"] = at.state.name
     prepared.discard()
     return CommandReply(req.id, True, f"dry run: {detail['verdict']} (nothing applied)",
-                        state, detail=detail)
+                        at.state, detail=detail)
 
 
-def _verdict(plc: Plc, prepared: Prepared, detail: dict[str, Any], sizes: ImageSizes) -> str:
-    """The download's fate in the current state, by the rules of core/scan.py."""
+def _verdict(at: Boundary, prepared: Prepared, detail: dict[str, Any]) -> str:
+    """The download's fate in the state at `at`, by the rules of core/scan.py."""
     net, req = prepared.net, prepared.request
-    if net.io.sizes != sizes:
+    if net.io.sizes != at.sizes:
         return "refused: the program's image sizes differ from the runtime's"
-    if plc.state is not PlcState.RUNNING:
+    if at.state is not PlcState.RUNNING:
         try:
-            next_stage(plc.stage, Command.DOWNLOAD)
+            next_stage(at.stage, Command.DOWNLOAD)
         except CommandRejected as exc:
             return f"refused: {exc}"
         dropped = " (the marking kept at the stop is dropped)" \
-            if plc.stage is Stage.SUSPENDED else ""
-        return f"accepted: loads from its initial marking ({plc.state.name}){dropped}"
-    old = plc.net
+            if at.stage is Stage.SUSPENDED else ""
+        return f"accepted: loads from its initial marking ({at.state.name}){dropped}"
+    old = at.net
     assert old is not None
     if not req.online:
         return "refused: download while RUNNING needs online change (--online)"
@@ -288,12 +334,6 @@ def _verdict(plc: Plc, prepared: Prepared, detail: dict[str, Any], sizes: ImageS
                 "the same devices; it needs --replace (it starts from its initial marking)")
     return (f"accepted: replacement of {old.name} by {net.name} from its initial marking"
             + ("" if same else " (reconfiguration: new devices)"))
-
-
-def plc_marking(net: CompiledNet) -> dict[str, int]:
-    """A net's initial marking by place name (marked places only)."""
-    return {name: int(n) for name, n in zip(net.place_names, net.initial.tolist(), strict=True)
-            if n}
 
 
 def describe_error(error: BaseException) -> str:
