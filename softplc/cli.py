@@ -165,7 +165,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from softplc.runtime.runcmd import run
-
     return run(args)
 
 
@@ -346,8 +345,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench.set_defaults(func=cmd_bench)
 
     from softplc.analysis.cli import add_commands as add_analysis_commands
-
+    from softplc.runtime.debugcli import add_commands as add_debug_commands
     add_analysis_commands(sub)
+    add_debug_commands(sub)  # why, vcd (docs/debug.md)
     try:
         from softplc.api.clicmds import add_client_commands
     except ImportError:  # the HTTP client commands need the api package's dependencies

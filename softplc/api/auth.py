@@ -1,18 +1,25 @@
-"""The API's bearer token: when it is required, where it lives, how a request proves it.
+"""The owner's key and the loopback rules: where the key lives and how a client finds it.
 
-Owns: the loopback rule, the token file (state_dir/api_token, mode 0600, created once with
-secrets.token_urlsafe and reused), the constant-time check of an Authorization header, and
-where a client finds its token (argument, SOFTPLC_API_TOKEN, a state dir).
-Does not know: HTTP routing, aiohttp, the PLC. It never logs or formats a token.
+Owns: the loopback rule, the owner's key file (state_dir/api_token, mode 0600, created once
+with secrets.token_urlsafe and reused: the built-in admin of the account that owns the state
+directory), the constant-time check of a bearer header, the per-account index of local
+servers (which state directory serves which loopback port, so that the owner's CLI finds
+its key by the URL alone), and where a client finds its token (argument,
+SOFTPLC_API_TOKEN, a state dir, the index).
+Does not know: HTTP routing, aiohttp, users and roles, the PLC. It never logs or formats a
+token.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hmac
 import ipaddress
+import json
 import os
 import secrets
 import stat
+import tempfile
 from pathlib import Path
 from typing import Final
 from urllib.parse import urlsplit
@@ -21,6 +28,7 @@ from softplc.core.errors import SoftplcError
 
 TOKEN_FILE: Final = "api_token"
 TOKEN_ENV: Final = "SOFTPLC_API_TOKEN"
+INDEX_ENV: Final = "SOFTPLC_RUNTIME_DIR"  # where the index of local servers is (tests)
 _TOKEN_BYTES: Final = 32  # 256 bits, 43 URL-safe characters
 
 
@@ -72,12 +80,17 @@ def load_or_create_token(state_dir: Path) -> str:
     token = "-"
     while token.startswith("-"):  # `--token -x...` would read as an option
         token = secrets.token_urlsafe(_TOKEN_BYTES)
+    # Written aside, then linked into place: a process starting at the same moment (the
+    # OPC UA one) reads the whole token or makes its own, never an empty file.
+    fd, tmp = tempfile.mkstemp(dir=state_dir, prefix=".api_token.")
     try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+        with os.fdopen(fd, "w", encoding="ascii") as handle:
+            handle.write(token + "\n")
+        os.link(tmp, path)
     except FileExistsError:
         return _read_token(path)
-    with os.fdopen(fd, "w", encoding="ascii") as handle:
-        handle.write(token + "\n")
+    finally:
+        os.unlink(tmp)
     return token
 
 
@@ -103,16 +116,84 @@ def bearer_matches(header: str | None, token: str) -> bool:
     return hmac.compare_digest(given.strip().encode(), token.encode())
 
 
-def client_token(token: str | None = None, state_dir: Path | str | None = None) -> str | None:
+def client_token(token: str | None = None, state_dir: Path | str | None = None,
+                 url: str | None = None) -> str | None:
     """Where a client finds its token: the argument, then $SOFTPLC_API_TOKEN, then the
-    api_token file of the server's state dir (same machine). None when there is none."""
+    api_token file of the server's state dir (same machine), then, for a loopback `url`, the
+    state dir that this account's index says serves it. None when there is none."""
     if token:
         return token
     from_env = os.environ.get(TOKEN_ENV, "").strip()
     if from_env:
         return from_env
+    if state_dir is None and url is not None:
+        state_dir = indexed_state_dir(url)
     if state_dir is not None:
         path = Path(state_dir) / TOKEN_FILE
-        if path.is_file():
+        with contextlib.suppress(OSError, UnicodeDecodeError):  # not ours to read: none
             return path.read_text(encoding="ascii").strip() or None
     return None
+
+
+# -- the index of this account's local servers ---------------------------------------------
+# One file per loopback port in a directory only this account can use (as tmux and
+# ssh-agent keep their sockets): {"pid", "state_dir"}. It holds no secret: the key stays in
+# the state directory, readable by its owner only. An entry whose process is gone, or
+# belongs to another account, is ignored.
+
+def index_dir() -> Path | None:
+    """This account's index directory, made 0700; None when it cannot be trusted (not a
+    directory of ours, open to others)."""
+    base = os.environ.get(INDEX_ENV) or os.environ.get("XDG_RUNTIME_DIR") \
+        or tempfile.gettempdir()
+    path = Path(base) / f"softplc-{os.geteuid()}"
+    with contextlib.suppress(FileExistsError, OSError):
+        path.mkdir(mode=0o700, parents=True)
+    try:
+        info = path.lstat()
+    except OSError:
+        return None
+    if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.geteuid() \
+            or stat.S_IMODE(info.st_mode) & 0o077:
+        return None
+    return path
+
+
+def register_server(port: int, state_dir: Path) -> Path | None:
+    """Say that this process serves loopback `port` from `state_dir`; the entry's path."""
+    directory = index_dir()
+    if directory is None:
+        return None
+    entry = directory / f"api-{port}.json"
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".api-")
+    with os.fdopen(fd, "w", encoding="utf-8") as handle:
+        json.dump({"pid": os.getpid(), "state_dir": str(state_dir.resolve())}, handle)
+    os.replace(tmp, entry)
+    return entry
+
+
+def unregister_server(entry: Path | None) -> None:
+    """Remove the entry if it is still this process's (a newer server may own the port)."""
+    if entry is None:
+        return
+    with contextlib.suppress(OSError, ValueError):
+        if json.loads(entry.read_text(encoding="utf-8")).get("pid") == os.getpid():
+            entry.unlink()
+
+
+def indexed_state_dir(url: str) -> Path | None:
+    """The state dir of the live server of this account at a loopback `url`, if indexed."""
+    parts = urlsplit(url)
+    if parts.hostname is None or not is_loopback(parts.hostname):
+        return None
+    directory = index_dir()
+    try:
+        port = parts.port or (443 if parts.scheme == "https" else 80)
+        entry = json.loads((directory / f"api-{port}.json").read_text(encoding="utf-8")) \
+            if directory is not None else None
+        if not isinstance(entry, dict):
+            return None
+        os.kill(int(entry["pid"]), 0)  # gone: ProcessLookupError; another's: PermissionError
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return Path(str(entry["state_dir"]))

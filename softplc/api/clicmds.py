@@ -14,6 +14,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Final
 
+from softplc.api.admincmds import add_admin_commands, read_password
 from softplc.api.auth import TOKEN_ENV
 from softplc.api.client import DEFAULT_URL, ApiClient, ApiError, ApiUnreachable
 from softplc.api.openapi import LIFECYCLE_COMMANDS
@@ -82,17 +83,22 @@ def add_client_commands(subparsers: Any) -> None:
                         help="print the status as JSON (default: off, a summary)")
     _connection_options(status)
     status.set_defaults(func=cmd_status)
+    add_admin_commands(subparsers)  # users, audit (local files)
 
 
 def _connection_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--api", metavar="URL", default=DEFAULT_URL,
                         help="the softplc's HTTP API (default: %(default)s)")
     parser.add_argument("--token", default=None,
-                        help=f"bearer token (default: ${TOKEN_ENV}, else --state-dir's "
-                        "api_token); needed when the API is bound off loopback")
+                        help=f"an API key (softplc users key NAME) (default: ${TOKEN_ENV}, "
+                        "else --state-dir's api_token, else that of this account's server at "
+                        "a loopback --api)")
+    parser.add_argument("--user", metavar="NAME", default=None,
+                        help="log in as NAME; the password is read from the terminal (or one "
+                        "line of stdin) (default: the key as for --token)")
     parser.add_argument("--state-dir", metavar="DIR", default=None,
-                        help="the server's state directory, to read DIR/api_token from "
-                        "(default: none)")
+                        help="the server's state directory, to read the owner's key "
+                        "DIR/api_token from (default: found for a loopback --api)")
     parser.add_argument("--timeout", metavar="SECONDS", type=float, default=10.0,
                         help="how long to wait for an answer (default: %(default)s)")
 
@@ -101,7 +107,9 @@ def _call(args: argparse.Namespace, what: str,
           action: Callable[[ApiClient], dict[str, Any]]) -> tuple[int, dict[str, Any]]:
     """Run `action`, turning failures into a message on stderr and an exit code."""
     try:
-        client = ApiClient(args.api, args.token, args.timeout, state_dir=args.state_dir)
+        password = read_password(confirm=False) if args.user else None
+        client = ApiClient(args.api, args.token, args.timeout, state_dir=args.state_dir,
+                           user=args.user, password=password)
         return EXIT_OK, action(client)
     except ApiError as exc:
         message = exc.message.removeprefix(f"{what} refused: ")  # said once is enough

@@ -10,6 +10,7 @@ PLC named by the URL and nowhere else.
 
 from __future__ import annotations
 
+import base64
 import json
 import re
 import time
@@ -57,21 +58,31 @@ class _NoRedirect(urllib.request.HTTPRedirectHandler):
 
 
 class ApiClient:
-    """One softplc's API. `token` falls back to $SOFTPLC_API_TOKEN, then to the api_token
-    file of `state_dir` (when the client runs on the PLC's machine)."""
+    """One softplc's API. `token` (a user's API key, or the owner's) falls back to
+    $SOFTPLC_API_TOKEN, then to the api_token file of `state_dir` (when the client runs on
+    the PLC's machine), then, for a loopback URL, to the api_token of the state directory
+    that this account's server there uses (`local=False`: not that one). `user` and
+    `password` send HTTP Basic instead."""
 
     def __init__(self, url: str = DEFAULT_URL, token: str | None = None,
-                 timeout_s: float = 10.0, *, state_dir: Path | str | None = None) -> None:
+                 timeout_s: float = 10.0, *, state_dir: Path | str | None = None,
+                 user: str | None = None, password: str | None = None,
+                 local: bool = True) -> None:
         parts = urllib.parse.urlsplit(url)
         if parts.scheme not in ("http", "https") or not parts.netloc:
             raise ValueError(f"API URL must look like {DEFAULT_URL}, not {url!r}")
         self.url = url.rstrip("/")
         self.timeout_s = timeout_s
-        self._token = auth.client_token(token, state_dir)
+        if user is not None:
+            pair = base64.b64encode(f"{user}:{password or ''}".encode()).decode("ascii")
+            self._authorization: str | None = f"Basic {pair}"
+        else:
+            found = auth.client_token(token, state_dir, url if local else None)
+            self._authorization = f"Bearer {found}" if found else None
         self._opener = urllib.request.build_opener(urllib.request.ProxyHandler({}), _NoRedirect())
 
     def __repr__(self) -> str:
-        return f"ApiClient({self.url!r}, token={'set' if self._token else 'none'})"
+        return f"ApiClient({self.url!r}, token={'set' if self._authorization else 'none'})"
 
     # -- program handling -------------------------------------------------------------------
 
@@ -170,6 +181,15 @@ class ApiClient:
         """Release one force, or every force when `name` is None."""
         return self._json("DELETE", "/forces" if name is None else f"/forces/{_quote(name)}")
 
+    def whoami(self) -> dict[str, Any]:
+        """{"user", "role", "via"}: who this client is to the service."""
+        return self._json("GET", "/whoami")
+
+    def audit(self, since: str | None = None, limit: int = 1000) -> dict[str, Any]:
+        """The audit trail's newest records and the chain's verdict (admin)."""
+        query = {"limit": str(limit), **({"since": since} if since else {})}
+        return self._json("GET", "/audit", query=query)
+
     def openapi(self) -> dict[str, Any]:
         return self._json("GET", "/openapi.json")
 
@@ -243,8 +263,8 @@ class ApiClient:
                                          headers={"Accept": "application/json", **(headers or {})})
         if content_type:
             request.add_header("Content-Type", content_type)
-        if self._token:
-            request.add_header("Authorization", f"Bearer {self._token}")
+        if self._authorization:
+            request.add_header("Authorization", self._authorization)
         try:
             return self._opener.open(request, timeout=timeout_s or self.timeout_s)
         except urllib.error.HTTPError as exc:
@@ -278,6 +298,7 @@ def _api_error(exc: urllib.error.HTTPError) -> ApiError:
     else:
         text = raw.decode("utf-8", "replace").strip()[:200] or str(exc.reason)
     if exc.code == 401:
-        text += f" (give --token, set ${auth.TOKEN_ENV}, or --state-dir of the server)"
+        text += (f" (give --token with an API key, set ${auth.TOKEN_ENV}, --user, or "
+                 "--state-dir of the server)")
     not_sent = exc.code == 503 and isinstance(body, dict) and body.get("stale") is True
     return ApiError(exc.code, text, problems, not_sent)

@@ -9,6 +9,8 @@ from __future__ import annotations
 import copy
 from typing import Any, Final
 
+from softplc.api.accessdoc import access_paths
+from softplc.api.debugdoc import debug_paths
 from softplc.api.pagedoc import page_paths
 
 API_PREFIX: Final = "/api/v1"
@@ -34,8 +36,10 @@ def _json(schema: str, description: str) -> dict[str, Any]:
 def _errors(*codes: int) -> dict[str, Any]:
     text = {
         400: "Malformed request (bad flag, body not UTF-8 or not JSON).",
-        401: "Missing or wrong bearer token (only when a token is required).",
-        403: "Refused: cross-origin request, foreign Host header, or an input symbol.",
+        401: "No credentials where the route needs more than the anonymous role, or wrong "
+             "ones (docs/security.md, users and roles).",
+        403: "Refused: a role too low for the route, cross-origin request, foreign Host "
+             "header, or an input symbol.",
         404: "No such symbol or path.",
         409: "Refused by the program lifecycle in the current state, or expired (`outcome`): "
              "never applied.",
@@ -299,6 +303,8 @@ def openapi_document() -> dict[str, Any]:
                 "application/json": {"schema": {"type": "object"}}}}, **_errors(401, 403)}}},
     }
     paths.update(page_paths(API_PREFIX))  # the page, live stream and forcing
+    paths.update(debug_paths(API_PREFIX))  # why (docs/debug.md)
+    paths.update(access_paths(API_PREFIX))  # login, logout, whoami, audit
     return copy.deepcopy({
         "openapi": "3.1.0",
         "info": {"title": "softplc management API", "version": "1.0.0",
@@ -307,9 +313,12 @@ def openapi_document() -> dict[str, Any]:
         "paths": paths,
         "components": {
             "schemas": _SCHEMAS,
-            "securitySchemes": {"bearer": {"type": "http", "scheme": "bearer",
-                                           "description": "Required when bound off loopback; "
-                                           "the token is in STATE_DIR/api_token."}},
+            "securitySchemes": {
+                "bearer": {"type": "http", "scheme": "bearer",
+                           "description": "A user's API key (softplc users key NAME), or the "
+                           "owner's STATE_DIR/api_token."},
+                "basic": {"type": "http", "scheme": "basic",
+                          "description": "A user's name and password."}},
         },
-        "security": [{"bearer": []}],
+        "security": [{"bearer": []}, {"basic": []}],
     })

@@ -1,10 +1,11 @@
 """The HTTP management service (aiohttp), hosted in the communication process.
 
-Owns: the application (its routes: program.py, symbols.py, events.py and web.py add theirs),
-the bearer-token guard, Host/Origin checks, the body limit, turning any failure into a JSON
-error ({"error", "problems"}, 4xx for bad input, never a traceback), sending lifecycle
-commands with an id and a deadline (api/commands.py keeps their outcomes) and mapping scan
-replies to status codes, and the status document.
+Owns: the application (its routes: program.py, symbols.py, events.py, web.py and
+accessroutes.py add theirs), the guard (Host/Origin checks, then the route's role against
+the request's principal and the audit record of a change: accessroutes.py), the body
+limit, turning any failure into a JSON error ({"error", "problems"}, 4xx for bad input,
+never a traceback), sending lifecycle commands with an id and a deadline (api/commands.py
+keeps their outcomes) and mapping scan replies to status codes, and the status document.
 Does not know: how a program compiles or a command acts (the scan process does, behind
 the channel), Modbus, the terminal, the runtime (it is handed a channel, a snapshot source
 and a board; their contract is core/snapshot.py).
@@ -25,8 +26,9 @@ from typing import Any, Final
 
 from aiohttp import web
 
-from softplc.api import auth, programs, symbols
+from softplc.api import accessroutes, auth, debug, programs, symbols
 from softplc.api import web as web_page
+from softplc.api.access import Gate
 from softplc.api.commands import (
     DOWNLOAD_DEADLINE_S,
     KEEP,
@@ -39,6 +41,7 @@ from softplc.api.events import EventHub
 from softplc.api.limits import HttpBounds, HttpLimits, Kind
 from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
 from softplc.api.problems import MAX_JSON_BYTES, ApiProblem, idempotency_key
+from softplc.api.roles import Role
 from softplc.api.service import BoardSource, CommandChannel
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import Command
@@ -94,16 +97,18 @@ class ApiServer:
         self.snapshots = snapshots
         self._board = board
         self._book = CommandBook()  # ids (never 0: the scan's own), deadlines, outcomes
-        self._token: str | None = None
+        # Without credentials: a viewer on loopback, nobody when bound elsewhere (or told so).
+        self.gate = Gate(self.state_dir, "", None if self.token_required else Role.VIEWER)
+        self._indexed: Path | None = None
         self._hub = EventHub(self.board_document)
         self._runner: web.AppRunner | None = None
         # Connection cap, request classes, header and body timeouts.
         self.bounds = HttpBounds(limits, request_class, pools=len(STREAM_POOLS))
 
     @property
-    def token_file(self) -> Path | None:
-        """Where the token is kept (never the token itself), or None when none is needed."""
-        return self.state_dir / auth.TOKEN_FILE if self.token_required else None
+    def token_file(self) -> Path:
+        """Where the owner's key is kept (never the key itself)."""
+        return self.state_dir / auth.TOKEN_FILE
 
     @property
     def bound_port(self) -> int:
@@ -113,16 +118,19 @@ class ApiServer:
         return port
 
     async def start(self) -> None:
-        if self.token_required:
-            self._token = await asyncio.to_thread(auth.load_or_create_token, self.state_dir)
+        self.gate.set_owner(await asyncio.to_thread(auth.load_or_create_token, self.state_dir))
         self._runner = self.bounds.runner(self.build_app(), shutdown_timeout=2.0,
                                           access_log_format='%a "%r" %s %b %Tfs')
         await self._runner.setup()
         await self.bounds.site(self._runner, self.host, self.port).start()
-        log.info("HTTP API on %s:%d (token %s)", self.host, self.bound_port,
-                 "required" if self.token_required else "not required")
+        with contextlib.suppress(OSError):  # the owner's CLI then gives --state-dir itself
+            self._indexed = auth.register_server(self.bound_port, self.state_dir)
+        log.info("HTTP API on %s:%d (without credentials: %s)", self.host, self.bound_port,
+                 "nothing" if self.token_required else "read only")
 
     async def stop(self) -> None:
+        auth.unregister_server(self._indexed)
+        self._indexed = None
         await self._hub.close()
         if self._runner is not None:
             await self._runner.cleanup()
@@ -139,8 +147,10 @@ class ApiServer:
         app.router.add_get(f"{p}/commands/{{id}}", self._command_outcome)
         app.router.add_get(f"{p}/events", self._events)
         app.router.add_get(f"{p}/openapi.json", self._openapi)
+        accessroutes.register(app, self.gate)  # login, logout, whoami, audit
         programs.register(app, self)  # download and upload
         symbols.register(app, self)
+        debug.register(app, self)  # why (docs/debug.md)
         web_page.register(app, self)  # the operator's page, live stream, forcing (docs/web.md)
         return app
 
@@ -172,22 +182,20 @@ class ApiServer:
         if request.path == "/healthz":
             return await handler(request)
         host = request.headers.get("Host")
-        if self._token is None and not auth.host_header_is_loopback(host):
+        if self.gate.anonymous is not None and not self.gate.has_credentials(request) \
+                and not auth.host_header_is_loopback(host):
             raise ApiProblem(403, "this service answers requests to a loopback host only")
         if not auth.same_origin(request.headers.get("Origin"), host):
             raise ApiProblem(403, "cross-origin requests are refused")
-        public = web_page.is_public(request.method, request.path)  # the page, to ask a token
-        if self._token is not None and not public and not auth.bearer_matches(
-                request.headers.get("Authorization"), self._token):
-            raise ApiProblem(401, "missing or wrong bearer token (see STATE_DIR/api_token)",
-                             headers={"WWW-Authenticate": 'Bearer realm="softplc"'})
+        who = await accessroutes.admit(self.gate, request)  # 401, 403 (roles.py), 429
+        accessroutes.PRINCIPAL.set(who)
         if (request.content_length or 0) > MAX_BODY_BYTES:
             raise ApiProblem(413, f"request body larger than {MAX_BODY_BYTES} bytes")
         if request.method == "PUT" and (request.content_length or 0) > MAX_JSON_BYTES:
             # Every PUT is a JSON value write: refused before the body is read, not after.
             raise ApiProblem(413, f"JSON body of {request.content_length} bytes: at most "
                                   f"{MAX_JSON_BYTES}")
-        return await handler(request)
+        return await accessroutes.audited(self.gate, request, who, handler)
 
     # -- plumbing ---------------------------------------------------------------------------
 
@@ -307,6 +315,7 @@ class ApiServer:
                 status.setdefault("timing", {"p99_lateness_us": s.p99_lateness_us,
                                              "overruns": s.overruns})
         status["http"] = self.bounds.report()  # refusals counted here, not logged one by one
+        status["audit"] = await self.gate.chain()  # "ok": false names the first bad record
         status["last_event_seq"] = max(
             (e["seq"] for e in events if isinstance(e, dict) and isinstance(e.get("seq"), int)),
             default=0)

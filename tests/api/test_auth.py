@@ -1,4 +1,6 @@
-"""The token: required off loopback, stored 0600, reused, enforced, never shown."""
+"""The owner's key (STATE_DIR/api_token): made at every start, stored 0600, reused, required
+for everything off loopback, never shown; on loopback a request without credentials may
+read (docs/security.md, users and roles)."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from softplc.api import auth
+from softplc.api.roles import Role
 from softplc.api.server import ApiServer
 from tests.api.conftest import Plc, ScanThread, make_server
 from tests.api.helpers import call
@@ -27,10 +30,11 @@ def test_loopback_rule(host: str, loopback: bool) -> None:
 def test_a_server_bound_off_loopback_requires_a_token(plc_parts: Plc, tmp_path: Path) -> None:
     server = ApiServer(plc_parts.channel, plc_parts.reader, plc_parts.board, host="0.0.0.0",
                        port=0, state_dir=tmp_path)
-    assert server.token_required
+    assert server.token_required and server.gate.anonymous is None
     assert server.token_file == tmp_path / "api_token"
     local = ApiServer(plc_parts.channel, plc_parts.reader, plc_parts.board, state_dir=tmp_path)
-    assert not local.token_required and local.token_file is None
+    assert not local.token_required and local.gate.anonymous is Role.VIEWER
+    assert local.token_file == tmp_path / "api_token"  # the owner's key: made at every start
     assert (local.host, local.port) == ("127.0.0.1", 8080)
 
 
@@ -66,6 +70,7 @@ def test_bearer_header_check() -> None:
 
 def test_client_token_sources(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(auth.TOKEN_ENV, raising=False)
+    monkeypatch.setenv(auth.INDEX_ENV, str(tmp_path / "index"))
     assert auth.client_token(None, None) is None
     assert auth.client_token(None, tmp_path) is None
     (tmp_path / auth.TOKEN_FILE).write_text("from-file\n")

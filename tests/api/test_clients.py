@@ -104,13 +104,15 @@ def test_client_token_from_argument_env_or_state_dir(plc_parts: Plc, scan: ScanT
     with make_server(plc_parts, state, token_required=True) as api:
         token = (state / auth.TOKEN_FILE).read_text().strip()
         with pytest.raises(ApiError) as denied:
-            ApiClient(api.url).status()
+            ApiClient(api.url, local=False).status()
         assert denied.value.status == 401 and token not in str(denied.value)
         assert "--token" in denied.value.message
+        # The account running the server finds its key by the URL (the local index).
+        assert ApiClient(api.url).whoami() == {"user": "owner", "role": "admin", "via": "owner"}
         assert ApiClient(api.url, token=token).status()["state"]
         assert ApiClient(api.url, state_dir=state).status()["state"]
         monkeypatch.setenv(auth.TOKEN_ENV, token)
-        assert ApiClient(api.url).status()["state"]
+        assert ApiClient(api.url, local=False).status()["state"]
         assert token not in repr(ApiClient(api.url))
 
 
@@ -182,10 +184,13 @@ def test_cli_cannot_connect(dead_url: str, capsys: pytest.CaptureFixture[str]) -
 
 
 def test_cli_token_options(plc_parts: Plc, scan: ScanThread, tmp_path: Path,
-                           capsys: pytest.CaptureFixture[str]) -> None:
+                           capsys: pytest.CaptureFixture[str],
+                           monkeypatch: pytest.MonkeyPatch) -> None:
     state = tmp_path / "state"
     with make_server(plc_parts, state, token_required=True) as api:
         token = (state / auth.TOKEN_FILE).read_text().strip()
+        assert run_cli("status", "--api", api.url) == EXIT_OK  # the owner's key, found
+        monkeypatch.setenv(auth.INDEX_ENV, str(tmp_path / "elsewhere"))  # not found
         assert run_cli("status", "--api", api.url) == EXIT_REFUSED
         assert "401" in capsys.readouterr().err
         assert run_cli("status", "--api", api.url, f"--token={token}") == EXIT_OK

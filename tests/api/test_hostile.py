@@ -27,7 +27,7 @@ from softplc.api.limits import Capacity, HttpLimits
 from softplc.core.image import ImageSizes
 from softplc.hmi.server import ModbusSlave
 from tests.api.conftest import Plc, ServerThread, make_server
-from tests.api.helpers import TRANSPORT, call
+from tests.api.helpers import ANSWER_WITHIN_S, TRANSPORT, call, owner_headers
 from tests.api.test_limits import closed_by_peer, connect, get, parse, read_all
 from tests.support import eventually, wait_until
 
@@ -75,7 +75,7 @@ def modbus_read(port: int) -> int:
 
 def neighbours(d: Door, headers: dict[str, str] | None = None
                ) -> dict[str, Callable[[], int]]:
-    h = headers or {}
+    h = headers or owner_headers(d.url)
     return {"status": lambda: call(d.url, "GET", "/api/v1/status", None, h, 5).status,
             "stop": lambda: call(d.url, "POST", "/api/v1/stop", None, h, 5).status,
             "modbus": lambda: modbus_read(d.modbus_port)}
@@ -99,7 +99,8 @@ def assert_neighbours_answer(idle: dict[str, list[tuple[int, float]]],
 
 def started(d: Door) -> None:
     program = TRANSPORT.read_text()
-    assert call(d.url, "POST", "/api/v1/program?name=transport.yaml", program).status == 200
+    assert call(d.url, "POST", "/api/v1/program?name=transport.yaml", program,
+                timeout_s=ANSWER_WITHIN_S, owner=True).status == 200  # the server's time to answer
     eventually(lambda: call(d.url, "GET", "/api/v1/symbols").body["symbols"])
 
 
@@ -157,9 +158,11 @@ def test_ordinary_requests_held_open_cannot_take_the_reserve(
         idle = measure(probes)
         ordinary = d.api.server.bounds.capacity.ordinary
         held = []
+        owner = owner_headers(d.url)["Authorization"].encode()  # an operator's write
         for _ in range(16):  # bodies that never arrive: each request stays in the app
             sock = stack.enter_context(connect(d.api.server.bound_port))
             sock.sendall(b"PUT /api/v1/symbols/hold HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                         b"Authorization: " + owner + b"\r\n"
                          b"Content-Type: application/json\r\nContent-Length: 100\r\n\r\n{")
             held.append(sock)
         assert wait_until(lambda: d.api.server.bounds.report()["busy_refused"] == 16 - ordinary)
@@ -218,7 +221,7 @@ def test_json_bombs_are_one_line_4xx_and_never_a_traceback(
             while not stop.is_set():
                 for what, bomb in BOMBS.items():
                     answer = call(d.url, "PUT", f"/api/v1/{route}/hold", bomb,
-                                  {"Content-Type": "application/json"}, 10)
+                                  {"Content-Type": "application/json"}, 10, owner=True)
                     answers.append((what, answer.status, answer.raw))
                     # Paced: the bombs' client shares this process (and its GIL) with the
                     # server and the probes; unpaced it measures the GIL, not the server.

@@ -22,6 +22,7 @@ from aiohttp import web
 
 from softplc.api.limits import REFUSAL, HttpBounds, HttpLimits
 from tests.api.conftest import Plc, make_server
+from tests.api.helpers import owner_headers
 from tests.support import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -313,9 +314,11 @@ def test_api_server_applies_its_limits(plc_parts: Plc, scan: object, tmp_path: P
             assert get(port, "/api/v1/status")[0] == 200
             assert all(closed_by_peer(sock) for sock in slow)
         with connect(port) as sock:
+            owner = owner_headers(f"http://127.0.0.1:{port}")["Authorization"]
             sock.sendall(
                 b"POST /api/v1/program HTTP/1.1\r\nHost: 127.0.0.1\r\n"
-                b"Content-Type: application/yaml\r\nContent-Length: 1000\r\n\r\nname"
+                + f"Authorization: {owner}\r\n".encode()
+                + b"Content-Type: application/yaml\r\nContent-Length: 1000\r\n\r\nname"
             )
             status, body = parse(sock.recv(65536))
         assert status == 408

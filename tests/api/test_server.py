@@ -16,7 +16,7 @@ from tests.support import eventually
 
 def post(api: ServerThread, path: str, body: bytes | str | None = None,
          **headers: str) -> Answer:
-    return call(api.url, "POST", f"/api/v1{path}", body, headers)
+    return call(api.url, "POST", f"/api/v1{path}", body, headers, owner=True)
 
 
 def get(api: ServerThread, path: str) -> Answer:
@@ -134,7 +134,7 @@ def test_symbols_read(api: ServerThread) -> None:
 def put(api: ServerThread, name: str, body: Any) -> Answer:
     raw = body if isinstance(body, bytes) else json.dumps(body).encode()
     return call(api.url, "PUT", f"/api/v1/symbols/{name}", raw,
-                {"Content-Type": "application/json"})
+                {"Content-Type": "application/json"}, owner=True)
 
 
 def test_symbol_write_is_journaled_and_seen_by_the_scan(api: ServerThread) -> None:

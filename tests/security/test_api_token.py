@@ -1,7 +1,8 @@
 """The rule of softplc/api/auth.py as deployed: a service bound off loopback (0.0.0.0 here,
-reached through 127.0.0.1) needs the bearer token on every path but /healthz, keeps it in a
-0600 file, and compares it in constant time; bound to loopback it needs none but refuses
-foreign Host headers (DNS rebinding)."""
+reached through 127.0.0.1) needs credentials on every path but /healthz and the page; the
+owner's key is kept in a 0600 file and compared in constant time; bound to loopback a request
+without credentials may read, not change anything, and foreign Host headers are refused
+(DNS rebinding)."""
 
 from __future__ import annotations
 
@@ -37,14 +38,22 @@ def test_bound_to_all_interfaces_the_token_is_required(tmp_path: Path) -> None:
                         headers={**good, "Host": "plc.example:8080"}).status == 200
 
 
-def test_bound_to_loopback_no_token_but_only_loopback_host_names(tmp_path: Path) -> None:
+def test_bound_to_loopback_reads_without_a_token_but_only_loopback_host_names(
+        tmp_path: Path) -> None:
     with LivePlc(ROOT, ROOT / "programs" / "transport.yaml") as plc:
         server = ApiServer(plc.channel, plc.reader, plc.board, host="127.0.0.1", port=0,
                            state_dir=tmp_path / "state")
         with ServerThread(server) as api:
-            assert server.token_file is None
-            assert not (tmp_path / "state" / auth.TOKEN_FILE).exists()
+            path = tmp_path / "state" / auth.TOKEN_FILE
+            assert stat.S_IMODE(path.stat().st_mode) == 0o600  # the owner's key, always made
             assert call(api.url, "GET", "/api/v1/status").status == 200
+            for method, route in (("POST", "/api/v1/stop"), ("POST", "/api/v1/start"),
+                                  ("PUT", "/api/v1/symbols/hold"), ("DELETE", "/api/v1/forces"),
+                                  ("POST", "/api/v1/program"), ("GET", "/api/v1/audit")):
+                refused = call(api.url, method, route, b'{"value": 1}')
+                assert refused.status == 401, (method, route)
+                assert refused.headers["WWW-Authenticate"].startswith("Bearer")
+            assert plc.document()["state"] == "RUNNING"
             rebound = call(api.url, "GET", "/api/v1/status", headers={"Host": "evil.example"})
             assert rebound.status == 403
 

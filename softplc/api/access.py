@@ -1,0 +1,265 @@
+"""Who sent an HTTP request, whether they may, and the audit record of what they did.
+
+Owns: Principal; reading credentials (a bearer API key `NAME.SECRET`, the owner's key in
+STATE_DIR/api_token, HTTP Basic user:password, the page's session cookie), the back-off of
+failed logins per user and per peer (a bounded table), the sessions of /login, the rule
+"no credentials: the anonymous role" (viewer on loopback, nothing off it), 401/403/429 as
+one-line problems, and writing audit records (in a thread: they fsync).
+Does not know: the routes' table (roles.py), the users file's format (users.py), the
+trail's format (audit.py), the PLC.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import binascii
+import contextlib
+import hashlib
+import hmac
+import logging
+import secrets
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+from aiohttp import web
+
+from softplc.api.audit import AuditTrail
+from softplc.api.problems import ApiProblem
+from softplc.api.roles import Role
+from softplc.api.users import OWNER, User, UserError, UserStore
+
+log = logging.getLogger(__name__)
+
+COOKIE: Final = "softplc_session"
+SESSION_S: Final = 8 * 3600.0  # a shift
+MAX_SESSIONS: Final = 256
+FREE_FAILURES: Final = 3  # failed logins before the back-off starts
+BACKOFF_BASE_S: Final = 1.0  # doubles with each further failure
+BACKOFF_MAX_S: Final = 60.0
+BACKOFF_ENTRIES: Final = 4096  # users and peers remembered; the least recent go first
+BASIC_CACHE: Final = 64  # verified user:password pairs kept, so scripts pay scrypt once
+BASIC_CACHE_S: Final = 300.0
+CHAIN_CHECK_S: Final = 5.0  # status re-verifies the trail at most this often, when it changed
+CHALLENGE: Final = {"WWW-Authenticate": 'Bearer realm="softplc"'}
+
+
+@dataclass(frozen=True, slots=True)
+class Principal:
+    """Who a request is from: `user` None when it carried no credentials; `role` None when
+    such a request may do nothing (off loopback)."""
+
+    user: str | None
+    role: Role | None
+    via: str  # owner, key, basic, session, anonymous
+
+    def audit(self) -> dict[str, Any]:
+        return {"user": self.user, "role": self.role.label if self.role else None,
+                "via": self.via}
+
+
+class Backoff:
+    """Failures per key (("user", name) or ("peer", address)): after FREE_FAILURES, each
+    further one closes that key for BACKOFF_BASE_S x 2**k, at most BACKOFF_MAX_S; a success
+    clears it. At most BACKOFF_ENTRIES keys: an address flood evicts the oldest, it does not
+    grow the table."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self._clock = clock
+        self._table: OrderedDict[tuple[str, str], tuple[int, float]] = OrderedDict()
+
+    def wait_s(self, *keys: tuple[str, str]) -> float:
+        now = self._clock()
+        return max([self._table.get(k, (0, now))[1] - now for k in keys] + [0.0])
+
+    def failed(self, *keys: tuple[str, str]) -> None:
+        now = self._clock()
+        for key in keys:
+            count = self._table.pop(key, (0, now))[0] + 1
+            delay = 0.0 if count <= FREE_FAILURES else min(
+                BACKOFF_BASE_S * 2 ** (count - FREE_FAILURES - 1), BACKOFF_MAX_S)
+            self._table[key] = (count, now + delay)
+            while len(self._table) > BACKOFF_ENTRIES:
+                self._table.popitem(last=False)
+
+    def succeeded(self, *keys: tuple[str, str]) -> None:
+        for key in keys:
+            self._table.pop(key, None)
+
+
+class Gate:
+    """The credentials check of one API server."""
+
+    def __init__(self, state_dir: Path, owner_token: str, anonymous: Role | None,
+                 audit: AuditTrail | None = None) -> None:
+        self.users = UserStore(state_dir)
+        self.audit = audit or AuditTrail(state_dir)
+        self.anonymous = anonymous
+        self.backoff = Backoff()
+        self.throttled = 0  # requests refused while backing off (not audited one by one)
+        self.anchor: tuple[int, str] | None = None  # the last record this server wrote
+        self._owner = owner_token
+        self._kdf = asyncio.Semaphore(1)  # one scrypt at a time: 32 MiB and ~0.3 s each
+        self._pepper = secrets.token_bytes(32)
+        self._basic: OrderedDict[bytes, tuple[str, Role, float]] = OrderedDict()
+        self._sessions: OrderedDict[str, tuple[str, float]] = OrderedDict()
+        self._chain: tuple[float, object, dict[str, Any]] | None = None
+        self._chain_lock = asyncio.Lock()
+
+    def set_owner(self, token: str) -> None:
+        self._owner = token
+
+    async def chain(self) -> dict[str, Any]:
+        """The audit chain's verdict for status: verified again when a file of the trail
+        changed (inode, size, ctime: no one sets a ctime back), at most every CHAIN_CHECK_S."""
+        async with self._chain_lock:
+            now = time.monotonic()
+            if self._chain is None or now - self._chain[0] >= CHAIN_CHECK_S:
+                stamp = await asyncio.to_thread(self._stamp)
+                if self._chain is None or stamp != self._chain[1]:
+                    verdict = await asyncio.to_thread(self.audit.verify, self.anchor)
+                    self._chain = (now, stamp, verdict.as_dict())
+                else:
+                    self._chain = (now, stamp, self._chain[2])
+            return {**self._chain[2], "throttled_logins": self.throttled}
+
+    def _stamp(self) -> object:
+        stamps = []
+        for path in self.audit.files():
+            with contextlib.suppress(OSError):
+                info = path.stat()
+                stamps.append((path.name, info.st_ino, info.st_size, info.st_ctime_ns))
+        return (tuple(stamps), self.anchor)
+
+    @staticmethod
+    def has_credentials(request: web.Request) -> bool:
+        return "Authorization" in request.headers or COOKIE in request.cookies
+
+    async def identify(self, request: web.Request) -> Principal:
+        """The request's principal; raises 401 for wrong credentials, 429 while backing off."""
+        header = request.headers.get("Authorization")
+        if header is None:
+            if (found := self._session(request.cookies.get(COOKIE))) is not None:
+                return found
+            return Principal(None, self.anonymous, "anonymous")
+        scheme, _, value = header.strip().partition(" ")
+        if scheme.lower() == "bearer":
+            return await self._bearer(request, value.strip())
+        if scheme.lower() == "basic" and (pair := _basic(value)) is not None:
+            role = await self.password(request, *pair)
+            return Principal(pair[0], role, "basic")
+        raise await self.failure(request, None, "credentials neither Bearer nor Basic "
+                                   "user:password")
+
+    async def _bearer(self, request: web.Request, token: str) -> Principal:
+        if token and hmac.compare_digest(token.encode(), self._owner.encode()):
+            return Principal(OWNER, Role.ADMIN, "owner")
+        user = self.users.verify_key(token) if self._users() else None
+        if user is not None:
+            return Principal(user.name, user.role, "key")
+        name = token.partition(".")[0] if "." in token else None
+        raise await self.failure(request, name[:32] if name else None, "a wrong API key")
+
+    async def password(self, request: web.Request, name: str, password: str) -> Role:
+        """The role of `name` if `password` is theirs (Basic and /login): cached for a
+        while, backing off per user and per peer, every failure audited."""
+        keys = (("user", name[:64]), ("peer", request.remote or "?"))
+        stamp = hashlib.sha256(self._pepper + f"{name}\0{password}".encode()).digest()
+        cached = self._basic.get(stamp)
+        users = self._users()
+        if cached is not None and cached[2] > time.monotonic() and \
+                (user := users.get(name)) is not None and user.role is cached[1]:
+            return cached[1]
+        if (wait_s := self.backoff.wait_s(*keys)) > 0:
+            raise self.throttle(wait_s)
+        async with self._kdf:
+            role = await asyncio.to_thread(self.users.verify, name, password) if users \
+                else None
+        if role is None:
+            raise await self.failure(request, name[:32], "a wrong user name or password", keys)
+        self.backoff.succeeded(*keys)
+        self._basic[stamp] = (name, role, time.monotonic() + BASIC_CACHE_S)
+        while len(self._basic) > BASIC_CACHE:
+            self._basic.popitem(last=False)
+        return role
+
+    def _users(self) -> dict[str, User]:
+        try:
+            return self.users.users()  # re-read when the file changed
+        except UserError as exc:  # an unusable users file: nobody but the owner gets in
+            log.error("%s", exc)
+            return {}
+
+    def throttle(self, wait_s: float) -> ApiProblem:
+        self.throttled += 1
+        seconds = max(1, round(wait_s + 0.5))
+        return ApiProblem(429, f"too many failed logins: try again in {seconds} s",
+                          headers={"Retry-After": str(seconds)})
+
+    async def failure(self, request: web.Request, name: str | None, what: str,
+                      keys: tuple[tuple[str, str], ...] = ()) -> ApiProblem:
+        """Audit a failed authentication and make its 401. While its peer is backing off a
+        failure is counted, not audited: a flood of wrong keys cannot push older records out
+        of the bounded trail."""
+        peer = ("peer", request.remote or "?")
+        if self.backoff.wait_s(peer) > 0:
+            self.throttled += 1
+        else:
+            await self.record(request, Principal(name, None, "failed"), "login", "failed",
+                              401, {"route": f"{request.method} {request.path[:100]}",
+                                    "reason": what})
+        self.backoff.failed(*(keys or (peer,)))
+        return ApiProblem(401, f"authentication failed: {what}", headers=CHALLENGE)
+
+    # -- sessions (the page's login) ----------------------------------------------------------
+
+    def open_session(self, name: str) -> str:
+        session = secrets.token_urlsafe(32)
+        self._sessions[hashlib.sha256(session.encode()).hexdigest()] = (
+            name, time.monotonic() + SESSION_S)
+        while len(self._sessions) > MAX_SESSIONS:
+            self._sessions.popitem(last=False)
+        return session
+
+    def close_session(self, session: str | None) -> str | None:
+        if not session:
+            return None
+        entry = self._sessions.pop(hashlib.sha256(session.encode()).hexdigest(), None)
+        return entry[0] if entry else None
+
+    def _session(self, session: str | None) -> Principal | None:
+        """A live session's user with their role now (a removed user's session is over)."""
+        if not session:
+            return None
+        entry = self._sessions.get(hashlib.sha256(session.encode()).hexdigest())
+        if entry is None or entry[1] < time.monotonic():
+            return None
+        user = self._users().get(entry[0])
+        return Principal(user.name, user.role, "session") if user is not None else None
+
+    # -- the audit trail ----------------------------------------------------------------------
+
+    async def record(self, request: web.Request, who: Principal, action: str, outcome: str,
+                     status: int, detail: dict[str, Any] | None = None) -> None:
+        entry = {**who.audit(), "peer": request.remote, "iface": "http", "action": action,
+                 "outcome": outcome, "status": status, "detail": detail or {}}
+        try:
+            written = await asyncio.to_thread(self.audit.append, entry)
+        except OSError as exc:  # the action stands; the failure to record it is loud
+            log.error("audit trail %s not written: %s", self.audit.path, exc)
+            return
+        self.anchor = (written["seq"], written["hash"])
+
+
+def _basic(value: str) -> tuple[str, str] | None:
+    """user:password from a Basic header's value; None when it is not that."""
+    try:
+        text = base64.b64decode(value.strip(), validate=True).decode("utf-8")
+    except (binascii.Error, UnicodeDecodeError):
+        return None
+    name, colon, password = text.partition(":")
+    return (name, password) if colon else None

@@ -1,0 +1,182 @@
+"""The access check around every HTTP route, and the routes of access itself.
+
+Owns: `admit` (the role a route needs, from roles.py, against the request's principal:
+401 without credentials, 403 with a role too low, the denial audited when the request would
+have changed something), `audited` (a state-changing request's record: who, what, the
+program hash or the value written, the outcome), and the routes `POST /api/v1/login`,
+`POST /api/v1/logout` (the page's session cookie), `GET /api/v1/whoami`, `GET
+/api/v1/audit` (admin).
+Does not know: how credentials are checked (access.py), the trail's files (audit.py).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import contextvars
+import hashlib
+import json
+from collections.abc import Awaitable, Callable
+from typing import Any, Final
+
+from aiohttp import web
+
+from softplc.api.access import COOKIE, SESSION_S, Gate, Principal
+from softplc.api.audit import parse_since
+from softplc.api.openapi import API_PREFIX
+from softplc.api.problems import ApiProblem, json_body
+from softplc.api.roles import changes_state, required_role
+
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+# Who the guard admitted, for the handler it then runs (the same task).
+PRINCIPAL: Final[contextvars.ContextVar[Principal | None]] = contextvars.ContextVar(
+    "softplc_principal", default=None)
+MAX_LIMIT: Final = 10_000
+
+
+def route_of(request: web.Request) -> str | None:
+    resource = request.match_info.route.resource
+    return resource.canonical if resource is not None else None
+
+
+async def admit(gate: Gate, request: web.Request) -> Principal | None:
+    """The principal a request runs as, or None for a public route; raises 401/403/429."""
+    need = required_role(request.method, route_of(request))
+    if need is None:
+        return None
+    who = await gate.identify(request)
+    if who.role is not None and who.role >= need:
+        return who
+    what = f"{request.method} {request.path[:100]} needs {need.label}"
+    if who.user is None:
+        problem = ApiProblem(401, f"{what}: give credentials (an API key as a bearer token, "
+                             "user and password, or STATE_DIR/api_token on this machine)"
+                             + (f"; without them this service allows {who.role.label}"
+                                if who.role else ""), headers={"WWW-Authenticate":
+                                                               'Bearer realm="softplc"'})
+    else:
+        problem = ApiProblem(403, f"{what}; {who.user} is {who.role.label if who.role else '?'}")
+    if changes_state(request.method):
+        await gate.record(request, who, action(request), "denied", problem.status,
+                          {"needs": need.label})
+    raise problem
+
+
+def action(request: web.Request) -> str:
+    return f"{request.method} {request.path.removeprefix(API_PREFIX + '/')[:100]}"
+
+
+async def audited(gate: Gate, request: web.Request, who: Principal | None,
+                  handler: Handler) -> web.StreamResponse:
+    """Run a request; when it may change something, write its record (whatever the
+    outcome). Login and logout write their own."""
+    if who is None or not changes_state(request.method):
+        return await handler(request)
+    try:
+        response = await handler(request)
+    except ApiProblem as problem:
+        await _write(gate, request, who, problem.status, problem.error)
+        raise
+    except web.HTTPException as exc:
+        await _write(gate, request, who, exc.status, exc.reason)
+        raise
+    except Exception:
+        await _write(gate, request, who, 500, "internal error")
+        raise
+    message = None
+    if isinstance(response, web.Response) and isinstance(response.body, bytes):
+        with contextlib.suppress(ValueError, AttributeError):
+            message = json.loads(response.body).get("message")
+    await _write(gate, request, who, response.status, message)
+    return response
+
+
+async def _write(gate: Gate, request: web.Request, who: Principal, status: int,
+                 message: str | None) -> None:
+    outcome = ("applied" if status in (200, 201, 204) else "queued" if status == 202
+               else "refused" if status < 500 else "failed")
+    detail: dict[str, Any] = {"message": message} if message else {}
+    if status not in (408, 413) and request.can_read_body:
+        with contextlib.suppress(Exception):  # the handler read it: cached, no wait
+            body = await asyncio.wait_for(request.read(), 1.0)
+            detail.update(_what(request, body))
+    await gate.record(request, who, action(request), outcome, status, detail)
+
+
+def _what(request: web.Request, body: bytes) -> dict[str, Any]:
+    """The program's hash for a download, the value for a symbol write or a force."""
+    if request.path == f"{API_PREFIX}/program":
+        return {"body_sha256": hashlib.sha256(body).hexdigest(), "bytes": len(body),
+                **{k: v for k, v in request.query.items()
+                   if k in ("name", "online", "replace", "dry_run")}}
+    with contextlib.suppress(ValueError, AttributeError):
+        return {"value": json.loads(body).get("value")}
+    return {}
+
+
+# -- the routes of access -------------------------------------------------------------------
+
+def register(app: web.Application, gate: Gate) -> None:
+    routes = _Routes(gate)
+    p = API_PREFIX
+    app.router.add_post(f"{p}/login", routes.login)
+    app.router.add_post(f"{p}/logout", routes.logout)
+    app.router.add_get(f"{p}/whoami", routes.whoami)
+    app.router.add_get(f"{p}/audit", routes.audit)
+
+
+class _Routes:
+    def __init__(self, gate: Gate) -> None:
+        self._gate = gate
+
+    async def login(self, request: web.Request) -> web.Response:
+        """User and password as JSON ({"user", "password"}) or HTTP Basic -> a session
+        cookie (HttpOnly, SameSite=Strict, Secure over TLS) for the page."""
+        if "Authorization" in request.headers:
+            who = await self._gate.identify(request)
+            name, role = who.user, who.role
+        else:
+            body = await json_body(request)
+            if not isinstance(body, dict) or not isinstance(body.get("user"), str) \
+                    or not isinstance(body.get("password"), str):
+                raise ApiProblem(400, 'login takes {"user": "...", "password": "..."}')
+            name, role = body["user"], await self._gate.password(request, body["user"],
+                                                                 body["password"])
+        if name is None or role is None:
+            raise ApiProblem(401, "authentication failed: no user")
+        response = web.json_response({"user": name, "role": role.label})
+        response.set_cookie(COOKIE, self._gate.open_session(name), max_age=int(SESSION_S),
+                            path="/", httponly=True, samesite="Strict", secure=request.secure)
+        await self._gate.record(request, Principal(name, role, "session"), "login", "applied",
+                                200)
+        return response
+
+    async def logout(self, request: web.Request) -> web.Response:
+        name = self._gate.close_session(request.cookies.get(COOKIE))
+        response = web.json_response({"ok": True})
+        response.del_cookie(COOKIE, path="/")
+        if name is not None:
+            await self._gate.record(request, Principal(name, None, "session"), "logout",
+                                    "applied", 200)
+        return response
+
+    async def whoami(self, request: web.Request) -> web.Response:
+        who = PRINCIPAL.get() or Principal(None, None, "anonymous")
+        return web.json_response({"user": who.user, "role": who.role.label if who.role
+                                  else None, "via": who.via})
+
+    async def audit(self, request: web.Request) -> web.Response:
+        """The newest records (`limit`, default 1000), at or after `since`, with the
+        chain's verdict."""
+        try:
+            since = parse_since(request.query["since"]) if "since" in request.query else None
+            limit = int(request.query.get("limit", "1000"))
+        except ValueError as exc:
+            raise ApiProblem(400, str(exc)) from None
+        if not 1 <= limit <= MAX_LIMIT:
+            raise ApiProblem(400, f"limit must be 1 to {MAX_LIMIT}")
+        trail = self._gate.audit
+        records, verdict = await asyncio.to_thread(
+            lambda: (trail.records(since, limit), trail.verify(self._gate.anchor)))
+        return web.json_response({"records": records, "chain": verdict.as_dict()})
+

@@ -1,0 +1,223 @@
+"""The audit trail: append-only, hash-chained JSON lines in STATE_DIR/audit.jsonl.
+
+Owns: the record format (canonical JSON: sorted keys, no spaces, ASCII; `seq` counting up
+across files, `time` UTC, `prev` = the previous record's `hash`, `hash` = SHA-256 of the
+record without it), appending from several processes (flock on STATE_DIR/audit.lock around
+read-last-hash + append + fsync), rotation bounded in size (audit.jsonl -> audit.1.jsonl ->
+... -> audit.KEEP.jsonl, then dropped; the chain and `seq` go on across files), reading and
+verifying (any changed byte breaks its record's hash or the next record's `prev`).
+Does not know: HTTP, users, who calls it. Every call is blocking file I/O.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import fcntl
+import hashlib
+import json
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+from softplc.core.units import parse_duration_ns
+
+AUDIT_FILE: Final = "audit.jsonl"
+LOCK_FILE: Final = "audit.lock"
+GENESIS: Final = "0" * 64  # `prev` of the first record ever
+MAX_BYTES: Final = 1 << 20  # per file; with KEEP old files at most ~9 MiB in all
+KEEP: Final = 8
+_TAIL_BYTES: Final = 65536
+_TEXT_MAX: Final = 300  # a string in a record (a message, a symbol name) is cut here
+
+
+def canonical(record: dict[str, Any]) -> str:
+    return json.dumps(record, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+
+
+def utc_now() -> str:
+    now = datetime.datetime.now(datetime.UTC)
+    return now.strftime("%Y-%m-%dT%H:%M:%S.") + f"{now.microsecond // 1000:03d}Z"
+
+
+def parse_since(text: str, now: datetime.datetime | None = None) -> str:
+    """A time to compare record times with: ISO 8601 (`2025-03-01`, `2025-03-01T08:00`,
+    with Z or an offset; no zone is UTC) or a duration back from now (`90s`, `2h`)."""
+    now = now or datetime.datetime.now(datetime.UTC)
+    try:
+        when = now - datetime.timedelta(microseconds=parse_duration_ns(text) / 1000)
+    except ValueError:
+        try:
+            when = datetime.datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+        except ValueError:
+            raise ValueError(f"--since {text!r}: an ISO time (2025-03-01T08:00Z) or a "
+                             "duration back from now (2h, 30min)") from None
+        if when.tzinfo is None:
+            when = when.replace(tzinfo=datetime.UTC)
+    return when.astimezone(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+
+
+def _clip(value: Any) -> Any:
+    if isinstance(value, str):
+        return value[:_TEXT_MAX]
+    if isinstance(value, dict):
+        return {str(k)[:_TEXT_MAX]: _clip(v) for k, v in list(value.items())[:32]}
+    if isinstance(value, list | tuple):
+        return [_clip(v) for v in value[:32]]
+    return value if isinstance(value, int | bool) or value is None else str(value)[:_TEXT_MAX]
+
+
+@dataclass(frozen=True, slots=True)
+class Verdict:
+    """What verify() found: `ok`, how many records, the last seq and hash, and for a break
+    the first bad record's position (`where`: FILE:LINE) and what is wrong with it."""
+
+    ok: bool
+    records: int
+    last_seq: int
+    last_hash: str
+    where: str | None = None
+    problem: str | None = None
+    first_seq: int = 0
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"ok": self.ok, "records": self.records, "first_seq": self.first_seq,
+                "last_seq": self.last_seq, "last_hash": self.last_hash, "where": self.where,
+                "problem": self.problem}
+
+
+class AuditTrail:
+    """The trail of one state directory."""
+
+    def __init__(self, state_dir: Path | str, max_bytes: int = MAX_BYTES,
+                 keep: int = KEEP) -> None:
+        self.dir = Path(state_dir)
+        self.path = self.dir / AUDIT_FILE
+        self.max_bytes = max_bytes
+        self.keep = keep
+
+    def files(self) -> list[Path]:
+        """Oldest first."""
+        rotated = [self._rotated(n) for n in range(self.keep, 0, -1)]
+        return [p for p in [*rotated, self.path] if p.exists()]
+
+    def _rotated(self, n: int) -> Path:
+        return self.dir / f"audit.{n}.jsonl"
+
+    def append(self, entry: dict[str, Any]) -> dict[str, Any]:
+        """Add one record (who, what, outcome: the caller's keys) and return it as written."""
+        self.dir.mkdir(parents=True, exist_ok=True, mode=0o700)
+        lock = os.open(self.dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            last_seq, last_hash = self._last()
+            if self.path.exists() and self.path.stat().st_size >= self.max_bytes:
+                self._rotate()
+            record = {**_clip(entry), "seq": last_seq + 1, "time": utc_now(), "prev": last_hash}
+            record["hash"] = hashlib.sha256(canonical(record).encode()).hexdigest()
+            fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
+            try:
+                os.write(fd, (canonical(record) + "\n").encode())
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            return record
+        finally:
+            os.close(lock)
+
+    def _rotate(self) -> None:
+        with contextlib.suppress(FileNotFoundError):
+            self._rotated(self.keep).unlink()
+        for n in range(self.keep - 1, 0, -1):
+            with contextlib.suppress(FileNotFoundError):
+                self._rotated(n).rename(self._rotated(n + 1))
+        self.path.rename(self._rotated(1))
+
+    def _last(self) -> tuple[int, str]:
+        """The newest record's seq and hash, from the tail of the newest non-empty file."""
+        for path in reversed(self.files()):
+            with path.open("rb") as handle:
+                size = handle.seek(0, os.SEEK_END)
+                handle.seek(max(0, size - _TAIL_BYTES))
+                lines = handle.read().splitlines()
+            for raw in reversed(lines):
+                with contextlib.suppress(ValueError, AttributeError, TypeError):
+                    record = json.loads(raw)
+                    return int(record["seq"]), str(record["hash"])
+        return 0, GENESIS
+
+    def lines(self) -> Iterator[tuple[str, int, bytes]]:
+        """(file name, line number, raw line) of every record, oldest first."""
+        for path in self.files():
+            with path.open("rb") as handle:
+                for number, raw in enumerate(handle, 1):
+                    yield path.name, number, raw.rstrip(b"\n")
+
+    def records(self, since: str | None = None, limit: int | None = None
+                ) -> list[dict[str, Any]]:
+        """Records at or after `since` (parse_since's form), the newest `limit` of them; a
+        line that is not a record comes back as {"unreadable": "FILE:LINE"}."""
+        found: list[dict[str, Any]] = []
+        for name, number, raw in self.lines():
+            try:
+                record = json.loads(raw)
+                if not isinstance(record, dict):
+                    raise ValueError("not an object")
+            except ValueError:
+                found.append({"unreadable": f"{name}:{number}"})
+                continue
+            if since is None or str(record.get("time", "")) >= since:
+                found.append(record)
+        return found[-limit:] if limit else found
+
+    def verify(self, anchor: tuple[int, str] | None = None) -> Verdict:
+        """Check every record and the links between them. `anchor` (seq, hash), a record
+        known to have been written (a running server keeps its last one), must still be
+        there: a trail rewritten from before it, or cut short, fails."""
+        count, first, seq, last = 0, 0, 0, GENESIS
+        anchored = anchor is None
+        # Only when every rotated slot is taken can older records have been dropped.
+        dropped = len(self.files()) > self.keep
+        for name, number, raw in self.lines():
+            problem = _check(raw, seq, last, count == 0 and dropped)
+            if problem is not None:
+                return Verdict(False, count, seq, last, f"{name}:{number}", problem, first)
+            record = json.loads(raw)
+            count, seq, last = count + 1, record["seq"], record["hash"]
+            first = first or seq
+            if anchor is not None and seq == anchor[0]:
+                if last != anchor[1]:
+                    return Verdict(False, count, seq, last, f"{name}:{number}",
+                                   "this record is not the one written as seq "
+                                   f"{seq}: the trail was rewritten", first)
+                anchored = True
+        if not anchored and anchor is not None:
+            return Verdict(False, count, seq, last, self.path.name, f"record {anchor[0]} "
+                           "(written while this server ran) is gone: the trail was cut", first)
+        return Verdict(True, count, seq, last, first_seq=first)
+
+
+def _check(raw: bytes, seq: int, last: str, after_dropped: bool) -> str | None:
+    """What is wrong with one line after a record (seq, last), or None. The oldest kept
+    record after rotation dropped older files links to a record no longer here."""
+    try:
+        record = json.loads(raw)
+    except ValueError as exc:
+        return f"not JSON ({exc})"
+    if not isinstance(record, dict) or not isinstance(record.get("hash"), str) \
+            or not isinstance(record.get("seq"), int) or not isinstance(record.get("prev"), str):
+        return "not an audit record (seq, prev and hash)"
+    if canonical(record).encode() != raw:
+        return "not in canonical form: the line was edited"
+    body = {k: v for k, v in record.items() if k != "hash"}
+    if hashlib.sha256(canonical(body).encode()).hexdigest() != record["hash"]:
+        return "its hash does not match its content: the record was edited"
+    if after_dropped:
+        return None
+    if record["seq"] != seq + 1:
+        return f"seq {record['seq']} follows {seq}: records are missing or repeated"
+    if record["prev"] != last:
+        return "prev is not the hash of the record before: the chain is broken"
+    return None

@@ -1,0 +1,138 @@
+"""The debugging routes (issue 32): `GET /api/v1/why/{transition}`, read-only (viewer).
+
+Owns: explaining a transition of the running program in this (the communication) process,
+off the scan: the net compiled here once per program hash from the boot program the PLC keeps
+in its state directory (program/boot.py), and the round's state rebuilt from one status board
+document (marking, coloured tokens, symbol values, forces, delays and timed firings in
+progress), so that marking and values belong to the same scan. core/why.py does the rest.
+Does not know: the scan process (nothing is asked of it), the channel.
+
+What the board does not carry is said in the answer's `basis`: the previous scan's values
+(an edge, `rising(x)`, reads as no edge) and the events of the coming round (none); a coloured
+place shows its first 20 tokens.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import tempfile
+from pathlib import Path
+from typing import Any, Final
+
+from aiohttp import web
+
+from softplc.api.openapi import API_PREFIX
+from softplc.api.problems import ApiProblem
+from softplc.api.service import ApiService
+from softplc.core.context import ScanContext
+from softplc.core.image import ProcessImage
+from softplc.core.net import Busy, CompiledNet, NetState
+from softplc.core.problems import ProgramError
+from softplc.core.why import explain
+from softplc.program import boot
+from softplc.program import bundle as bundles
+from softplc.program.compiler import compile_file, compile_text
+
+BASIS: Final = ("the next firing round, on the marking and symbol values of the status board "
+                "of scan {scan} (refreshed about every 50 ms); events and edges of that round "
+                "are not published and read as none")
+
+
+def register(app: web.Application, api: ApiService) -> None:
+    """Add the debugging routes to `app` (server.py's build_app calls this once)."""
+    routes = _Routes(api)
+    app.router.add_get(f"{API_PREFIX}/why/{{transition}}", routes.why)
+
+
+def compile_boot(state_dir: Path) -> CompiledNet | None:
+    """The boot program of `state_dir` compiled (a bundle unpacked into a temporary folder),
+    None when there is none. Raises ProgramError, BundleError, BootUnreadable, OSError."""
+    program = boot.load(state_dir)
+    if program is None:
+        return None
+    if program.bundle is None:
+        return compile_text(program.text, program.filename,
+                            Path(program.root) if program.root else None)
+    bundle = bundles.unpack(program.bundle)
+    with tempfile.TemporaryDirectory(prefix="softplc-why-") as folder:
+        root = (Path(folder) / "bundle").resolve()
+        return compile_file(bundles.extract(bundle, root), root)
+
+
+def state_of(net: CompiledNet, doc: dict[str, Any]) -> tuple[NetState, ScanContext, int]:
+    """The round's NetState, context and `now_ns` rebuilt from a board document."""
+    state = NetState.initial(net)
+    state.marking[:] = 0
+    for place, count in (doc.get("marking") or {}).items():
+        if place in net.place_index:
+            state.marking[net.place_index[place]] = int(count)
+    state.tokens = {p: [] for p in state.tokens}
+    for place, records in (doc.get("tokens") or {}).items():
+        if place in net.place_index:
+            state.tokens[net.place_index[place]] = [dict(r) for r in records]
+    live = doc.get("net_live") or {}
+    now_ns = 0  # the board's times are remaining times: they count from here
+    index = {t.name: t for t in net.transitions}
+    for name, left_ms in (live.get("delay_left_ms") or {}).items():
+        if name in index:
+            state.enabled_since[index[name].index] = \
+                int(float(left_ms) * 1e6) - index[name].delay_ns
+    busy = live.get("busy")
+    for name, times in (busy if isinstance(busy, dict) else {}).items():
+        if name in index:
+            t = index[name]
+            produce = tuple((o.place, o.weight, None) for o in t.post)
+            state.busy[t.index] = Busy(int(float(times.get("remaining_ms", 0)) * 1e6), produce)
+    image = ProcessImage(net.io.sizes)
+    for name, entry in (doc.get("symbols") or {}).items():
+        symbol = net.io.symbols.get(name)
+        if symbol is not None and isinstance(entry, dict):
+            with contextlib.suppress(TypeError, ValueError, OverflowError):
+                image.set(symbol.address, entry.get("value", 0))
+    locations = {s.name: (s.address.attr, s.address.index) for s in net.io.symbols.values()}
+    return state, ScanContext(image, image, locations, frozenset()), now_ns
+
+
+class _Routes:
+    def __init__(self, api: ApiService) -> None:
+        self._api = api
+        self._net: CompiledNet | None = None
+        self._lock = asyncio.Lock()
+
+    async def _program(self, program_hash: str) -> CompiledNet:
+        """The running program, compiled here once per hash (a new download: again)."""
+        async with self._lock:
+            if self._net is not None and self._net.program_hash == program_hash:
+                return self._net
+            try:
+                net = await asyncio.to_thread(compile_boot, self._api.state_dir)
+            except (ProgramError, bundles.BundleError, boot.BootUnreadable, OSError) as exc:
+                raise ApiProblem(409, f"the running program cannot be read back from the "
+                                      f"state directory: {exc}") from None
+            if net is None or net.program_hash != program_hash:
+                raise ApiProblem(409, "the running program is not the kept boot program yet "
+                                      "(a download is being stored); try again",
+                                 headers={"Retry-After": "1"})
+            self._net = net
+            return net
+
+    async def why(self, request: web.Request) -> web.Response:
+        name = request.match_info["transition"]
+        doc = await self._api.board_document()
+        program_hash = doc.get("program_hash")
+        if not program_hash:
+            raise ApiProblem(404, f"no program is loaded: no transition {name!r}")
+        net = await self._program(str(program_hash))
+        if name not in {t.name for t in net.transitions}:
+            raise ApiProblem(404, f"no transition {name!r} in program {net.name}",
+                             [f"transitions: {', '.join(t.name for t in net.transitions[:50])}"])
+        state, ctx, now_ns = state_of(net, doc)
+        forced = dict(doc.get("forced") or {})
+        answer = await asyncio.to_thread(explain, net, state, ctx, now_ns, name, forced)
+        scan = doc.get("scan_count", 0)
+        body = {**answer.as_dict(), "program": net.name, "state": doc.get("state"),
+                "scan": scan, "basis": BASIS.format(scan=scan)}
+        if doc.get("state") != "RUNNING":
+            body["note"] = f"the PLC is {doc.get('state')}: no round runs until it runs"
+        return web.json_response(body)

@@ -1,0 +1,119 @@
+"""Why a guard is false: the part of it that is, with the values of the names it read.
+
+Owns: evaluating a transition's guard off the round (core/why.py asks), splitting a guard
+`a and b and c` into the parts that are false, and the values each part read (symbols with
+their previous value where it takes an edge, events, token fields, forced symbols marked).
+Does not know: the firing round (core/why.py runs it), where the values come from.
+"""
+
+from __future__ import annotations
+
+import ast
+import itertools
+from collections.abc import Mapping
+
+from softplc.core.engine.bindings import Bound
+from softplc.core.expr import Compiled, EvalContext, ExprError, NameKind, compile_expr, parse
+from softplc.core.net import CompiledNet, NetState, Token, Transition
+
+MAX_TRIES = 200  # token combinations tried for a coloured guard (the round's own bound: 1000)
+
+
+def guard_reasons(net: CompiledNet, state: NetState, ctx: EvalContext, t: Transition,
+                  forced: Mapping[str, object]) -> list[tuple[str, tuple[str, ...]]]:
+    """[] when the guard holds (for some binding); else per false part its text and the
+    symbols it read."""
+    guard = t.guard
+    if guard is None:
+        return []
+    envs = _bindings(state, t) if t.coloured else [{}]
+    for env in envs:
+        try:
+            if _eval(guard, ctx, env):
+                return []
+        except Exception as exc:  # the round counts a raising guard as false (a diagnostic)
+            return [(f"guard {guard.text} raised {type(exc).__name__}: {exc} (false for this "
+                     "round)", tuple(sorted(guard.reads)))]
+    env = envs[0] if envs else {}
+    parts = _false_parts(guard, ctx, env)
+    every = f" for each of {len(envs)} binding(s) tried" if t.coloured else ""
+    out = []
+    for text, part in parts:
+        which = f"guard {guard.text}{every}: {text} is false" if text != guard.text \
+            else f"guard {guard.text} is false{every}"
+        out.append((f"{which} with {_values(net, part, ctx, env, forced)}",
+                    tuple(sorted(part.reads))))
+    return out
+
+
+def _eval(guard: Compiled, ctx: EvalContext, env: Mapping[str, Token]) -> bool:
+    return bool(guard(Bound(ctx, env) if env else ctx))
+
+
+def _bindings(state: NetState, t: Transition) -> list[dict[str, Token]]:
+    """Token variable -> token, for the first MAX_TRIES combinations of distinct tokens."""
+    arcs = [a for a in t.pre if a.var is not None]
+    pools = [list(enumerate(state.tokens.get(a.place, []))) for a in arcs]
+    out: list[dict[str, Token]] = []
+    for combo in itertools.islice(itertools.product(*pools), MAX_TRIES):
+        seen = [(a.place, i) for a, (i, _) in zip(arcs, combo, strict=True)]
+        if len(set(seen)) == len(seen):
+            out.append({str(a.var): tok for a, (_, tok) in zip(arcs, combo, strict=True)})
+    return out
+
+
+def _false_parts(guard: Compiled, ctx: EvalContext,
+                 env: Mapping[str, Token]) -> list[tuple[str, Compiled]]:
+    """The conjuncts of `a and b and c` that are false; the whole guard otherwise."""
+    whole = [(guard.text, guard)]
+    if guard.scope is None:
+        return whole
+    try:
+        tree = parse(guard.text)
+    except ExprError:
+        return whole
+    if not isinstance(tree, ast.BoolOp) or not isinstance(tree.op, ast.And):
+        return whole
+    false = []
+    for node in tree.values:
+        text = ast.unparse(node)
+        try:
+            part = compile_expr(text, guard.scope)
+            if not _eval(part, ctx, env):
+                false.append((text, part))
+        except Exception:  # a part that raises: the whole guard is shown instead
+            continue
+    return false or whole
+
+
+def _values(net: CompiledNet, expr: Compiled, ctx: EvalContext, env: Mapping[str, Token],
+            forced: Mapping[str, object]) -> str:
+    """`s2_i = 1 (forced), d.count = 2, event e did not occur`: what `expr` read."""
+    kinds = expr.scope.names if expr.scope is not None else {}
+    shown = []
+    for name in sorted(expr.reads):
+        if kinds.get(name) is NameKind.EVENT or name not in net.io.symbols:
+            shown.append(f"event {name} {'occurred' if ctx.event(name) else 'did not occur'}")
+            continue
+        text = f"{name} = {ctx.symbol(name)}"
+        if name in expr.edges:
+            text += f" (previous scan {ctx.previous(name)})"
+        if name in forced:
+            text += " (forced)"
+        shown.append(text)
+    for var, field in _fields(expr.text):
+        record = env.get(var)
+        if record is not None:
+            shown.append(f"{var}.{field} = {record.get(field, '(no such field)')}")
+    return ", ".join(shown) or "no names read"
+
+
+def _fields(text: str) -> list[tuple[str, str]]:
+    """The `var.field` reads of an expression, in order, once each."""
+    try:
+        tree = parse(text)
+    except ExprError:
+        return []
+    found = [(n.value.id, n.attr) for n in ast.walk(tree)
+             if isinstance(n, ast.Attribute) and isinstance(n.value, ast.Name)]
+    return list(dict.fromkeys(found))

@@ -1,0 +1,124 @@
+"""The debugging commands of the CLI (issue 32): `softplc why` and `softplc vcd`.
+
+Owns: their arguments, exit codes (0 answered, 1 refused or unusable input, 2 no API
+answering) and what a person reads. `why` asks a running softplc (GET /api/v1/why/NAME) or,
+with --trace, replays a trace to the scan asked (runtime/tracewalk.py); `vcd` writes a trace
+as a value change dump (runtime/vcd.py).
+Does not know: how a transition is explained (core/why.py), HTTP (api/client.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import urllib.parse
+from typing import Any
+
+from softplc.api.clicmds import EXIT_OK, EXIT_REFUSED, _call, _connection_options
+from softplc.core.net import CompiledNet
+from softplc.core.problems import ProgramError
+from softplc.core.why import format_why
+from softplc.program.compiler import compile_file
+from softplc.runtime.tracewalk import why_at
+from softplc.runtime.vcd import write_vcd
+
+
+def add_commands(subparsers: Any) -> None:
+    """Add `why` and `vcd` to `subparsers` (from ArgumentParser.add_subparsers())."""
+    why = subparsers.add_parser(
+        "why", help="why a transition fires or not: the places short of tokens, the guard "
+        "with the values it read, a delay, a conflict, forces; on a running softplc, or at "
+        "a scan of a trace (docs/debug.md)")
+    why.add_argument("transition", help="the transition's name (a subnet's: c1.start)")
+    why.add_argument("--trace", metavar="FILE", help="explain a scan of this trace (written "
+                     "by run or simulate --trace) instead of the running PLC (default: none)")
+    why.add_argument("--program", metavar="PROGRAM", help="with --trace: the program the "
+                     "trace was recorded with")
+    why.add_argument("--at-scan", metavar="N", type=int, help="with --trace: the scan "
+                     "number (k in the trace, the timeline and the VCD)")
+    why.add_argument("--json", action="store_true",
+                     help="print the answer as JSON (default: off, one line per reason)")
+    _connection_options(why)
+    why.set_defaults(func=cmd_why)
+    vcd = subparsers.add_parser(
+        "vcd", help="export a trace as a VCD file (IEEE 1364 value change dump) for GTKWave "
+        "and other waveform viewers: every symbol and every place's marking, scan by scan")
+    vcd.add_argument("trace", help="a JSON Lines trace written by run or simulate --trace")
+    vcd.add_argument("program", help="the program the trace was recorded with")
+    vcd.add_argument("-o", "--output", metavar="FILE", required=True, help="the VCD file")
+    vcd.set_defaults(func=cmd_vcd)
+
+
+def _compile(path: str, what: str) -> CompiledNet | None:
+    try:
+        return compile_file(path)
+    except ProgramError as exc:
+        for problem in exc.problems:
+            print(problem, file=sys.stderr)
+        print(f"{path}: {len(exc.problems)} problem(s)", file=sys.stderr)
+    except OSError as exc:
+        print(f"softplc {what}: cannot read {path}: {exc.strerror}", file=sys.stderr)
+    return None
+
+
+def _show(answer: dict[str, Any], as_json: bool, when: str) -> None:
+    if as_json:
+        print(json.dumps(answer, sort_keys=True))
+        return
+    lines = format_why(answer)
+    lines[0] += f" ({when})"
+    for line in lines:
+        print(line)
+    if answer.get("note"):
+        print(f"({answer['note']})")
+
+
+def cmd_why(args: argparse.Namespace) -> int:
+    if args.trace is None:
+        if args.program is not None or args.at_scan is not None:
+            print("softplc why: --program and --at-scan go with --trace", file=sys.stderr)
+            return EXIT_REFUSED
+        path = f"/why/{urllib.parse.quote(args.transition, safe='')}"
+        code, answer = _call(args, "why", lambda client: client._json("GET", path))
+        if code == EXIT_OK:
+            _show(answer, args.json, f"the next round, after scan {answer.get('scan')}")
+        return code
+    if args.program is None or args.at_scan is None:
+        print("softplc why: --trace needs --program PROGRAM and --at-scan N", file=sys.stderr)
+        return EXIT_REFUSED
+    net = _compile(args.program, "why")
+    if net is None:
+        return EXIT_REFUSED
+    try:
+        why = why_at(args.trace, net, args.transition, args.at_scan)
+    except KeyError:
+        print(f"softplc why: no transition {args.transition!r} in program {net.name} "
+              f"(transitions: {', '.join(t.name for t in net.transitions[:50])})",
+              file=sys.stderr)
+        return EXIT_REFUSED
+    except OSError as exc:
+        print(f"softplc why: cannot read trace {args.trace}: {exc.strerror}", file=sys.stderr)
+        return EXIT_REFUSED
+    except ValueError as exc:  # no such scan, no round in it, another program's trace
+        print(f"softplc why: {args.trace}: {exc}", file=sys.stderr)
+        return EXIT_REFUSED
+    _show({**why.as_dict(), "scan": args.at_scan}, args.json, f"scan {args.at_scan}")
+    return EXIT_OK
+
+
+def cmd_vcd(args: argparse.Namespace) -> int:
+    net = _compile(args.program, "vcd")
+    if net is None:
+        return EXIT_REFUSED
+    try:
+        with open(args.output, "w", encoding="ascii") as out:
+            scans = write_vcd(args.trace, net, out)
+    except OSError as exc:
+        print(f"softplc vcd: {exc.filename}: {exc.strerror}", file=sys.stderr)
+        return EXIT_REFUSED
+    except (ValueError, KeyError, TypeError) as exc:
+        print(f"softplc vcd: {args.trace}: not a usable trace ({exc})", file=sys.stderr)
+        return EXIT_REFUSED
+    print(f"vcd: {scans} scans of {net.name} written to {args.output}")
+    return EXIT_OK
