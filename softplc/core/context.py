@@ -6,26 +6,38 @@ Does not know: the net, the lifecycle, clocks.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
+from softplc.core.datatypes import SymType, value_of
 from softplc.core.expr import Value
 from softplc.core.image import ProcessImage
 
+_NONE: Mapping[str, SymType] = {}
+
 
 class ScanContext:
-    """EvalContext over the scan's image: current values, previous values, events."""
+    """EvalContext over the scan's image: current values, previous values, events. Symbols in
+    `typed` (int, dint, udint, real, lreal) are decoded from their raw bits."""
 
-    __slots__ = ("events", "image", "locations", "prev")
+    __slots__ = ("events", "image", "locations", "prev", "typed")
 
     def __init__(self, image: ProcessImage, prev: ProcessImage,
-                 locations: dict[str, tuple[str, int]], events: frozenset[str]) -> None:
+                 locations: dict[str, tuple[str, int]], events: frozenset[str],
+                 typed: Mapping[str, SymType] = _NONE) -> None:
         self.image, self.prev, self.locations, self.events = image, prev, locations, events
+        self.typed = typed
 
-    def symbol(self, name: str) -> int:
+    def symbol(self, name: str) -> int | float:
         area, index = self.locations[name]
-        return int(getattr(self.image, area)[index])
+        raw = int(getattr(self.image, area)[index])
+        typed = self.typed.get(name)
+        return raw if typed is None else value_of(typed, raw)
 
-    def previous(self, name: str) -> int:
+    def previous(self, name: str) -> int | float:
         area, index = self.locations[name]
-        return int(getattr(self.prev, area)[index])
+        raw = int(getattr(self.prev, area)[index])
+        typed = self.typed.get(name)
+        return raw if typed is None else value_of(typed, raw)
 
     def event(self, name: str) -> bool:
         return name in self.events

@@ -9,15 +9,19 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
+from softplc.core.datatypes import value_of
 from softplc.core.image import ProcessImage
-from softplc.core.symbols import EventKind, EventSpec, Symbol
+from softplc.core.symbols import EventKind, EventSpec, Symbol, SymType
+
+Number = int | float
 
 
 @dataclass(slots=True)
 class EventMemory:
-    """What the conditions remember between scans: last values and hysteresis arming."""
+    """What the conditions remember between scans: last values and hysteresis arming. Values
+    are the symbols' typed values (a real's float, a dint's signed value), not raw bits."""
 
-    last: dict[str, int] = field(default_factory=dict)
+    last: dict[str, Number] = field(default_factory=dict)
     armed: dict[str, bool] = field(default_factory=dict)
 
     def rearm(self) -> None:
@@ -26,13 +30,15 @@ class EventMemory:
         self.armed.clear()
 
 
-def _occurred(spec: EventSpec, value: int, before: int | None, memory: EventMemory) -> bool:
+def _occurred(spec: EventSpec, value: Number, before: Number | None,
+              memory: EventMemory) -> bool:
     if spec.kind is EventKind.RISING:
         return before is not None and not before and bool(value)
     if spec.kind is EventKind.FALLING:
         return before is not None and bool(before) and not value
     if spec.kind is EventKind.CHANGE:
-        return before is not None and before != value
+        # NaN != NaN: a real input stuck at NaN has not changed.
+        return before is not None and before != value and (before == before or value == value)
     above = spec.kind is EventKind.ABOVE
     crossed = value > spec.threshold if above else value < spec.threshold
     # A threshold starts armed, so a value already past it at the first evaluation occurs:
@@ -53,11 +59,17 @@ def evaluate(specs: Iterable[EventSpec], symbols: Mapping[str, Symbol],
     """The names of the conditions that occur in this scan, in declaration order. The first
     evaluation records values: an edge needs two scans; a threshold already past occurs."""
     occurred = []
-    values: dict[str, int] = {}
+    values: dict[str, Number] = {}
     for spec in specs:
         sym = symbols[spec.symbol]
-        value = values.setdefault(spec.symbol, image.get(sym.address))
+        value = values.get(spec.symbol)
+        if value is None:
+            raw = image.get(sym.address)
+            value = values[spec.symbol] = raw if sym.type in _PLAIN else value_of(sym.type, raw)
         if _occurred(spec, value, memory.last.get(spec.symbol), memory):
             occurred.append(spec.name)
     memory.last.update(values)
     return tuple(occurred)
+
+
+_PLAIN = (SymType.BOOL, SymType.WORD)

@@ -10,19 +10,24 @@ from __future__ import annotations
 
 import ast
 import enum
+import math
 import operator
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from softplc.core.arith import BINOPS, CONVERSIONS, INT_LIMIT, as_number, checked, static_kind
+from softplc.core.datatypes import SymType
 from softplc.core.errors import SoftplcError
 
-Value = int | bool | str
+Value = int | bool | str | float
 Thunk = Callable[["EvalContext"], Value]
+
+__all__ = ["INT_LIMIT", "Compiled", "EvalContext", "ExprError", "NameKind", "Scope", "Value",
+           "compile_expr", "name_kind", "names_in", "parse", "substitute"]
 
 MAX_NODES = 400
 MAX_TEXT = 2000
-INT_LIMIT = 1 << 63  # results beyond +-2**63 are an error: no unbounded integer growth
 MAX_STR = 256  # characters of a text value (core/values.py MAX_TEXT: the same language)
 
 
@@ -37,7 +42,8 @@ class ExprError(SoftplcError, ValueError):
 
 class NameKind(enum.Enum):
     BOOL = "bool"  # a bool symbol (input, output or memory bit)
-    WORD = "word"  # a word symbol
+    WORD = "word"  # an integer symbol: int, word, dint, udint
+    REAL = "real"  # a floating-point symbol: real, lreal
     EVENT = "event"  # an event: true in the scan where it occurred
     TOKEN = "token"  # a token variable bound by an input arc
     CONST = "const"  # a subnet parameter bound to a literal
@@ -46,9 +52,9 @@ class NameKind(enum.Enum):
 class EvalContext(Protocol):
     """What a compiled expression reads at run time. The scan supplies it."""
 
-    def symbol(self, name: str) -> int: ...
+    def symbol(self, name: str) -> int | float: ...
 
-    def previous(self, name: str) -> int: ...
+    def previous(self, name: str) -> int | float: ...
 
     def event(self, name: str) -> bool: ...
 
@@ -74,6 +80,9 @@ class Compiled:
     reads: frozenset[str]
     edges: frozenset[str]
     tokens: frozenset[str]
+    # What it gives as far as its text tells (core/arith.py static_kind): "int", "float",
+    # "bool", "text" or "any"; a "float" written to an integer symbol is refused.
+    kind: str = field(default="any", compare=False)
     # What it was compiled in: a net crossing to another process compiles its expressions
     # again from text and scope (program/wire.py), never ships the closures.
     scope: Scope | None = field(default=None, compare=False, repr=False)
@@ -82,36 +91,6 @@ class Compiled:
         return self.fn(ctx)
 
 
-def _check_int(value: int, node: ast.AST) -> int:
-    if not -INT_LIMIT < value < INT_LIMIT:
-        raise OverflowError("integer result out of range")
-    return value
-
-
-def _floordiv(a: int, b: int) -> int:
-    # Division by zero is a run-time error of the guard or action (docs/programs.md): the
-    # engine makes it a located diagnostic (guard false, action skipped), never a crash.
-    if b == 0:
-        raise ZeroDivisionError("integer division by zero")
-    return a // b
-
-
-def _mod(a: int, b: int) -> int:
-    if b == 0:
-        raise ZeroDivisionError("integer modulo by zero")
-    return a % b
-
-
-_BINOPS: dict[type[ast.operator], Callable[[int, int], int]] = {
-    ast.Add: operator.add,
-    ast.Sub: operator.sub,
-    ast.Mult: operator.mul,
-    ast.FloorDiv: _floordiv,
-    ast.Mod: _mod,
-    ast.BitAnd: operator.and_,
-    ast.BitOr: operator.or_,
-    ast.BitXor: operator.xor,
-}
 _CMPOPS: dict[type[ast.cmpop], Callable[[Any, Any], bool]] = {
     ast.Eq: operator.eq,
     ast.NotEq: operator.ne,
@@ -120,7 +99,8 @@ _CMPOPS: dict[type[ast.cmpop], Callable[[Any, Any], bool]] = {
     ast.Gt: operator.gt,
     ast.GtE: operator.ge,
 }
-_FUNCS: dict[str, int] = {"rising": 1, "falling": 1, "abs": 1, "min": 2, "max": 2}
+_FUNCS: dict[str, int] = {"rising": 1, "falling": 1, "abs": 1, "min": 2, "max": 2,
+                          **dict.fromkeys(CONVERSIONS, 1)}
 _CONSTS: dict[str, Value] = {"true": True, "false": False, "TRUE": True, "FALSE": False}
 
 
@@ -143,6 +123,10 @@ class _Compiler:
 
     def on_Constant(self, node: ast.Constant) -> Thunk:
         value = node.value
+        if isinstance(value, float):
+            if not math.isfinite(value):
+                raise self.fail(node, f"constant {value!r} is not a finite number")
+            return lambda ctx: value
         if isinstance(value, bool | int | str) and not isinstance(value, bytes):
             if isinstance(value, int) and not isinstance(value, bool) and not (
                     -INT_LIMIT < value < INT_LIMIT):
@@ -151,7 +135,7 @@ class _Compiler:
                 raise self.fail(node, f"text of {len(value)} characters (at most {MAX_STR})")
             return lambda ctx: value
         raise self.fail(node, f"constant {value!r} is not allowed: "
-                              "use integers, true/false or 'text'")
+                              "use numbers, true/false or 'text'")
 
     def on_Name(self, node: ast.Name) -> Thunk:
         name = node.id
@@ -206,21 +190,20 @@ class _Compiler:
         if isinstance(node.op, ast.Not):
             return lambda ctx: not inner(ctx)
         if isinstance(node.op, ast.USub):
-            return lambda ctx: -_as_int(inner(ctx))
+            return lambda ctx: checked(-as_number(inner(ctx)))
         if isinstance(node.op, ast.UAdd):
-            return lambda ctx: _as_int(inner(ctx))
+            return lambda ctx: as_number(inner(ctx))
         raise self.fail(node, "operator ~ is not allowed; use 'not' or arithmetic")
 
     def on_BinOp(self, node: ast.BinOp) -> Thunk:
-        op = _BINOPS.get(type(node.op))
+        op = BINOPS.get(type(node.op))
         if op is None:
-            symbol = {ast.Pow: "**", ast.Div: "/", ast.LShift: "<<", ast.RShift: ">>"}.get(
+            symbol = {ast.Pow: "**", ast.LShift: "<<", ast.RShift: ">>"}.get(
                 type(node.op), type(node.op).__name__
             )
-            hint = " (use // for integer division)" if symbol == "/" else ""
-            raise self.fail(node, f"operator {symbol} is not allowed{hint}")
+            raise self.fail(node, f"operator {symbol} is not allowed")
         left, right = self.build(node.left), self.build(node.right)
-        return lambda ctx: _check_int(op(_as_int(left(ctx)), _as_int(right(ctx))), node)
+        return lambda ctx: checked(op(as_number(left(ctx)), as_number(right(ctx))))
 
     def on_Compare(self, node: ast.Compare) -> Thunk:
         ops = []
@@ -251,10 +234,13 @@ class _Compiler:
         if name in ("rising", "falling"):
             return self._edge(node, name == "rising")
         args = [self.build(a) for a in node.args]
+        if name in CONVERSIONS:
+            conv, arg = CONVERSIONS[name], args[0]
+            return lambda ctx: conv(arg(ctx))
         if name == "abs":
-            return lambda ctx: abs(_as_int(args[0](ctx)))
+            return lambda ctx: checked(abs(as_number(args[0](ctx))))
         pick = min if name == "min" else max
-        return lambda ctx: pick(_as_int(args[0](ctx)), _as_int(args[1](ctx)))
+        return lambda ctx: pick(as_number(args[0](ctx)), as_number(args[1](ctx)))
 
     def _edge(self, node: ast.Call, rising: bool) -> Thunk:
         arg = node.args[0]
@@ -266,14 +252,6 @@ class _Compiler:
         if rising:
             return lambda ctx: bool(ctx.symbol(name)) and not ctx.previous(name)
         return lambda ctx: not ctx.symbol(name) and bool(ctx.previous(name))
-
-
-def _as_int(value: Value) -> int:
-    if isinstance(value, str):
-        raise TypeError("text cannot take part in arithmetic")
-    if not isinstance(value, int):  # int(1.5) would silently be 1 (core/values.py)
-        raise TypeError(f"{type(value).__name__} {value!r} cannot take part in arithmetic")
-    return int(value)
 
 
 def _describe(node: ast.AST) -> str:
@@ -315,9 +293,33 @@ def compile_expr(text: str | int | bool, scope: Scope) -> Compiled:
     """Compile `text` in `scope`. Raises ExprError; never runs any part of the text."""
     source = str(text).lower() if isinstance(text, bool) else str(text)
     compiler = _Compiler(source, scope)
-    fn = compiler.build(parse(source))
+    tree = parse(source)
+    fn = compiler.build(tree)
     return Compiled(source, fn, frozenset(compiler.reads), frozenset(compiler.edges),
-                    frozenset(compiler.tokens), scope)
+                    frozenset(compiler.tokens), kind=static_kind(tree, _kinds(scope)), scope=scope)
+
+
+def name_kind(t: SymType) -> NameKind:
+    """How an expression reads a symbol of type `t`."""
+    if t is SymType.BOOL:
+        return NameKind.BOOL
+    return NameKind.REAL if t in (SymType.REAL, SymType.LREAL) else NameKind.WORD
+
+
+_KIND_OF = {NameKind.BOOL: "bool", NameKind.WORD: "int", NameKind.REAL: "float",
+            NameKind.EVENT: "bool"}
+
+
+def _kinds(scope: Scope) -> Callable[[str], str]:
+    def kind(name: str) -> str:
+        if name in scope.consts:
+            const = scope.consts[name]
+            return {bool: "bool", int: "int", float: "float", str: "text"}.get(type(const), "any")
+        found = scope.names.get(name)
+        if found is None:
+            return "bool" if name in _CONSTS else "any"
+        return _KIND_OF.get(found, "any")
+    return kind
 
 
 def names_in(text: str) -> set[str]:

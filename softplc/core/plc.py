@@ -18,6 +18,7 @@ import numpy as np
 from softplc.core import events as event_conditions
 from softplc.core import online
 from softplc.core.context import ScanContext
+from softplc.core.datatypes import raw_of
 from softplc.core.engine import Engine
 from softplc.core.faults import DeviceMonitor, Verdict
 from softplc.core.forcing import Force, ForceRefused, Forces
@@ -36,10 +37,11 @@ from softplc.core.online import CarryPlan
 from softplc.core.problems import FaultCode
 from softplc.core.result import ScanResult
 from softplc.core.snapshot import HmiWrite
-from softplc.core.symbols import Direction, DriverSpec, FaultPolicy, unretained_memory
+from softplc.core.symbols import Direction, DriverSpec, FaultPolicy, SymType, unretained_memory
 
 # Kept for readers of older code and tests: the codes are FaultCode's.
 FAULT_NONE, FAULT_WATCHDOG, FAULT_DEVICE = FaultCode.NONE, FaultCode.WATCHDOG, FaultCode.DEVICE
+_PLAIN = (SymType.BOOL, SymType.WORD)  # read and written as their raw bits
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,6 +80,7 @@ class Plc:
     fault_reason: str = ""  # what faulted the PLC, for people (status, events)
     stopped_at_ns: int | None = None
     locations: dict[str, tuple[str, int]] = field(default_factory=dict)
+    typed: dict[str, SymType] = field(default_factory=dict)  # beyond bool and word: decoded
     by_location: dict[tuple[str, int], tuple[str, ...]] = field(default_factory=dict)
     devices: DeviceMonitor = field(default_factory=DeviceMonitor)
     _policies_of: CompiledNet | None = None
@@ -179,6 +182,7 @@ class Plc:
         self.stopped_at_ns = None
         self.locations = {s.name: (s.address.attr, s.address.index)
                           for s in net.io.symbols.values()}
+        self.typed = {s.name: s.type for s in net.io.symbols.values() if s.type not in _PLAIN}
         by_location: dict[tuple[str, int], list[str]] = {}
         for name, loc in self.locations.items():
             by_location.setdefault(loc, []).append(name)
@@ -353,25 +357,20 @@ class Plc:
     # -- image ------------------------------------------------------------------------------
 
     def apply_hmi(self, writes: Iterable[HmiWrite]) -> None:
+        """All at the scan boundary, in one go: a %MD's two registers written by one request
+        are never seen half by the program (docs/modbus.md)."""
         for write in writes:
-            arr = self.image.area(write.address.area, write.address.width)
-            if write.address.area is Area.INPUT:
-                continue  # the HMI map refuses these; inputs belong to the drivers
-            start = write.address.index
-            values = np.asarray(write.values[: max(len(arr) - start, 0)])
-            if write.address.is_bit:
-                arr[start:start + len(values)] = values != 0
-            else:
-                arr[start:start + len(values)] = values.astype(np.int64) & 0xFFFF
+            if write.address.area is not Area.INPUT:  # inputs belong to the drivers
+                self.image.write_registers(write.address, write.values)
 
     def drive_safe(self) -> None:
-        self.image.qx[:] = False
-        self.image.qw[:] = 0
+        for area in (self.image.qx, self.image.qw, self.image.qd, self.image.ql):
+            area[:] = 0
         if self.net is None:
             return
         for sym in self.net.io.symbols.values():
             if sym.direction is Direction.OUT:
-                self.image.set(sym.address, sym.safe)
+                self.image.set(sym.address, sym.safe_raw)
 
     def _changed(self) -> set[str]:
         changed: set[str] = set()
@@ -387,9 +386,11 @@ class Plc:
                 changed.update(self.by_location.get((area, index), ()))
         return changed
 
-    def _write(self, writes: Iterable[tuple[str, int]]) -> None:
+    def _write(self, writes: Iterable[tuple[str, int | float]]) -> None:
+        """Values already checked against their symbol's type (core/engine/outputs.py)."""
         for symbol, value in writes:
             area, index = self.locations[symbol]
-            arr = getattr(self.image, area)
-            arr[index] = bool(value) if area.endswith("x") else (int(value) & 0xFFFF)
+            arr, typed = getattr(self.image, area), self.typed.get(symbol)
+            arr[index] = (bool(value) if area.endswith("x") else int(value) & 0xFFFF
+                          if typed is None else raw_of(typed, value))
 

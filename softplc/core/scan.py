@@ -15,8 +15,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
-import numpy as np
-
 from softplc.core import events as event_conditions
 from softplc.core.context import ScanContext
 from softplc.core.image import Area, ProcessImage
@@ -97,8 +95,7 @@ def _faulted(plc: Plc, inputs: ProcessImage, now_ns: int, replies: list[CommandR
         plc.fault(code, now_ns if plc.state is PlcState.RUNNING else None, reason)
     plc.drive_safe()
     plc.last_events = plc.true_last = frozenset()
-    np.copyto(plc.image.ix, inputs.ix)
-    np.copyto(plc.image.iw, inputs.iw)
+    plc.image.latch_inputs(inputs)
     plc.forces.apply_inputs(plc.image)  # forced inputs show in every state
     if plc.engine is not None:
         plc.engine.invalidate()  # a round that raised half-way leaves no cached enabling
@@ -146,7 +143,8 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
         ctx = plc.context
         if (ctx is None or ctx.image is not plc.image or ctx.prev is not plc.prev
                 or ctx.locations is not plc.locations):
-            ctx = plc.context = ScanContext(plc.image, plc.prev, plc.locations, now_events)
+            ctx = plc.context = ScanContext(plc.image, plc.prev, plc.locations, now_events,
+                                            plc.typed)
         ctx.events = now_events  # one context per image and program, not one per scan
         # Symbols the program wrote last scan count as changed too: the end-of-scan image
         # already holds them, so the image difference alone would miss them.

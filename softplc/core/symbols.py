@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
+from softplc.core.datatypes import SymType as SymType  # its home; re-exported for the rooms
+from softplc.core.datatypes import raw_of
 from softplc.core.image import Address, Area, ImageSizes
 
 
@@ -40,11 +42,6 @@ class Retain(enum.Enum):
 RETAIN_WORDS = tuple(r.value for r in Retain)  # a tuple: `in` works on unhashable YAML too
 
 
-class SymType(enum.Enum):
-    BOOL = "bool"
-    WORD = "word"
-
-
 @dataclass(frozen=True, slots=True)
 class Symbol:
     """A named location of the process image."""
@@ -53,13 +50,18 @@ class Symbol:
     address: Address
     type: SymType
     direction: Direction
-    safe: int = 0
+    safe: int | float = 0  # the value (not its raw bits); a float for real and lreal
     description: str = ""
     driver: str | None = None
     channel: str | None = None  # driver-specific: plant signal name, or modbus table/offset
     hmi_writable: bool = True
     line: int = 0  # line in the io_images file, for messages
     retain: Retain = Retain.RETAIN  # memory symbols only (program/io_image.py checks)
+
+    @property
+    def safe_raw(self) -> int:
+        """The safe value as the bits its area stores (a real's IEEE 754 pattern)."""
+        return raw_of(self.type, self.safe)
 
 
 class OnFailure(enum.Enum):
@@ -101,8 +103,8 @@ class EventKind(enum.Enum):
     RISING = "rising"
     FALLING = "falling"
     CHANGE = "change"
-    ABOVE = "above"  # word crosses `threshold` upwards; re-arms below threshold - hysteresis
-    BELOW = "below"  # word crosses `threshold` downwards; re-arms above threshold + hysteresis
+    ABOVE = "above"  # a number crosses `threshold` upwards; re-arms below threshold - hysteresis
+    BELOW = "below"  # crosses `threshold` downwards; re-arms above threshold + hysteresis
 
 
 @dataclass(frozen=True, slots=True)
@@ -112,8 +114,8 @@ class EventSpec:
     name: str
     kind: EventKind
     symbol: str
-    threshold: int = 0
-    hysteresis: int = 0
+    threshold: int | float = 0  # a float only for a real or lreal symbol
+    hysteresis: int | float = 0
     line: int = 0
 
 

@@ -1,19 +1,22 @@
 """The values a program can carry: what a coloured token's field may hold.
 
-Owns: the value types of the language (integers in the expression range, booleans, text up to
-MAX_TEXT characters), the rules for a token record (identifier field names, at most MAX_FIELDS
-fields), and a description of anything else for a located problem or a fault reason.
+Owns: the value types of the language (integers in the expression range, finite IEEE 754
+doubles, booleans, text up to MAX_TEXT characters), the rules for a token record (identifier
+field names, at most MAX_FIELDS fields), and a description of anything else for a located
+problem or a fault reason.
 Does not know: YAML, files, where a value came from (the caller adds FILE:LINE or the
 transition).
 
 Why these and nothing else: every value must survive, unchanged, the expression language
-(integer arithmetic, comparison, text equality), the retain file (JSON) and the Modbus and HTTP
-views. A float would be truncated by the integer arithmetic (`1.5` became 1), a date or a null
-is not JSON, a list or a nested mapping cannot be compared or shown as one cell.
+(integer and floating-point arithmetic, comparison, text equality), the retain file (JSON) and
+the Modbus and HTTP views. A fraction is an lreal (issue 30: before, integer arithmetic
+truncated `1.5` to 1); NaN and infinities are not JSON and not values; a date or a null is not
+JSON, a list or a nested mapping cannot be compared or shown as one cell.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 from softplc.core.expr import INT_LIMIT, MAX_STR
@@ -28,7 +31,7 @@ def describe(value: object) -> str:
     if value is None:
         return "null (an empty value)"
     if isinstance(value, float):
-        return f"the fraction {value!r}"
+        return f"the number {value!r}"
     isoformat = getattr(value, "isoformat", None)  # a date or time a loader produced
     if callable(isoformat):
         return f"the date {isoformat()}"
@@ -50,11 +53,15 @@ def value_problem(value: object) -> str | None:
         if -INT_LIMIT < value < INT_LIMIT:  # type: ignore[operator]
             return None
         return f"integer {value} is out of range (|n| < 2**63)"
+    if kind is float:
+        if math.isfinite(value):  # type: ignore[arg-type]
+            return None
+        return f"{value!r} is not a finite number"
     if kind is str:
         if len(value) <= MAX_TEXT:  # type: ignore[arg-type]
             return None
         return f"text of {len(value)} characters (at most {MAX_TEXT})"  # type: ignore[arg-type]
-    return (f"{describe(value)} is not a token value: use a whole number, true/false or "
+    return (f"{describe(value)} is not a token value: use a number, true/false or "
             f"'text' (at most {MAX_TEXT} characters)")
 
 

@@ -134,6 +134,8 @@ def _check_symbol(sym: Symbol, used: dict[tuple[Area, Table, int], Symbol]) -> s
     except ValueError as exc:
         return str(exc)
     area, is_bit = sym.address.area, sym.address.is_bit
+    if sym.address.width.value in ("D", "L"):  # docs/modbus.md, 32- and 64-bit values
+        return f"{sym.address}: 32/64-bit symbols on a Modbus driver are not supported yet"
     allowed = _ALLOWED.get((area, is_bit))
     if allowed is None:
         return f"{sym.address} is memory, not I/O: expected an %IX/%IW input or %QX/%QW output"

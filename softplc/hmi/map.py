@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 from softplc.core.errors import SoftplcError
-from softplc.core.image import WORD_MAX, Address, Area, ImageSizes, Width
+from softplc.core.image import WORD_MAX, Address, Area, ImageSizes, Width, split_registers
 from softplc.core.snapshot import HmiWrite, Snapshot, Status
 
 
@@ -100,12 +100,17 @@ def status_registers(status: Status) -> list[int]:
 
 @dataclass(frozen=True, slots=True)
 class _Segment:
-    """A run of one table backed by one IEC area; `area` None is the status block."""
+    """A run of one table backed by one IEC area; `area` None is the status block. `length`
+    counts registers (or bits); a double word takes 2 registers, a long word 4."""
 
     start: int
     length: int
     area: Area | None
     width: Width
+
+    @property
+    def per(self) -> int:
+        return _REGISTERS[self.width]
 
     @property
     def end(self) -> int:
@@ -122,9 +127,30 @@ class _Piece:
     count: int
 
 
+_REGISTERS = {Width.BIT: 1, Width.WORD: 1, Width.DWORD: 2, Width.LWORD: 4}
+
+
+def long_bases(sizes: ImageSizes) -> dict[tuple[Area, Width], tuple[Table, int]]:
+    """Where the 32/64-bit areas start (docs/modbus.md): %MD at holding register 2 * words
+    and %ML at 4 * words, as OpenPLC (2048 and 4096 by default); %QD at 8 * words and %QL at
+    10 * words after them; %ID and %IL in the input registers at the same places as %MD and
+    %ML (after the status block when the image is tiny)."""
+    words, dwords = sizes.words, sizes.dwords
+    input_d = max(2 * words, words + STATUS_WORDS)
+    hr, ir, d, lw = Table.HOLDING_REGISTERS, Table.INPUT_REGISTERS, Width.DWORD, Width.LWORD
+    return {(Area.MEMORY, d): (hr, 2 * words), (Area.MEMORY, lw): (hr, 4 * words),
+            (Area.OUTPUT, d): (hr, 8 * words), (Area.OUTPUT, lw): (hr, 10 * words),
+            (Area.INPUT, d): (ir, input_d),
+            (Area.INPUT, lw): (ir, max(4 * words, input_d + 2 * dwords))}
+
+
 def _segments(sizes: ImageSizes) -> dict[Table, tuple[_Segment, ...]]:
     bits, words = sizes.bits, sizes.words
     X, W = Width.BIT, Width.WORD
+    longs: dict[Table, list[_Segment]] = {Table.HOLDING_REGISTERS: [], Table.INPUT_REGISTERS: []}
+    for (area, width), (table, start) in long_bases(sizes).items():
+        count = sizes.dwords if width is Width.DWORD else sizes.lwords
+        longs[table].append(_Segment(start, count * _REGISTERS[width], area, width))
     return {
         Table.COILS: (
             _Segment(0, bits, Area.OUTPUT, X),
@@ -134,10 +160,12 @@ def _segments(sizes: ImageSizes) -> dict[Table, tuple[_Segment, ...]]:
         Table.INPUT_REGISTERS: (
             _Segment(0, words, Area.INPUT, W),
             _Segment(words, STATUS_WORDS, None, W),
+            *sorted(longs[Table.INPUT_REGISTERS], key=lambda s: s.start),
         ),
         Table.HOLDING_REGISTERS: (
             _Segment(0, words, Area.OUTPUT, W),
             _Segment(words, words, Area.MEMORY, W),
+            *sorted(longs[Table.HOLDING_REGISTERS], key=lambda s: s.start),
         ),
     }
 
@@ -191,7 +219,7 @@ class RegisterMap:
         if self._writable is None:
             return
         first = write.address
-        for i in range(len(write.values)):
+        for i in range(len(write.values) // _REGISTERS[first.width]):
             where = Address(first.area, first.width, first.index + i)
             if not self._writable(where):
                 raise MapError(ExceptionCode.ILLEGAL_DATA_ADDRESS, f"{where} is not writable")
@@ -205,7 +233,11 @@ class RegisterMap:
                 ExceptionCode.ILLEGAL_DATA_ADDRESS,
                 f"{table.value} {address}..{end - 1} outside 0..{self.size(table) - 1}",
             )
-        return _overlaps(self._segments[table], address, end)
+        pieces = list(_overlaps(self._segments[table], address, end))
+        if sum(p.count for p in pieces) != count:  # a gap between the areas
+            raise MapError(ExceptionCode.ILLEGAL_DATA_ADDRESS,
+                           f"{table.value} {address}..{end - 1} reach registers of no area")
+        return iter(pieces)
 
 
 def _overlaps(segments: Sequence[_Segment], address: int, end: int) -> Iterator[_Piece]:
@@ -220,14 +252,28 @@ def _read_piece(snapshot: Snapshot, piece: _Piece) -> list[int]:
     if seg.area is None:
         return status_registers(snapshot.status)[lo:hi]
     area = snapshot.image.area(seg.area, seg.width)
-    return [int(v) for v in area[lo:hi].tolist()]
+    per = seg.per
+    if per == 1:
+        return [int(v) for v in area[lo:hi].tolist()]
+    registers: list[int] = []
+    for raw in area[lo // per : -(-hi // per)].tolist():
+        registers += split_registers(raw, seg.width)
+    first = lo // per * per
+    return registers[lo - first : hi - first]
 
 
 def _journal_entry(piece: _Piece, values: Sequence[int]) -> HmiWrite:
+    """One entry per area; a double or long word only whole (its 2 or 4 registers in this
+    request), so the scan applies it in one piece: never half a value."""
     seg = piece.segment
     assert seg.area is not None, "writable tables have no status segment"
+    per = seg.per
+    if piece.offset % per or piece.count % per:
+        name = Address(seg.area, seg.width, piece.offset // per)
+        raise MapError(ExceptionCode.ILLEGAL_DATA_ADDRESS,
+                       f"{name} is written whole: its {per} registers in one request")
     chunk = tuple(int(v) for v in values[piece.first : piece.first + piece.count])
-    return HmiWrite(Address(seg.area, seg.width, piece.offset), chunk)
+    return HmiWrite(Address(seg.area, seg.width, piece.offset // per), chunk)
 
 
 def _check_values(table: Table, values: Sequence[int]) -> None:

@@ -17,7 +17,7 @@ from types import MappingProxyType
 
 import numpy as np
 
-from softplc.core.expr import Compiled, ExprError, NameKind, Scope, compile_expr
+from softplc.core.expr import Compiled, ExprError, NameKind, Scope, compile_expr, name_kind
 from softplc.core.limits import DEFAULT, Limits
 from softplc.core.net import (
     Action,
@@ -37,6 +37,7 @@ from softplc.program.spec import parse_program, resolve
 from softplc.program.specvalues import ArcSpec, ProgramSpec, TransitionSpec, Where
 from softplc.program.suggest import did_you_mean
 from softplc.program.teardown import bury
+from softplc.program.typecheck import output_problem, real_to_integer
 
 _UNKNOWN_NAME = re.compile(r"unknown name '([^']+)'")
 
@@ -70,7 +71,7 @@ class _Compiler:
         self.events = {name for name, _ in spec.events}
         names: dict[str, NameKind] = {}
         for sym in io.symbols.values():
-            names[sym.name] = NameKind.BOOL if sym.type is SymType.BOOL else NameKind.WORD
+            names[sym.name] = name_kind(sym.type)
         for ev in [*io.events, *self.events]:
             names[ev] = NameKind.EVENT
         names.setdefault(FIRST_SCAN, NameKind.EVENT)  # the system bit; a declared name wins
@@ -125,12 +126,8 @@ class _Compiler:
         for symbol, value, where in items:
             if not self.writable(symbol, where, None):
                 continue
-            sym = self.io.symbols[symbol]
-            if sym.type is SymType.BOOL and value not in (0, 1, True, False):
-                self.problem(where, f"{symbol} is a bool; its output value must be true or false")
-            elif sym.type is SymType.WORD and (not isinstance(value, int) or isinstance(value, bool)
-                                              or not 0 <= value <= 0xFFFF):
-                self.problem(where, f"{symbol} is a word; its output value must be 0..65535")
+            if (wrong := output_problem(self.io.symbols[symbol], value)) is not None:
+                self.problem(where, wrong)
             else:
                 out.append((symbol, int(value)))  # type: ignore[call-overload]
         return tuple(out)
@@ -153,6 +150,8 @@ class _Compiler:
             if not self.writable(target, where, None):
                 return None
             compiled = self.expr(value.strip(), where, tokens)
+            if compiled and (wrong := real_to_integer(self.io.symbols[target], compiled)):
+                self.problem(where, wrong)
             return None if compiled is None else Action(ActionKind.WRITE, target, compiled)
         self.problem(where, f"bad action {text!r}: "
                             "expected set X, reset X, pulse X, emit E or X = expr")

@@ -7,11 +7,20 @@ Does not know: programs, drivers' internals.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from softplc.core.image import AddressError, ImageSizes, ProcessImage, Width, parse_address
+from softplc.core.datatypes import INFO, NATURAL, TYPE_NAMES, fits, stored, types_for
+from softplc.core.image import (
+    Address,
+    AddressError,
+    ImageSizes,
+    ProcessImage,
+    Width,
+    parse_address,
+)
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.symbols import (
     DIRECTION_OF_AREA,
@@ -53,7 +62,9 @@ class _Reader:
     def sizes(self, data: YMap) -> ImageSizes:
         spec = data.get("image") or {}
         try:
-            return ImageSizes(bits=int(spec.get("bits", 800)), words=int(spec.get("words", 1024)))
+            return ImageSizes(bits=int(spec.get("bits", 800)), words=int(spec.get("words", 1024)),
+                              dwords=int(spec.get("dwords", -1)),
+                              lwords=int(spec.get("lwords", -1)))
         except (TypeError, ValueError, AttributeError) as exc:
             self.problem(line_of(data, "image"), "image", f"bad image sizes: {exc}")
             return ImageSizes()
@@ -117,7 +128,7 @@ class _Reader:
                image: ProcessImage) -> Symbol | None:
         path = f"symbols.{name}"
         if not isinstance(spec, dict) or "address" not in spec:
-            self.problem(line, path, "expected {address: '%IX0.0', type: bool|word, ...}")
+            self.problem(line, path, "expected {address: '%IX0.0', type: bool, ...}")
             return None
         for key in sorted(set(spec) - SYMBOL_KEYS, key=str):
             self.problem(line_of(spec, key), f"{path}.{key}",
@@ -129,8 +140,7 @@ class _Reader:
         except AddressError as exc:
             self.problem(line_of(spec, "address"), f"{path}.address", str(exc))
             return None
-        natural = SymType.BOOL if address.width is Width.BIT else SymType.WORD
-        sym_type = self._type(spec, path, natural)
+        sym_type = self._type(spec, path, address)
         direction = DIRECTION_OF_AREA[address.area]
         if "dir" in spec and spec["dir"] != direction.value:
             self.problem(line_of(spec, "dir"), f"{path}.dir",
@@ -163,18 +173,26 @@ class _Reader:
                          f"retain {value!r}: expected one of {words}")
         return Retain.RETAIN
 
-    def _type(self, spec: dict[Any, Any], path: str, natural: SymType) -> SymType:
+    def _type(self, spec: dict[Any, Any], path: str, address: Address) -> SymType:
+        natural = NATURAL[address.width.value]
         declared = spec.get("type", natural.value)
-        if declared not in ("bool", "word"):
+        if declared not in TYPE_NAMES:
             self.problem(line_of(spec, "type"), f"{path}.type",
-                         f"unknown type {declared!r}; expected bool or word")
+                         f"unknown type {declared!r}; expected one of {', '.join(TYPE_NAMES)}"
+                         f"{did_you_mean(str(declared), TYPE_NAMES)}")
             return natural
-        if declared != natural.value:
+        sym_type = SymType(declared)
+        if not fits(sym_type, address.width.value):
             self.problem(line_of(spec, "type"), f"{path}.type",
-                         f"type {declared} does not fit a {natural.value} address")
-        return natural
+                         f"type {declared} does not fit address {address} (a "
+                         f"{_WIDTH_WORDS[address.width]} address holds "
+                         f"{' or '.join(types_for(address.width.value))}; "
+                         f"{_article(declared)} needs "
+                         f"{_address_for(sym_type, address)})")
+            return natural
+        return sym_type
 
-    def _safe(self, spec: dict[Any, Any], path: str, sym_type: SymType) -> int:
+    def _safe(self, spec: dict[Any, Any], path: str, sym_type: SymType) -> int | float:
         value = spec.get("safe", 0)
         line = line_of(spec, "safe")
         if sym_type is SymType.BOOL:
@@ -183,10 +201,15 @@ class _Reader:
             self.problem(line, f"{path}.safe",
                          f"safe value of a bool must be true or false{trap_hint(value)}")
             return 0
-        if isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 0xFFFF:
-            return value
+        info = INFO[sym_type]
+        if not isinstance(value, bool) and isinstance(value, int | float):
+            try:
+                return stored(sym_type, value)
+            except (TypeError, ArithmeticError):
+                pass
+        what = "a number" if info.is_float else f"a whole number {info.low}..{info.high}"
         self.problem(line, f"{path}.safe",
-                     f"safe value of a word must be 0..65535{trap_hint(value)}")
+                     f"safe value of {_article(sym_type.value)} must be {what}{trap_hint(value)}")
         return 0
 
     def events(self, data: YMap, symbols: dict[str, Symbol]) -> dict[str, EventSpec]:
@@ -209,16 +232,34 @@ class _Reader:
             if kind in (EventKind.RISING, EventKind.FALLING) and sym.type is not SymType.BOOL:
                 self.problem(line, path, f"{kind.value} needs a bool symbol; {sym.name} is a word")
                 continue
-            if kind in (EventKind.ABOVE, EventKind.BELOW) and sym.type is not SymType.WORD:
-                self.problem(line, path, f"{kind.value} needs a word symbol; {sym.name} is a bool")
+            if kind in (EventKind.ABOVE, EventKind.BELOW) and sym.type is SymType.BOOL:
+                self.problem(line, path, f"{kind.value} needs a numeric symbol; {sym.name} is a "
+                                         "bool")
                 continue
             threshold, hysteresis = spec.get("threshold", 0), spec.get("hysteresis", 0)
-            if not all(isinstance(v, int) and not isinstance(v, bool)
-                       for v in (threshold, hysteresis)):
-                self.problem(line, path, "threshold and hysteresis must be integers")
+            numbers = int | float if INFO[sym.type].is_float else int
+            if not all(isinstance(v, numbers) and not isinstance(v, bool)
+                       and math.isfinite(v) for v in (threshold, hysteresis)):
+                self.problem(line, path, "threshold and hysteresis must be "
+                             + ("numbers" if numbers is not int else "integers (the symbol is "
+                                f"a {sym.type.value}; fractions need a real or lreal)"))
                 continue
             out[str(name)] = EventSpec(str(name), kind, sym.name, threshold, hysteresis, line)
         return out
+
+
+def _article(word: str) -> str:
+    return f"{'an' if word[0] in 'aeiou' else 'a'} {word}"
+
+
+_WIDTH_WORDS = {Width.BIT: "bit", Width.WORD: "16-bit word", Width.DWORD: "32-bit double word",
+                Width.LWORD: "64-bit long word"}
+
+
+def _address_for(sym_type: SymType, address: Address) -> str:
+    letter = INFO[sym_type].width
+    example = f"%{address.area.value}{letter}{0 if letter != 'X' else '0.0'}"
+    return f"a %{address.area.value}{letter} address, e.g. {example}"
 
 
 def _is_int(value: Any) -> bool:

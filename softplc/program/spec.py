@@ -348,7 +348,7 @@ class _Parser:
                          f"subnet {data['net']} has no parameter {extra!r}"
                          f"{did_you_mean(extra, declared)} "
                          f"(it takes: {', '.join(declared) or 'none'})")
-        params = {str(k): v if isinstance(v, int | bool) else self.resolve_param(str(v))
+        params = {str(k): v if isinstance(v, int | float) else self.resolve_param(str(v))
                   for k, v in given.items()}
         self.spec.subnets.append(self.prefix + instance)
         self.spec.texts.append(text)

@@ -58,7 +58,7 @@ class Capture:
     image: ProcessImage
     held: tuple[np.ndarray, np.ndarray] | None
     stopped_at_ns: int | None
-    events_last: dict[str, int]
+    events_last: dict[str, int | float]
     events_armed: dict[str, bool]
     field: dict[str, bytes]  # driver name -> pickled sim plant (simulation only)
     forces: tuple[tuple[str, int, int | None], ...] = ()  # (symbol, value, program's value)
@@ -146,9 +146,9 @@ def restore(plc: Plc, payload: dict[str, Any], resume: bool) -> PlcState:
                   for t, b in payload["busy"].items()}
     engine.state = state
     engine.invalidate()  # enabledness is recomputed from the restored marking
-    for area in AREAS:
+    for area in AREAS:  # a snapshot from before the 32/64-bit areas lacks them: zeros
         target = getattr(plc.image, area)
-        target[:] = _unpack(payload["image"][area], target)
+        target[:] = _unpack(payload["image"][area], target) if area in payload["image"] else 0
     plc.image.copy_into(plc.prev)
     plc.events = EventMemory(dict(payload["events"]["last"]), dict(payload["events"]["armed"]))
     plc.scan_count = payload["scan_count"]
@@ -205,6 +205,8 @@ def restore_persistent(plc: Plc, payload: dict[str, Any]) -> list[str]:
     areas = {}
     for sym in persistent_memory(net.io):
         area, index = sym.address.attr, sym.address.index
+        if area not in payload["image"]:
+            continue
         if area not in areas:
             areas[area] = _unpack(payload["image"][area], getattr(plc.image, area))
         getattr(plc.image, area)[index] = areas[area][index]

@@ -12,13 +12,12 @@ only if the slot's counter read 2n before and after it. The writer never waits f
 writes one slot the other stays readable, so a read fails only if the writer laps it, i.e.
 starts the next-but-one publish before the copy ends.
 
-Measured on the 2-core dev box, default sizes (8.7 KB a slot), best/median of 9 runs:
-publish 4.0/4.9 µs, latest() 10/12 µs (the copy is ~1 µs, building the Snapshot the rest);
-about twice that while other jobs loaded the box. A single-buffer seqlock was tried first:
-against a writer publishing back to back in another process, a reader starved (10 000 failed
+Measured on the 2-core dev box, default sizes (8.7 KB a slot; 17.9 KB since the 32/64-bit
+areas), best/median of 9 runs: publish 4.0/4.9 µs, latest() 10/12 µs (the copy ~1 µs, building
+the Snapshot the rest); twice that on a loaded box. A single-buffer seqlock was tried first: a
+reader starved against a writer publishing back to back in another process (10 000 failed
 attempts in a row): its copy, slowed by cache lines the writer keeps taking, never fit between
-two publishes. With two slots, 0.02 % of reads retried against that writer and 0.1 % against
-one publishing every 1 ms.
+two publishes. With two slots, 0.02 % of reads retried against it, 0.1 % at a 1 ms publish.
 
 Ordering: counters and payload are plain stores and loads, which x86-64 (TSO) keeps in
 program order; that is the platform this targets. Weakly ordered CPUs (ARM) would need fences
@@ -27,7 +26,8 @@ that Python cannot express.
 Layout, native byte order: header (64 bytes: magic, version, header size, bits, words, total
 size, latest, the two slot counters), then two slots of: status (11 int64, the last three the
 number of forced symbols, the CLOCK_MONOTONIC time of the publish and waiting for I/O, +
-64-byte program hash), %IX %QX %MX as one byte per bit, %IW %QW %MW as uint16.
+64-byte program hash), %IX %QX %MX as one byte per bit, %IW %QW %MW as uint16, %ID %QD %MD as
+uint32, %IL %QL %ML as uint64 (raw bits: core/datatypes.py says what a symbol's type reads).
 """
 
 from __future__ import annotations
@@ -53,10 +53,12 @@ from softplc.core.snapshot import Snapshot, SnapshotUnavailable, Status
 from softplc.runtime.shmcopy import SlotCopies
 
 MAGIC: Final = b"SPLCSNAP"
-VERSION: Final = 4  # 2: status carries published_ns; 3: and `forced`; 4: `waiting_for_io`
+VERSION: Final = 5  # 2: published_ns; 3: `forced`; 4: `waiting_for_io`; 5: 32/64-bit areas
 _HEADER = struct.Struct("=8sIIIIQ")  # magic, version, header bytes, bits, words, total bytes
+_LONGS = struct.Struct("=II")  # dwords, lwords: after the control words, at _LONGS_OFFSET
 _HEADER_BYTES: Final = 64
 _CONTROL_OFFSET: Final = 32  # uint64 latest, slot 0 counter, slot 1 counter
+_LONGS_OFFSET: Final = 56
 _STATUS = struct.Struct("=11q64s")
 _HASH_BYTES: Final = 64
 _BIT_AREAS: Final = ("ix", "qx", "mx")
@@ -69,7 +71,7 @@ class SnapshotLayoutError(SoftplcError, ValueError):
 
 
 def _payload_bytes(sizes: ImageSizes) -> int:
-    return _STATUS.size + 3 * sizes.bits + 3 * 2 * sizes.words
+    return _STATUS.size + 3 * (sizes.bits + 2 * sizes.words + 4 * sizes.dwords + 8 * sizes.lwords)
 
 
 def _slot_offsets(sizes: ImageSizes) -> tuple[int, int]:
@@ -82,15 +84,16 @@ def _segment_bytes(sizes: ImageSizes) -> int:
 
 
 def _area_layout(sizes: ImageSizes) -> list[tuple[str, int, int, type[np.generic]]]:
-    """(area, start, stop, dtype) of the six areas, as byte offsets into a slot."""
+    """(area, start, stop, dtype) of the twelve areas, as byte offsets into a slot."""
     layout: list[tuple[str, int, int, type[np.generic]]] = []
     offset = _STATUS.size
-    for name in _BIT_AREAS:
-        layout.append((name, offset, offset + sizes.bits, np.bool_))
-        offset += sizes.bits
-    for name in _WORD_AREAS:
-        layout.append((name, offset, offset + 2 * sizes.words, np.uint16))
-        offset += 2 * sizes.words
+    for names, nbytes, dtype in ((_BIT_AREAS, sizes.bits, np.bool_),
+                                 (_WORD_AREAS, 2 * sizes.words, np.uint16),
+                                 (("id", "qd", "md"), 4 * sizes.dwords, np.uint32),
+                                 (("il", "ql", "ml"), 8 * sizes.lwords, np.uint64)):
+        for name in names:
+            layout.append((name, offset, offset + nbytes, dtype))
+            offset += nbytes
     return layout
 
 
@@ -206,9 +209,9 @@ class SnapshotWriter:
         size = _segment_bytes(self.sizes)
         for at in self._slot_at:
             buf[at : at + _STATUS.size] = _pack_status(Status())
-        header = _HEADER.pack(
-            MAGIC, VERSION, _HEADER_BYTES, self.sizes.bits, self.sizes.words, size
-        )
+        sizes = self.sizes
+        header = _HEADER.pack(MAGIC, VERSION, _HEADER_BYTES, sizes.bits, sizes.words, size)
+        _LONGS.pack_into(buf, _LONGS_OFFSET, sizes.dwords, sizes.lwords)
         # Magic last: a reader that attaches in between sees "not a snapshot", not garbage.
         buf[8 : _HEADER.size] = header[8:]
         buf[0:8] = MAGIC
@@ -381,6 +384,7 @@ class SnapshotReader:
 
 def _check_header(mapping: mmap.mmap, name: str, sizes: ImageSizes) -> None:
     magic, version, header_bytes, bits, words, total = _HEADER.unpack_from(mapping, 0)
+    dwords, lwords = _LONGS.unpack_from(mapping, _LONGS_OFFSET)
     if magic != MAGIC:
         raise SnapshotLayoutError(
             f"segment {name!r} is not (yet) a softplc snapshot: bad magic {magic!r}"
@@ -389,8 +393,8 @@ def _check_header(mapping: mmap.mmap, name: str, sizes: ImageSizes) -> None:
         raise SnapshotLayoutError(
             f"segment {name!r} has snapshot layout version {version}, this reader knows {VERSION}"
         )
-    if (bits, words) != (sizes.bits, sizes.words) or total > len(mapping):
+    if ImageSizes(bits, words, dwords, lwords) != sizes or total > len(mapping):
         raise SnapshotLayoutError(
-            f"segment {name!r} holds images of {bits} bits and {words} words "
-            f"({total} bytes); this reader expects {sizes.bits} bits and {sizes.words} words"
-        )
+            f"segment {name!r} holds images of {bits} bits and {words} words ({dwords} double, "
+            f"{lwords} long words; {total} bytes); this reader expects {sizes.bits} bits and "
+            f"{sizes.words} words ({sizes.dwords} double, {sizes.lwords} long words)")

@@ -1,9 +1,9 @@
 """Copying a process image into a snapshot slot cheaply (runtime/shm.py publishes).
 
 Owns: the byte runs of a slot that are contiguous in a ProcessImage's buffer too (%QX %MX are
-adjacent in both layouts, so are %QW %MW: four copies instead of six), as memoryview pairs
-bound once per image buffer: a slice assignment between memoryviews is a plain memcpy, about
-4x cheaper than np.copyto for these few KB (issue 15.5).
+adjacent in both layouts, so are %QW %MW, %QD %MD and %QL %ML: eight copies instead of
+twelve), as memoryview pairs bound once per image buffer: a slice assignment between
+memoryviews is a plain memcpy, about 4x cheaper than np.copyto for these few KB (issue 15.5).
 Does not know: the segment's header, its seqlock, the status record.
 """
 
@@ -18,7 +18,8 @@ from softplc.core.image import ImageSizes, image_offsets
 
 # (area, start, stop) byte offsets of the six areas in a slot (shm.py's layout)
 SlotLayout = Sequence[tuple[str, int, int, object]]
-_RUNS = (("ix", "ix"), ("qx", "mx"), ("iw", "iw"), ("qw", "mw"))
+_RUNS = (("ix", "ix"), ("qx", "mx"), ("iw", "iw"), ("qw", "mw"), ("id", "id"), ("qd", "md"),
+         ("il", "il"), ("ql", "ml"))
 
 
 class SlotCopies:

@@ -16,19 +16,29 @@ from typing import IO, Any
 
 import numpy as np
 
-from softplc.core.image import OUTPUT_AREAS, ProcessImage
+from softplc.core.image import INPUT_AREAS, OUTPUT_AREAS, ProcessImage
 
 
 def image_digest(image: ProcessImage) -> str:
+    """A digest of the output and memory areas. The 32/64-bit areas (issue 30) join it only
+    while they hold something, so traces recorded before them replay unchanged."""
     h = hashlib.blake2b(digest_size=8)
     for area in OUTPUT_AREAS:
-        h.update(np.ascontiguousarray(getattr(image, area)).tobytes())
+        values = getattr(image, area)
+        if area in _LONG_AREAS and not values.any():
+            continue
+        h.update(np.ascontiguousarray(values).tobytes())
     return h.hexdigest()
 
 
+_LONG_AREAS = frozenset({"qd", "md", "ql", "ml"})
+
+
 def input_changes(now: ProcessImage, before: ProcessImage | None) -> dict[str, dict[str, int]]:
+    """Per input area, the locations that changed and their raw bits (JSON integers, exact
+    for 64-bit long words too)."""
     out: dict[str, dict[str, int]] = {}
-    for area in ("ix", "iw"):
+    for area in INPUT_AREAS:
         cur = getattr(now, area)
         if before is not None and cur.tobytes() == getattr(before, area).tobytes():
             continue

@@ -249,7 +249,8 @@ def test_names_in_and_substitute_work_on_the_syntax_tree() -> None:
 
 # -- the sandbox ----------------------------------------------------------------------------
 
-NOT_CALLABLE = "only these functions may be called: abs, falling, max, min, rising"
+NOT_CALLABLE = ("only these functions may be called: abs, dint, falling, int, lreal, max, min, "
+                "real, rising, trunc, udint, word")
 NO_ATTRIBUTE = "attribute access is only allowed as <token variable>.<field>"
 
 ESCAPES: list[tuple[str, str]] = [
@@ -284,7 +285,6 @@ ESCAPES: list[tuple[str, str]] = [
     ("w ** 2", "operator ** is not allowed"),
     ("1 << 100", "operator << is not allowed"),
     ("w >> 1", "operator >> is not allowed"),
-    ("w / 2", "operator / is not allowed (use // for integer division)"),
     ("~w", "operator ~ is not allowed; use 'not' or arithmetic"),
     ("w in (1, 2)", "comparison In is not allowed"),
     ("a is b", "comparison Is is not allowed"),
@@ -306,11 +306,11 @@ ESCAPES: list[tuple[str, str]] = [
     ("(1, 2)", "a tuple is not allowed in an expression"),
     ("{1: 2}", "a dict is not allowed in an expression"),
     ("{1}", "a set is not allowed in an expression"),
-    ("1.5", "constant 1.5 is not allowed: use integers, true/false or 'text'"),
-    ("None", "constant None is not allowed: use integers, true/false or 'text'"),
-    ("b'x'", "constant b'x' is not allowed: use integers, true/false or 'text'"),
-    ("...", "constant Ellipsis is not allowed: use integers, true/false or 'text'"),
-    ("1j", "constant 1j is not allowed: use integers, true/false or 'text'"),
+    ("1e999", "constant inf is not a finite number"),
+    ("None", "constant None is not allowed: use numbers, true/false or 'text'"),
+    ("b'x'", "constant b'x' is not allowed: use numbers, true/false or 'text'"),
+    ("...", "constant Ellipsis is not allowed: use numbers, true/false or 'text'"),
+    ("1j", "constant 1j is not allowed: use numbers, true/false or 'text'"),
     ("await a", "await is not allowed in an expression"),
     ("import os", "syntax error: invalid syntax"),
     ("a; b", "syntax error: invalid syntax"),
@@ -364,7 +364,7 @@ ESCAPES: list[tuple[str, str]] = [
     ("(a, *b)", "a tuple is not allowed in an expression"),
     ("a[::-1]", "subscript [] is not allowed in an expression"),
     ("a @ b", "operator MatMult is not allowed"),
-    ("rb'x'", "constant b'x' is not allowed: use integers, true/false or 'text'"),
+    ("rb'x'", "constant b'x' is not allowed: use numbers, true/false or 'text'"),
     ("9" * 100, "integer 9999"),
     ("not " * 199 + "a", "expression too complex (401 nodes, at most 400)"),
 ]

@@ -678,7 +678,7 @@ transitions:
     assert (bench.get("qw"), bench.get("r")) == (2, 1)
 
 
-def test_write_actions_wrap_words_and_take_truth_of_bools(tmp_path: Path) -> None:
+def test_write_actions_never_wrap_words_and_take_truth_of_bools(tmp_path: Path) -> None:
     net = compile_program(tmp_path, """
 places:
   p: {tokens: 1}
@@ -688,7 +688,13 @@ transitions:
     bench = Bench(net, start=False)
     bench.set(w=4)
     bench.scan(0, [START])
-    assert (bench.get("qw"), bench.get("mw"), bench.get("m"), bench.get("r")) == (65535, 3, 1, 1)
+    # Out of a word's range: a diagnostic, the write not done (qw keeps its safe 7), never
+    # wrapped (issue 30).
+    assert (bench.get("qw"), bench.get("mw"), bench.get("m"), bench.get("r")) == (7, 0, 1, 1)
+    assert bench.plc.engine is not None
+    found = bench.plc.engine.diagnostics
+    assert any("qw = '0 - 1' failed (-1 is out of range of word (0..65535))" in d for d in found)
+    assert any("mw = '65536 + 3' failed (65539 is out of range of word" in d for d in found)
 
 
 def test_pulse_lasts_one_scan(tmp_path: Path) -> None:

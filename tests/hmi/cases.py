@@ -179,6 +179,10 @@ ILLEGAL_VALUE = [
     ]
 ]
 
+# Ends of the register tables with the default sizes (docs/modbus.md): %QL ends the holding
+# registers at 10 * 1024 + 4 * 256, %IL the input registers at 4 * 1024 + 4 * 256.
+HR_END, IR_END = 11264, 5120
+
 ILLEGAL_ADDRESS = [
     Case(id_, req, exc(req[0], 2))
     for id_, req in [
@@ -188,20 +192,26 @@ ILLEGAL_ADDRESS = [
         ("fc1-last-address", pdu(1, "HH", 0xFFFF, 1)),
         ("fc2-start-beyond", pdu(2, "HH", 800, 1)),
         ("fc2-end-beyond", pdu(2, "HH", 0, 801)),
-        ("fc3-start-beyond", pdu(3, "HH", 2048, 1)),
-        ("fc3-end-beyond", pdu(3, "HH", 2040, 9)),
+        ("fc3-start-beyond", pdu(3, "HH", HR_END, 1)),
+        ("fc3-end-beyond", pdu(3, "HH", HR_END - 8, 9)),
+        ("fc3-gap-after-md", pdu(3, "HH", 2048 + 512, 1)),
+        ("fc3-across-the-gap", pdu(3, "HH", 2048 + 510, 4)),
         ("fc3-wraps-16-bits", pdu(3, "HH", 0xFFFF, 2)),
-        ("fc4-start-beyond", pdu(4, "HH", 1024 + STATUS_WORDS, 1)),
+        ("fc4-start-beyond", pdu(4, "HH", IR_END, 1)),
+        ("fc4-gap-after-status", pdu(4, "HH", 1024 + STATUS_WORDS, 1)),
         ("fc4-end-beyond-status", pdu(4, "HH", 1024 + STATUS_WORDS - 2, 3)),
         ("fc5-beyond", pdu(5, "HH", 1600, 0xFF00)),
-        ("fc6-beyond", pdu(6, "HH", 2048, 1)),
+        ("fc6-beyond", pdu(6, "HH", HR_END, 1)),
+        ("fc6-half-an-md", pdu(6, "HH", 2048, 1)),
         ("fc15-start-beyond", pdu(15, "HHB", 1600, 1, 1, data=b"\x01")),
         ("fc15-end-beyond", pdu(15, "HHB", 1599, 2, 1, data=b"\x03")),
         ("fc15-qty1968-beyond-map", pdu(15, "HHB", 0, 1968, 246, data=bytes(246))),
-        ("fc16-start-beyond", pdu(16, "HHB", 2048, 1, 2, data=b"\x00\x01")),
-        ("fc16-end-beyond", pdu(16, "HHB", 2047, 2, 4, data=bytes(4))),
-        ("fc23-read-beyond", pdu(23, "HHHHB", 2048, 1, 0, 1, 2, data=b"\x00\x01")),
-        ("fc23-write-beyond", pdu(23, "HHHHB", 0, 1, 2047, 2, 4, data=bytes(4))),
+        ("fc16-start-beyond", pdu(16, "HHB", HR_END, 1, 2, data=b"\x00\x01")),
+        ("fc16-end-beyond", pdu(16, "HHB", HR_END - 1, 2, 4, data=bytes(4))),
+        ("fc16-half-an-ml", pdu(16, "HHB", 4096 + 1, 4, 8, data=bytes(8))),
+        ("fc16-mw-and-half-an-md", pdu(16, "HHB", 2047, 2, 4, data=bytes(4))),
+        ("fc23-read-beyond", pdu(23, "HHHHB", HR_END, 1, 0, 1, 2, data=b"\x00\x01")),
+        ("fc23-write-beyond", pdu(23, "HHHHB", 0, 1, HR_END - 1, 2, 4, data=bytes(4))),
     ]
 ]
 

@@ -40,10 +40,8 @@ class ImageSource:
 
     def publish(self) -> None:
         with self._lock:
-            for write in self.writes:
-                a = write.address
-                for i, v in enumerate(write.values):
-                    self.image.set(replace(a, index=a.index + i), v)
+            for write in self.writes:  # as the scan applies them (core/plc.py apply_hmi)
+                self.image.write_registers(write.address, write.values)
             self.writes.clear()
             self._seq += 1
             self.status = replace(self.status, scan_count=self._seq)

@@ -75,7 +75,7 @@ def test_mbpoll_writes(slave: SlaveThread, source: ImageSource) -> None:
 
 
 def test_mbpoll_sees_illegal_data_address(slave: SlaveThread) -> None:
-    result = mbpoll(slave.port, "-t", "4", "-r", "2047", "-c", "2")
+    result = mbpoll(slave.port, "-t", "4", "-r", "2559", "-c", "2")  # %MD255's low word, a gap
     assert result.returncode == 1
     assert "Illegal data address" in result.stderr
     result = mbpoll(slave.port, "-t", "4", "-r", "2048", values=("1",))

@@ -66,8 +66,9 @@ CORPUS: dict[str, list[str]] = {
         "{F}:4: places.busy.outputs: counter is a word; its output value must be 0..65535",
     ],
     "guard_escape.yaml": [
-        "{F}:9: transitions.go.when: only these functions may be called: abs, falling, max, min, "
-        "rising in \"__import__('os').system('touch pwned')\"",
+        "{F}:9: transitions.go.when: only these functions may be called: abs, dint, falling, int, "
+        "lreal, max, min, real, rising, trunc, udint, word in "
+        "\"__import__('os').system('touch pwned')\"",
     ],
     "subnet_missing_param.yaml": [
         "{BAD}/nets/blinker.yaml:12: transitions.switch_on.when: unknown name 'button': not a "
@@ -80,7 +81,8 @@ CORPUS: dict[str, list[str]] = {
     ],
     "subnet_param_escape.yaml": [
         "{BAD}/nets/blinker.yaml:12: transitions.switch_on.when: only these functions may be "
-        "called: abs, falling, max, min, rising in \"__import__('os').system('touch pwned')\"",
+        "called: abs, dint, falling, int, lreal, max, min, real, rising, trunc, udint, word in "
+        "\"__import__('os').system('touch pwned')\"",
     ],
     "bad_duration.yaml": [
         "{F}:10: transitions.go.duration: bad duration '2 parsecs': expected a number with a unit "

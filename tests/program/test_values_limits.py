@@ -1,5 +1,5 @@
 """Token value types and resource limits at compile time (issue 19 parts 3 and 4): `softplc
-check` refuses a date, a fraction, a list, null, a nested mapping, oversize text or integers
+check` refuses a date, NaN or an infinity, a list, null, a nested mapping, oversize text or integers
 in `tokens:` at the line of the value, an arc weight over the limit at the arc's line, an
 initial marking over a limit, and a bad `limits:` section; a valid `limits:` reaches the net.
 """
@@ -30,7 +30,8 @@ def one_token(tmp_path: Path, field_text: str) -> list[str]:
 
 @pytest.mark.parametrize(("field_text", "expected"), [
     ("d: 2024-01-01", "field d: the date 2024-01-01 is not a token value"),
-    ("kg: 1.5", "field kg: the fraction 1.5 is not a token value"),
+    ("kg: .nan", "field kg: nan is not a finite number"),
+    ("kg: -.inf", "field kg: -inf is not a finite number"),
     ("l: [1, 2]", "field l: a list is not a token value"),
     ("n: null", "field n: null (an empty value) is not a token value"),
     ("n: ~", "field n: null (an empty value) is not a token value"),
@@ -49,7 +50,7 @@ def test_check_refuses_a_token_value_the_runtime_cannot_carry_at_its_line(
 
 
 def test_each_bad_field_of_several_records_is_located(tmp_path: Path) -> None:
-    body = ("places:\n  parts:\n    tokens:\n      - {id: 1, kg: 5}\n      - {id: 2, kg: 2.5}\n"
+    body = ("places:\n  parts:\n    tokens:\n      - {id: 1, kg: 5}\n      - {id: 2, kg: .nan}\n"
             "      - {id: 3, when: 2024-01-01}\n      - 7\n")
     found = problems_of(tmp_path, body)
     f = tmp_path / "prog.yaml"

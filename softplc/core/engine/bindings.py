@@ -34,10 +34,10 @@ class Bound:
         self.base = base
         self.tokens = tokens
 
-    def symbol(self, name: str) -> int:
+    def symbol(self, name: str) -> int | float:
         return self.base.symbol(name)
 
-    def previous(self, name: str) -> int:
+    def previous(self, name: str) -> int | float:
         return self.base.previous(name)
 
     def event(self, name: str) -> bool:

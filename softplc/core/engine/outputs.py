@@ -8,6 +8,7 @@ Does not know: the image the writes go to (core/scan.py applies them), selection
 
 from __future__ import annotations
 
+from softplc.core.datatypes import stored
 from softplc.core.engine.bindings import NO_TOKENS, Bound
 from softplc.core.engine.diagnostics import Diagnostics
 from softplc.core.engine.live import Live
@@ -16,7 +17,7 @@ from softplc.core.engine.tables import Tables
 from softplc.core.expr import EvalContext
 from softplc.core.net import ActionKind, CompiledNet, Transition
 
-Writes = list[tuple[str, int]]
+Writes = list[tuple[str, int | float]]
 
 
 class Outputs:
@@ -86,10 +87,11 @@ class Outputs:
                 emitted.append(act.target)
             elif act.kind is ActionKind.WRITE and act.value is not None:
                 try:
-                    value = act.value(ctx)
-                    if isinstance(value, str):  # int('12') would silently turn text into 12
-                        raise TypeError("text cannot be written to a symbol")
-                    writes.append((act.target, int(value)))
+                    # Checked against the target's type: out of range, NaN, infinite, a
+                    # fraction for an integer symbol or text is a diagnostic, never a
+                    # wrapped or truncated value (core/datatypes.py).
+                    value = stored(self._net.io.symbols[act.target].type, act.value(ctx))
+                    writes.append((act.target, value))
                 except (KeyError, TypeError, ValueError, ArithmeticError) as exc:
                     self._diag.report(
                         f"{t.name}: {act.target} = {act.value.text!r} failed ({exc})")

@@ -15,7 +15,7 @@ class Step:
 
     fired: tuple[int, ...]
     completed: tuple[int, ...]
-    writes: tuple[tuple[str, int], ...]  # (symbol, value) in order: last writer wins
+    writes: tuple[tuple[str, int | float], ...]  # (symbol, value) in order: last writer wins
     emitted: tuple[str, ...]
     changed_places: frozenset[int]
 
