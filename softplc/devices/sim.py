@@ -7,9 +7,11 @@ Does not know: the Petri net, clocks (time arrives as now_ns), Modbus.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from functools import partial
 from typing import Any
 
+from softplc.core.datatypes import Number, SymType, raw_of, value_of
 from softplc.core.image import WORD_MAX, ProcessImage
 from softplc.core.symbols import Direction, DriverSpec, Symbol
 from softplc.devices.driver import DeviceError, Health
@@ -45,9 +47,9 @@ class SimDriver:
         self._open = False
         self._delivered = False  # an input image read from the plant since open()
         self._image: ProcessImage | None = None  # the image _in_slots points into
-        self._in_slots: list[tuple[Any, int, bool, str]] = []
+        self._in_slots: list[tuple[Any, int, Callable[[Number], Number], str]] = []
         self._out_image: ProcessImage | None = None  # the image _out_slots points into
-        self._out_slots: list[tuple[Any, int]] = []
+        self._out_slots: list[tuple[Any, int, Callable[[int], Number]]] = []
         self._out_raw: bytes | None = None  # _out_image's output areas when last read
         self._out_channels = tuple(str(s.channel) for s in self.outputs)
 
@@ -59,7 +61,7 @@ class SimDriver:
     def plant(self, plant: Plant) -> None:
         """Another plant (a warm restart keeps the field side): it has no actuators sent yet."""
         self._plant = plant
-        self._sent: tuple[int, ...] | None = None
+        self._sent: tuple[Number, ...] | None = None
 
     def open(self) -> None:
         self._open = True
@@ -76,9 +78,8 @@ class SimDriver:
         sensors = plant.read_sensors()
         if image is not self._image:
             self._bind(image)
-        for arr, index, bit, channel in self._in_slots:
-            value = sensors[channel]
-            arr[index] = bool(value) if bit else int(value) & WORD_MAX
+        for arr, index, encode, channel in self._in_slots:
+            arr[index] = encode(sensors[channel])
         self._delivered = True
 
     def write_outputs(self, image: ProcessImage, now_ns: int) -> None:
@@ -89,7 +90,7 @@ class SimDriver:
         raw = image.outputs_bytes()
         if raw == self._out_raw and self._sent is not None:
             return  # the output image the plant's actuators were last set from, unchanged
-        values = tuple([int(arr[index]) for arr, index in self._out_slots])
+        values = tuple([decode(int(arr[index])) for arr, index, decode in self._out_slots])
         if values != self._sent:  # equal: the plant has these already, no bookkeeping
             self.plant.set_actuators(dict(zip(self._out_channels, values, strict=True)))
             self._sent = values
@@ -99,7 +100,7 @@ class SimDriver:
         """Where each input lands in `image`, checked once per image, not per scan."""
         for sym in self.inputs:
             image.check(sym.address)
-        self._in_slots = [(getattr(image, s.address.attr), s.address.index, s.address.is_bit,
+        self._in_slots = [(getattr(image, s.address.attr), s.address.index, _encoder(s),
                            str(s.channel)) for s in self.inputs]
         self._image = image
 
@@ -107,7 +108,7 @@ class SimDriver:
         """Where each output is read from in `image`, checked once per image."""
         for sym in self.outputs:
             image.check(sym.address)
-        self._out_slots = [(getattr(image, s.address.attr), s.address.index)
+        self._out_slots = [(getattr(image, s.address.attr), s.address.index, _decoder(s))
                            for s in self.outputs]
         self._out_image = image
         self._out_raw = None
@@ -130,3 +131,28 @@ class SimDriver:
         if not self._open:
             return "closed"
         return "offline (fault injection)" if self.offline else ""
+
+
+def _word(value: Number) -> int:
+    return int(value) & WORD_MAX
+
+
+def _encoder(sym: Symbol) -> Callable[[Number], Number]:
+    """A sensor's value as its location stores it: a bit as a bool, a number as the raw bits
+    of the symbol's type (a negative `int` in two's complement, a `real` as IEEE 754)."""
+    if sym.address.is_bit:
+        return bool
+    if sym.type is SymType.WORD:
+        return _word  # the common case, and what it always was
+    return partial(_raw, sym.type)
+
+
+def _raw(t: SymType, value: Number) -> int:
+    return raw_of(t, value if t in (SymType.REAL, SymType.LREAL) else int(value))
+
+
+def _decoder(sym: Symbol) -> Callable[[int], Number]:
+    """An actuator's value as the plant gets it: the typed value of its location's bits."""
+    if sym.address.is_bit or sym.type is SymType.WORD:
+        return int
+    return partial(value_of, sym.type)

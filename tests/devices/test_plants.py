@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+import itertools
 from collections.abc import Callable, Mapping, Sequence
 from typing import TypeVar
 
@@ -13,6 +14,7 @@ from hypothesis import strategies as st
 from softplc.devices.plants.base import Plant, PlantReport
 from softplc.devices.plants.drilling import DrillingPlant
 from softplc.devices.plants.registry import PLANTS, make_plant
+from softplc.devices.plants.tank import TankPlant
 from softplc.devices.plants.transport import TransportPlant
 
 S = 1_000_000_000
@@ -314,7 +316,17 @@ DRILL_SCRIPT: Script = [
     (31 * S, {"drill_down": 1}),
     (40 * S, {}),
 ]
-SCRIPTS = {"transport": TRANSPORT_SCRIPT, "drilling": DRILL_SCRIPT}
+TANK_SCRIPT: Script = [
+    (S, {"pump": 1}),
+    (12_345 * MS, {"outlet": 1}),
+    (20 * S, {"pump": 0}),
+    (31_234_567_891, {"outlet": 0, "pump": 1}),  # empty since ~29.9 s
+    (61 * S, {}),  # overflows at ~56 s: 1,000 l at 40 l/s from empty
+    (70 * S, {"pump": 0}),
+    (75 * S, {}),
+]
+SCRIPTS = {"transport": TRANSPORT_SCRIPT, "drilling": DRILL_SCRIPT, "tank": TANK_SCRIPT}
+ARRIVING = sorted(name for name in PLANTS if name != "tank")  # the tank has no arrivals
 
 
 @pytest.mark.parametrize("name", sorted(PLANTS))
@@ -324,7 +336,7 @@ def test_same_seed_same_script_same_trace(name: str) -> None:
     assert traces[0][-1][2].faults  # the scripts are rough enough to cause faults
 
 
-@pytest.mark.parametrize("name", sorted(PLANTS))
+@pytest.mark.parametrize("name", ARRIVING)
 def test_different_seeds_give_different_arrival_times(name: str) -> None:
     def arrival_counts(seed: int) -> list[int]:
         plant = make_plant(name, seed=seed)
@@ -452,5 +464,54 @@ def test_time_must_not_go_backwards() -> None:
 
 def test_make_plant_names_the_known_plants() -> None:
     assert isinstance(make_plant("drilling", seed=1), DrillingPlant)
-    with pytest.raises(ValueError, match="drilling, transport"):
+    with pytest.raises(ValueError, match="drilling, tank, transport"):
         make_plant("mixer")
+
+
+# -- the tank filling station ----------------------------------------------------------
+
+
+def test_the_tank_fills_at_the_pumps_rate_and_its_transmitter_counts_raw() -> None:
+    plant = TankPlant()
+    plant.set_actuators({"pump": 1})
+    plant.advance(12_500 * MS)  # 500 l of 1,000 at 40 l/s
+    assert plant.read_sensors()["level"] == 27_648 // 2
+    assert plant.read_sensors()["high_switch"] == 0
+    plant.advance(23_750 * MS)  # 950 l: the float switch closes at 95 %
+    assert plant.read_sensors()["high_switch"] == 1
+    assert plant.report().faults == ()
+
+
+def test_the_outlet_empties_the_tank_and_a_delivery_is_counted_once() -> None:
+    plant = TankPlant(start_l=600)
+    plant.set_actuators({"outlet": 1})
+    plant.advance(10 * S)  # 600 l at 60 l/s
+    plant.advance(20 * S)
+    assert plant.read_sensors()["level"] == 0
+    assert plant.report().parts_out == 1
+    assert plant.report().extra["volume_l"] == 0
+
+
+def test_an_overflow_is_one_fault_stamped_when_it_ran_over() -> None:
+    plant = TankPlant(start_l=990)
+    plant.set_actuators({"pump": 1})
+    plant.advance(60 * S)  # one coarse step: ran over at 0.25 s
+    assert plant.report().faults == ("t=0.250s: tank overflowed",)
+    assert plant.report().extra["overflowed_l"] == 60 * 40 - 10
+    assert plant.read_sensors()["level"] == 27_648
+
+
+def test_the_temperature_goes_below_zero_and_back_as_a_triangle_in_tenths() -> None:
+    plant = TankPlant()  # from +10.0 rising to +25.0, down to -5.0 over 240 s
+    seen = []
+    for t in range(0, 241 * S, S):
+        plant.advance(t)
+        seen.append(plant.read_sensors()["temperature"])
+    assert seen[0] == 100 and max(seen) == 250 and min(seen) == -50 and seen[240] == 100
+    assert all(abs(b - a) <= 3 for a, b in itertools.pairwise(seen))
+
+
+def test_starting_the_pump_below_freezing_is_a_fault() -> None:
+    plant = TankPlant(temp_start_tenths=-20)
+    plant.set_actuators({"pump": 1})
+    assert plant.report().faults == ("t=0.000s: pump started below freezing",)

@@ -98,7 +98,7 @@ class DrillingPlant:
     # A class default: a plant pickled by an older version has no such attribute.
     _next_event_ns: int | None = None
 
-    def set_actuators(self, values: Mapping[str, int]) -> None:
+    def set_actuators(self, values: Mapping[str, int | float]) -> None:
         apply_actuators(self._out, values)
         self._next_event_ns = None
 

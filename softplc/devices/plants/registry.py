@@ -11,11 +11,13 @@ from typing import Any
 
 from softplc.devices.plants.base import Plant
 from softplc.devices.plants.drilling import DrillingPlant
+from softplc.devices.plants.tank import TankPlant
 from softplc.devices.plants.transport import TransportPlant
 
 PLANTS: dict[str, Callable[..., Plant]] = {
     "transport": TransportPlant,
     "drilling": DrillingPlant,
+    "tank": TankPlant,
 }
 
 

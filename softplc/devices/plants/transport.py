@@ -55,7 +55,7 @@ def check_time(then_ns: int, now_ns: int) -> None:
         raise ValueError(f"time went backwards: advance({now_ns}) after t={then_ns} ns")
 
 
-def apply_actuators(state: dict[str, int], values: Mapping[str, int]) -> None:
+def apply_actuators(state: dict[str, int], values: Mapping[str, int | float]) -> None:
     """Validate every value first, so that a bad call changes nothing."""
     for channel, value in values.items():
         if channel not in state:
@@ -178,7 +178,7 @@ class TransportPlant:
     # (A class default: a plant pickled by an older version has no such attribute.)
     _next_event_ns: int | None = None
 
-    def set_actuators(self, values: Mapping[str, int]) -> None:
+    def set_actuators(self, values: Mapping[str, int | float]) -> None:
         apply_actuators(self._motor, values)
         self._next_event_ns = None
 
