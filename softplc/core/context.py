@@ -1,6 +1,7 @@
 """The guards' view of the scan's image (core/expr.py's EvalContext).
 
-Owns: ScanContext: current and previous values by symbol name, the events of this scan.
+Owns: ScanContext: current and previous values by symbol name (a scaled symbol's in
+engineering units, core/scaling.py), the events of this scan.
 Does not know: the net, the lifecycle, clocks.
 """
 
@@ -11,33 +12,44 @@ from collections.abc import Mapping
 from softplc.core.datatypes import SymType, value_of
 from softplc.core.expr import Value
 from softplc.core.image import ProcessImage
+from softplc.core.scaling import Scaling
 
 _NONE: Mapping[str, SymType] = {}
+_UNSCALED: Mapping[str, Scaling] = {}
 
 
 class ScanContext:
     """EvalContext over the scan's image: current values, previous values, events. Symbols in
-    `typed` (int, dint, udint, real, lreal) are decoded from their raw bits."""
+    `typed` (int, dint, udint, real, lreal) are decoded from their raw bits, symbols in
+    `scaled` then converted to engineering units."""
 
-    __slots__ = ("events", "image", "locations", "prev", "typed")
+    __slots__ = ("events", "image", "locations", "prev", "scaled", "typed")
 
     def __init__(self, image: ProcessImage, prev: ProcessImage,
                  locations: dict[str, tuple[str, int]], events: frozenset[str],
-                 typed: Mapping[str, SymType] = _NONE) -> None:
+                 typed: Mapping[str, SymType] = _NONE,
+                 scaled: Mapping[str, Scaling] = _UNSCALED) -> None:
         self.image, self.prev, self.locations, self.events = image, prev, locations, events
-        self.typed = typed
+        self.typed, self.scaled = typed, scaled
 
+    # Two copies, not one helper: a guard reads symbols on the scan's hot path.
     def symbol(self, name: str) -> int | float:
         area, index = self.locations[name]
         raw = int(getattr(self.image, area)[index])
         typed = self.typed.get(name)
-        return raw if typed is None else value_of(typed, raw)
+        value = raw if typed is None else value_of(typed, raw)
+        if self.scaled and (scaling := self.scaled.get(name)) is not None:
+            return scaling.to_eng(value)
+        return value
 
     def previous(self, name: str) -> int | float:
         area, index = self.locations[name]
         raw = int(getattr(self.prev, area)[index])
         typed = self.typed.get(name)
-        return raw if typed is None else value_of(typed, raw)
+        value = raw if typed is None else value_of(typed, raw)
+        if self.scaled and (scaling := self.scaled.get(name)) is not None:
+            return scaling.to_eng(value)
+        return value
 
     def event(self, name: str) -> bool:
         return name in self.events

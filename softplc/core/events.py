@@ -19,7 +19,8 @@ Number = int | float
 @dataclass(slots=True)
 class EventMemory:
     """What the conditions remember between scans: last values and hysteresis arming. Values
-    are the symbols' typed values (a real's float, a dint's signed value), not raw bits."""
+    are the symbols' typed values (a real's float, a dint's signed value, a scaled symbol's
+    engineering value), not raw bits."""
 
     last: dict[str, Number] = field(default_factory=dict)
     armed: dict[str, bool] = field(default_factory=dict)
@@ -65,7 +66,10 @@ def evaluate(specs: Iterable[EventSpec], symbols: Mapping[str, Symbol],
         value = values.get(spec.symbol)
         if value is None:
             raw = image.get(sym.address)
-            value = values[spec.symbol] = raw if sym.type in _PLAIN else value_of(sym.type, raw)
+            value = raw if sym.type in _PLAIN else value_of(sym.type, raw)
+            if sym.scaling is not None:  # thresholds are in engineering units
+                value = sym.scaling.to_eng(value)
+            values[spec.symbol] = value
         if _occurred(spec, value, memory.last.get(spec.symbol), memory):
             occurred.append(spec.name)
     memory.last.update(values)

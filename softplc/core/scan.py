@@ -30,7 +30,7 @@ from softplc.core.plc import (
 from softplc.core.problems import FaultCode, PlcFault
 from softplc.core.result import ScanResult
 from softplc.core.snapshot import CommandReply, HmiWrite, Refusal
-from softplc.core.symbols import FIRST_SCAN
+from softplc.core.symbols import FIRST_SCAN, scalings
 
 __all__ = ["FAULT_DEVICE", "FAULT_NONE", "FAULT_WATCHDOG", "NOTHING_OBSERVED", "Observed", "Plc",
            "ProgramCommand", "ScanContext", "ScanResult", "judge", "scan"]
@@ -144,7 +144,7 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
         if (ctx is None or ctx.image is not plc.image or ctx.prev is not plc.prev
                 or ctx.locations is not plc.locations):
             ctx = plc.context = ScanContext(plc.image, plc.prev, plc.locations, now_events,
-                                            plc.typed)
+                                            plc.typed, scalings(plc.net.io))
         ctx.events = now_events  # one context per image and program, not one per scan
         # Symbols the program wrote last scan count as changed too: the end-of-scan image
         # already holds them, so the image difference alone would miss them.

@@ -16,6 +16,7 @@ from typing import Any
 from softplc.core.datatypes import SymType as SymType  # its home; re-exported for the rooms
 from softplc.core.datatypes import raw_of
 from softplc.core.image import Address, Area, ImageSizes
+from softplc.core.scaling import Scaling
 
 
 class Direction(enum.Enum):
@@ -50,13 +51,18 @@ class Symbol:
     address: Address
     type: SymType
     direction: Direction
-    safe: int | float = 0  # the value (not its raw bits); a float for real and lreal
+    # The value (not its raw bits); a float for real and lreal. On a scaled symbol the raw
+    # type's value: `safe:` is written in engineering units and converted once, when parsed.
+    safe: int | float = 0
     description: str = ""
     driver: str | None = None
     channel: str | None = None  # driver-specific: plant signal name, or modbus table/offset
     hmi_writable: bool = True
     line: int = 0  # line in the io_images file, for messages
     retain: Retain = Retain.RETAIN  # memory symbols only (program/io_image.py checks)
+    # Raw (this type, what drivers, the image and the Modbus slave move) <-> engineering
+    # units (a float, what the program's expressions, events and writes use).
+    scaling: Scaling | None = None
 
     @property
     def safe_raw(self) -> int:
@@ -131,6 +137,12 @@ class IoImage:
 
     def lookup(self, name_or_address: str) -> Symbol | None:
         return self.symbols.get(name_or_address)
+
+
+def scalings(io: IoImage) -> Mapping[str, Scaling]:
+    """The scaled symbols of `io` with their scaling (ScanContext reads through them)."""
+    return MappingProxyType({s.name: s.scaling for s in io.symbols.values()
+                             if s.scaling is not None})
 
 
 def unretained_memory(io: IoImage) -> tuple[Symbol, ...]:

@@ -5,7 +5,8 @@ within a bound, health and stats). The I/O thread (its asyncio loop and pymodbus
 heartbeat that keeps the device's own watchdog alive) and the state it shares with the scan
 thread are modbus_link.py; channel planning is modbus_plan.py, params modbus_params.py, the
 requests themselves modbus_requests.py, the wire (TCP here, RTU in modbus_rtu.py)
-modbus_transport.py.
+modbus_transport.py. 32/64-bit symbols move as 2/4 registers in the device's word order
+(modbus_plan.py), each value in one request (FC3/FC4 reads, FC16 writes).
 Does not know: the scan, the Petri net, the HMI.
 
 Threading: read_inputs/write_outputs never touch the network; they swap values with the I/O
@@ -49,16 +50,19 @@ from softplc.devices.modbus_plan import (
     Channel,
     IoPlan,
     Table,
+    WordOrder,
     channel_problems,
+    join_words,
     parse_channel,
     plan_channels,
+    split_words,
 )
 from softplc.devices.modbus_requests import RemoteError, quiet_pymodbus
 from softplc.devices.modbus_transport import TCP, Wire
 
 __all__ = [
     "DROP_AFTER", "MAX_OFFSET", "Block", "Channel", "Heartbeat", "IoPlan", "IoStats",
-    "ModbusIoDriver", "ModbusParams", "RemoteError", "Table", "channel_problems",
+    "ModbusIoDriver", "ModbusParams", "RemoteError", "Table", "WordOrder", "channel_problems",
     "parse_channel", "plan_channels",
 ]
 
@@ -104,6 +108,10 @@ class ModbusIoDriver:
         self.params = self.transport.params
         self._read_index = [np.array(b.image_index, dtype=np.intp) for b in self.plan.reads]
         self._write_index = [np.array(b.image_index, dtype=np.intp) for b in self.plan.writes]
+        self._order = WordOrder(self.params.word_order)
+        # The image arrays by attribute name ("ix", "iw", "id", "il"; "qx", ...): each block's.
+        self._read_attr = ["i" + b.area_width.lower() for b in self.plan.reads]
+        self._write_attr = ["q" + b.area_width.lower() for b in self.plan.writes]
         self._shared = LinkState(has_writes=bool(self.plan.writes))
         self._link = IoLink(self.name, self.transport, self.plan, self._shared)
         # Scan thread only.
@@ -169,8 +177,10 @@ class ModbusIoDriver:
             self._stale_scans += 1
         if inputs is None:
             return
-        for block, index, values in zip(self.plan.reads, self._read_index, inputs, strict=True):
-            (image.ix if block.table.is_bit else image.iw)[index] = values
+        for block, attr, index, values in zip(self.plan.reads, self._read_attr,
+                                              self._read_index, inputs, strict=True):
+            getattr(image, attr)[index] = (values if block.words == 1
+                                           else join_words(values, block.words, self._order))
         self._delivered = True
 
     def delivered(self) -> bool:
@@ -236,8 +246,10 @@ class ModbusIoDriver:
 
     def _hand_over(self, image: ProcessImage, *, safe: bool) -> tuple[Outputs, int]:
         outputs = tuple(
-            (image.qx if block.table.is_bit else image.qw)[index].tolist()
-            for block, index in zip(self.plan.writes, self._write_index, strict=True)
+            getattr(image, attr)[index].tolist() if block.words == 1
+            else split_words(getattr(image, attr)[index], block.words, self._order)
+            for block, attr, index in zip(self.plan.writes, self._write_attr,
+                                          self._write_index, strict=True)
         )
         shared = self._shared
         with shared.lock:

@@ -17,11 +17,12 @@ from typing import Any, Protocol, TypeVar
 from softplc.core.symbols import DriverSpec
 from softplc.core.units import parse_duration_ns
 from softplc.devices.driver import DriverConfigError
-from softplc.devices.modbus_plan import MAX_OFFSET, IoPlan, Table
+from softplc.devices.modbus_plan import MAX_OFFSET, IoPlan, Table, WordOrder
 
 HEARTBEAT_MIN_NS = 10_000_000  # 10 ms: faster is noise on the wire, not safety
 HEARTBEAT_MAX_NS = 60_000_000_000
 _HEARTBEAT_KEYS = ("register", "period", "watchdog_register", "watchdog_value")
+WORD_ORDERS = tuple(o.value for o in WordOrder)
 
 
 @dataclass(frozen=True, slots=True)
@@ -50,6 +51,8 @@ class LinkParams(Protocol):
     def reconnect_max_s(self) -> float: ...
     @property
     def heartbeat(self) -> Heartbeat | None: ...
+    @property
+    def word_order(self) -> str: ...
 
 
 class _Checked(Protocol):
@@ -96,6 +99,8 @@ def timing_problem(params: LinkParams, poll: str, units: range = range(256)) -> 
             "reconnect_max_s must be a number >= reconnect_min_s",
         ),
         (poll == "scan", f"poll {poll!r}: only 'scan' (one cycle per scan) exists"),
+        (params.word_order in WORD_ORDERS, f"word_order {params.word_order!r}: expected big "
+                                           "(the high word first) or little"),
     )
     return next((msg for ok, msg in checks if not ok), None)
 
@@ -110,6 +115,7 @@ class ModbusParams:
     reconnect_max_s: float = 5.0
     poll: str = "scan"
     heartbeat: Heartbeat | None = None
+    word_order: str = "big"  # of 32/64-bit values' registers (modbus_plan.WordOrder)
 
     @classmethod
     def from_spec(cls, spec: DriverSpec, plan: IoPlan | None = None) -> ModbusParams:

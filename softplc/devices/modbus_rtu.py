@@ -56,6 +56,7 @@ class RtuParams:
     reconnect_max_s: float = 5.0
     poll: str = "scan"
     heartbeat: Heartbeat | None = None
+    word_order: str = "big"  # of 32/64-bit values' registers (modbus_plan.WordOrder)
 
     @classmethod
     def from_spec(cls, spec: DriverSpec, plan: IoPlan | None = None) -> RtuParams:

@@ -71,7 +71,8 @@ class _Compiler:
         self.events = {name for name, _ in spec.events}
         names: dict[str, NameKind] = {}
         for sym in io.symbols.values():
-            names[sym.name] = name_kind(sym.type)
+            # A scaled symbol reads as a real in engineering units (core/scaling.py).
+            names[sym.name] = NameKind.REAL if sym.scaling else name_kind(sym.type)
         for ev in [*io.events, *self.events]:
             names[ev] = NameKind.EVENT
         names.setdefault(FIRST_SCAN, NameKind.EVENT)  # the system bit; a declared name wins
@@ -329,7 +330,9 @@ def _frozen(d: dict[str, list[tuple[int, int]]] | dict[str, set[int]]) -> Mappin
 
 
 def _io_text(io: IoImage) -> str:
-    return repr(sorted((s.name, str(s.address), s.type.value, s.safe) for s in io.symbols.values()))
+    return repr(sorted((s.name, str(s.address), s.type.value, s.safe)
+                       + ((s.scaling.raw, s.scaling.eng, s.scaling.clamp) if s.scaling else ())
+                       for s in io.symbols.values()))
 
 
 def _at_reference(problem: Problem, ref: str, where: Where) -> Problem:

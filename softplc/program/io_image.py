@@ -1,7 +1,7 @@
 """Load an `io_images/*.yaml` symbols file into an IoImage, collecting every problem.
 
-Owns: the symbols file format (image sizes, drivers with their fault policy, symbols, event
-conditions).
+Owns: the symbols file format (image sizes, drivers with their fault policy, symbols with
+their scaling, event conditions).
 Does not know: programs, drivers' internals.
 """
 
@@ -22,6 +22,7 @@ from softplc.core.image import (
     parse_address,
 )
 from softplc.core.problems import Problem, ProgramError
+from softplc.core.scaling import Scaling
 from softplc.core.symbols import (
     DIRECTION_OF_AREA,
     Direction,
@@ -41,7 +42,9 @@ from softplc.program.yamlload import YMap, line_of, load_yaml, trap_hint
 DRIVER_KINDS = ("sim", "modbus", "modbus_rtu", "opcua")
 POLICY_KEYS = ("on_failure", "hold_scans", "auto_recover", "startup_s")  # any kind of driver
 SYMBOL_KEYS = {"address", "type", "dir", "safe", "driver", "channel", "description", "hmi_writable",
-               "retain"}
+               "retain", "scale"}
+SCALE_KEYS = ("raw", "eng", "unit", "clamp")
+SCALE_FORM = "{raw: [0, 27648], eng: [0.0, 100.0], unit: '%', clamp: true}"
 
 
 class _Reader:
@@ -153,11 +156,64 @@ class _Reader:
         if driver is not None and driver not in drivers:
             self.problem(line_of(spec, "driver"), f"{path}.driver",
                          f"unknown driver {driver!r}{did_you_mean(driver, [*drivers, 'none'])}")
-        safe = self._safe(spec, path, sym_type)
+        scaling = self._scale(spec, path, sym_type)
+        safe = self._safe(spec, path, sym_type, scaling)
         return Symbol(name, address, sym_type, direction, safe, str(spec.get("description", "")),
                       driver, str(spec.get("channel", name)),
                       spec.get("hmi_writable", True) is True, line,
-                      self._retain(spec, path, direction))
+                      self._retain(spec, path, direction), scaling)
+
+    def _scale(self, spec: dict[Any, Any], path: str, sym_type: SymType) -> Scaling | None:
+        """`scale:` (core/scaling.py); None when absent or bad (each problem reported)."""
+        if "scale" not in spec:
+            return None
+        value, line, path = spec["scale"], line_of(spec, "scale"), f"{path}.scale"
+        if sym_type is SymType.BOOL:
+            self.problem(line, path, "a bool cannot be scaled: scale applies to int, word, "
+                                     "dint, udint, real and lreal symbols")
+            return None
+        if not isinstance(value, dict) or "raw" not in value or "eng" not in value:
+            self.problem(line, path, f"expected {SCALE_FORM} (raw and eng required)")
+            return None
+        bad = len(self.problems)
+        for key in sorted(set(value) - set(SCALE_KEYS), key=str):
+            self.problem(line_of(value, key), f"{path}.{key}", f"unknown key {key!r}"
+                         f"{did_you_mean_key(str(key), SCALE_KEYS)}; expected one of "
+                         f"{', '.join(SCALE_KEYS)}")
+        raw = self._span(value, "raw", path, sym_type)
+        eng = self._span(value, "eng", path, None)
+        unit, clamp = value.get("unit", ""), value.get("clamp", False)
+        if not isinstance(unit, str):
+            self.problem(line_of(value, "unit"), f"{path}.unit",
+                         f"unit must be text (e.g. '%' or 'degC'), got {unit!r}")
+        if not isinstance(clamp, bool):
+            self.problem(line_of(value, "clamp"), f"{path}.clamp",
+                         f"clamp must be true or false{trap_hint(clamp)}")
+        if raw is None or eng is None or len(self.problems) > bad:
+            return None
+        return Scaling(raw, (float(eng[0]), float(eng[1])), str(unit), bool(clamp),
+                       whole=not INFO[sym_type].is_float)
+
+    def _span(self, scale: dict[Any, Any], key: str, path: str,
+              sym_type: SymType | None) -> tuple[int | float, int | float] | None:
+        """`raw: [low, high]` in `sym_type`'s range (None: `eng`, any finite numbers), the two
+        ends different: a span of zero has no inverse."""
+        value, line, path = scale.get(key), line_of(scale, key), f"{path}.{key}"
+        if (not isinstance(value, list) or len(value) != 2
+                or not all(_is_number(v) and math.isfinite(v) for v in value)):
+            self.problem(line, path, f"{key} must be two numbers [from, to], got {value!r}")
+            return None
+        if sym_type is not None and not all(INFO[sym_type].low <= v <= INFO[sym_type].high
+                                            for v in value):
+            info = INFO[sym_type]
+            self.problem(line, path, f"raw {value} is out of range of {sym_type.value} "
+                                     f"({info.low}..{info.high})")
+            return None
+        if value[0] == value[1]:
+            self.problem(line, path, f"{key} span is zero ({value[0]} to {value[1]}): a scale "
+                                     "needs two different ends")
+            return None
+        return value[0], value[1]
 
     def _retain(self, spec: dict[Any, Any], path: str, direction: Direction) -> Retain:
         """Memory only: inputs are read anew every scan, outputs are the program's."""
@@ -192,9 +248,18 @@ class _Reader:
             return natural
         return sym_type
 
-    def _safe(self, spec: dict[Any, Any], path: str, sym_type: SymType) -> int | float:
+    def _safe(self, spec: dict[Any, Any], path: str, sym_type: SymType,
+              scaling: Scaling | None) -> int | float:
         value = spec.get("safe", 0)
         line = line_of(spec, "safe")
+        if scaling is not None and sym_type is not SymType.BOOL:
+            try:  # in engineering units, kept as the raw value it stores
+                return stored(sym_type, scaling.to_raw(value))
+            except (TypeError, ArithmeticError) as exc:
+                self.problem(line, f"{path}.safe", "safe value of a scaled symbol must be a "
+                             f"number in engineering units that scales to a raw "
+                             f"{sym_type.value} ({exc}){trap_hint(value)}")
+                return 0
         if sym_type is SymType.BOOL:
             if isinstance(value, bool) or value in (0, 1):
                 return int(value)
@@ -237,7 +302,7 @@ class _Reader:
                                          "bool")
                 continue
             threshold, hysteresis = spec.get("threshold", 0), spec.get("hysteresis", 0)
-            numbers = int | float if INFO[sym.type].is_float else int
+            numbers = int | float if INFO[sym.type].is_float or sym.scaling else int
             if not all(isinstance(v, numbers) and not isinstance(v, bool)
                        and math.isfinite(v) for v in (threshold, hysteresis)):
                 self.problem(line, path, "threshold and hysteresis must be "
@@ -264,6 +329,10 @@ def _address_for(sym_type: SymType, address: Address) -> str:
 
 def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def parse_io_image(text: str, filename: str) -> IoImage:

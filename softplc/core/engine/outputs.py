@@ -2,13 +2,14 @@
 
 Owns: which place-driven outputs a round rewrites (only those whose places changed, or all
 after an outside write), pulses, and the actions of fired transitions in step order (set,
-reset, pulse, write, emit), their run-time errors as diagnostics.
+reset, pulse, write, emit), their run-time errors as diagnostics, and a scaled symbol's
+engineering value converted to the raw value it stores (core/scaling.py).
 Does not know: the image the writes go to (core/scan.py applies them), selection, timing.
 """
 
 from __future__ import annotations
 
-from softplc.core.datatypes import stored
+from softplc.core.datatypes import Number, stored
 from softplc.core.engine.bindings import NO_TOKENS, Bound
 from softplc.core.engine.diagnostics import Diagnostics
 from softplc.core.engine.live import Live
@@ -16,6 +17,7 @@ from softplc.core.engine.produce import Envs
 from softplc.core.engine.tables import Tables
 from softplc.core.expr import EvalContext
 from softplc.core.net import ActionKind, CompiledNet, Transition
+from softplc.core.symbols import Symbol
 
 Writes = list[tuple[str, int | float]]
 
@@ -23,10 +25,12 @@ Writes = list[tuple[str, int | float]]
 class Outputs:
     """The writes of each round; `pending` rewrites every place-driven output once."""
 
-    __slots__ = ("_diag", "_live", "_net", "_pulsed", "_remoore", "_tables", "pending")
+    __slots__ = ("_diag", "_live", "_net", "_pulsed", "_remoore", "_scaled", "_tables",
+                 "pending")
 
     def __init__(self, net: CompiledNet, tables: Tables, live: Live, diag: Diagnostics) -> None:
         self._net, self._tables, self._live, self._diag = net, tables, live, diag
+        self._scaled = {s.name: s for s in net.io.symbols.values() if s.scaling is not None}
         self._pulsed: set[str] = set()
         self._remoore: set[str] = set()  # place-driven outputs an action overwrote
         self.pending = True  # rewrite every place-driven output this round
@@ -78,7 +82,13 @@ class Outputs:
             for ti, v in net.busy_drivers.get(sym, ()):
                 if ti in st.busy:
                     value = value or v
-            writes.append((sym, value))
+            if sym in self._scaled:
+                try:  # a Moore value of a scaled symbol is in engineering units
+                    writes.append((sym, _raw(self._scaled[sym], value)))
+                except (TypeError, ArithmeticError) as exc:  # typecheck.py refuses these
+                    self._diag.report(f"output {sym} = {value!r} failed ({exc})")
+            else:
+                writes.append((sym, value))
         return writes
 
     def _actions(self, t: Transition, ctx: Bound, writes: Writes, emitted: list[str]) -> None:
@@ -90,7 +100,7 @@ class Outputs:
                     # Checked against the target's type: out of range, NaN, infinite, a
                     # fraction for an integer symbol or text is a diagnostic, never a
                     # wrapped or truncated value (core/datatypes.py).
-                    value = stored(self._net.io.symbols[act.target].type, act.value(ctx))
+                    value = _raw(self._net.io.symbols[act.target], act.value(ctx))
                     writes.append((act.target, value))
                 except (KeyError, TypeError, ValueError, ArithmeticError) as exc:
                     self._diag.report(
@@ -101,3 +111,11 @@ class Outputs:
                     self._pulsed.add(act.target)
             if act.target in self._net.moore_drivers or act.target in self._net.busy_drivers:
                 self._remoore.add(act.target)  # the marking drives it again next round
+
+
+def _raw(sym: Symbol, value: object) -> Number:
+    """The value a write to `sym` stores: checked against its type (core/datatypes.py), a
+    scaled symbol's engineering value converted to raw first (clamped or extrapolated)."""
+    if sym.scaling is not None:
+        value = sym.scaling.to_raw(value)
+    return stored(sym.type, value)
