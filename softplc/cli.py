@@ -14,6 +14,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from softplc.api.secopts import add_run_options
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.units import parse_duration_ns
 from softplc.program.compiler import compile_file, summarize
@@ -175,8 +176,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         print(f"softplc bench: {exc}; install the bench extra: pip install -e '.[bench]'",
               file=sys.stderr)
         return 2
-    result: int = bench_main(args)
-    return result
+    return int(bench_main(args))
 
 
 def _duration(text: str) -> int:
@@ -303,6 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
                      "(default: 3s; at least period x watchdog)")
     run.add_argument("--duration", type=_duration, help="stop after this long (default: Ctrl-C)")
     run.add_argument("--quiet", action="store_true", help="no live status line (default: off)")
+    add_run_options(run)  # --tls, --tls-cert, --tls-key, --trusted-keys (docs/security.md)
     run.set_defaults(func=cmd_run)
 
     sim = sub.add_parser("simulate", help="run a program on a simulated plant in virtual time")
@@ -388,8 +389,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     sys.stdout, sys.stderr = _Console(sys.stdout), _Console(sys.stderr)
     try:
         args = build_parser().parse_args(argv)  # --help and usage errors: SystemExit
-        result: int = args.func(args)
-        return result
+        return int(args.func(args))
     finally:
         sys.stdout.flush()  # a closed pipe is found here, not in the interpreter's exit
         sys.stderr.flush()

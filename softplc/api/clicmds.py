@@ -18,6 +18,9 @@ from softplc.api.admincmds import add_admin_commands, read_password
 from softplc.api.auth import TOKEN_ENV
 from softplc.api.client import DEFAULT_URL, ApiClient, ApiError, ApiUnreachable
 from softplc.api.openapi import LIFECYCLE_COMMANDS
+from softplc.api.signcmds import add_download_options, add_signing_commands, download_body
+from softplc.api.signcmds import signature_for as signature_of
+from softplc.api.trustcmds import add_trust_commands
 from softplc.core.lifecycle import Command, accepting
 from softplc.program import bundle as bundles
 
@@ -41,7 +44,7 @@ def add_client_commands(subparsers: Any) -> None:
         "download", help="download a program to a running softplc: the program, its io image "
         "and subnets in one bundle (docs/programs.md, program bundles)")
     download.add_argument("program", help="program file (YAML); the files it references go "
-                          "along")
+                          "along; or a bundle (.zip) sent as it is")
     download.add_argument("--online", action="store_true",
                           help="online change while RUNNING: keep the marking by place name; "
                           "new places start with their declared tokens; refused when tokens "
@@ -54,6 +57,7 @@ def add_client_commands(subparsers: Any) -> None:
                           help="show what the download would do against the running state "
                           "(kept, new and dropped places with tokens, outputs changing hands, "
                           "accepted or not) and apply nothing (default: off)")
+    add_download_options(download)  # --sign-key, --signature
     _connection_options(download)
     download.set_defaults(func=cmd_download)
     upload = subparsers.add_parser(
@@ -70,7 +74,8 @@ def add_client_commands(subparsers: Any) -> None:
         parser.set_defaults(func=cmd_lifecycle, api_command=command)
     force = subparsers.add_parser("force", help="force a symbol (input or output) to a value")
     force.add_argument("symbol", help="an input, output or memory symbol of the program")
-    force.add_argument("value", help="0/1, true/false or a word 0..65535")
+    force.add_argument("value", help="as the symbol's type takes it: 0/1 or true/false, an "
+                       "integer (-3), a decimal (12.5)")
     _connection_options(force)
     force.set_defaults(func=cmd_force)
     unforce = subparsers.add_parser("unforce", help="release a forced symbol (all without one)")
@@ -84,6 +89,8 @@ def add_client_commands(subparsers: Any) -> None:
     _connection_options(status)
     status.set_defaults(func=cmd_status)
     add_admin_commands(subparsers)  # users, audit (local files)
+    add_signing_commands(subparsers)  # keys, sign
+    add_trust_commands(subparsers)  # the OPC UA trust list (STATE_DIR/pki)
 
 
 def _connection_options(parser: argparse.ArgumentParser) -> None:
@@ -101,6 +108,10 @@ def _connection_options(parser: argparse.ArgumentParser) -> None:
                         "DIR/api_token from (default: found for a loopback --api)")
     parser.add_argument("--timeout", metavar="SECONDS", type=float, default=10.0,
                         help="how long to wait for an answer (default: %(default)s)")
+    parser.add_argument("--ca", metavar="FILE", default=None,
+                        help="verify an https --api against this CA file; the PLC's own "
+                        "certificate pins it (default: $SOFTPLC_API_CA, else --state-dir's "
+                        "certificate, else the system's CAs)")
 
 
 def _call(args: argparse.Namespace, what: str,
@@ -109,7 +120,7 @@ def _call(args: argparse.Namespace, what: str,
     try:
         password = read_password(confirm=False) if args.user else None
         client = ApiClient(args.api, args.token, args.timeout, state_dir=args.state_dir,
-                           user=args.user, password=password)
+                           user=args.user, password=password, ca=args.ca)
         return EXIT_OK, action(client)
     except ApiError as exc:
         message = exc.message.removeprefix(f"{what} refused: ")  # said once is enough
@@ -129,10 +140,9 @@ def _call(args: argparse.Namespace, what: str,
 
 def cmd_download(args: argparse.Namespace) -> int:
     try:
-        text = Path(args.program).read_text(encoding="utf-8")
-        absent = bundles.missing(args.program)
-        blob = bundles.pack(bundles.from_files(args.program))
-    except (OSError, UnicodeDecodeError, bundles.BundleError) as exc:
+        blob, _, absent = download_body(args.program)  # a program's bundle, or a bundle zip
+        signature = signature_of(args, blob)  # --sign-key, --signature (signcmds.py)
+    except (OSError, UnicodeDecodeError, ValueError, bundles.BundleError) as exc:
         print(f"softplc download: cannot read {args.program}: {exc}", file=sys.stderr)
         return EXIT_REFUSED
     if absent:  # compatibility: the server resolves them against its programs directory
@@ -141,10 +151,10 @@ def cmd_download(args: argparse.Namespace) -> int:
               file=sys.stderr)
         name = Path(args.program).name
         code, reply = _call(args, "download", lambda client: client.download_text(
-            text, args.online, name, args.replace, args.dry_run))
+            blob.decode(), args.online, name, args.replace, args.dry_run, signature))
     else:
         code, reply = _call(args, "download", lambda client: client.download_bundle(
-            blob, args.online, args.replace, args.dry_run))
+            blob, args.online, args.replace, args.dry_run, signature))
     if code != EXIT_OK:
         return code
     if "plan" in reply:
@@ -227,14 +237,19 @@ def cmd_lifecycle(args: argparse.Namespace) -> int:
     return code
 
 
-def _force_value(text: str) -> int | None:
+def _force_value(text: str) -> bool | int | float | None:
+    """The value as a number, whatever the symbol's type: true/false (on/off), an integer
+    (`-3`, `0x10`) or a decimal (`12.5`, `1e3`). The server checks it against the symbol's
+    type (core/present.py), so the CLI needs no second look-up and no type of its own."""
     lowered = text.strip().lower()
-    if lowered in ("true", "on"):
-        return 1
-    if lowered in ("false", "off"):
-        return 0
+    if lowered in ("true", "on", "false", "off"):
+        return lowered in ("true", "on")
     try:
         return int(lowered, 0)
+    except ValueError:
+        pass
+    try:
+        return float(lowered)  # nan and inf parse too: the server names why it refuses them
     except ValueError:
         return None
 
@@ -242,7 +257,7 @@ def _force_value(text: str) -> int | None:
 def cmd_force(args: argparse.Namespace) -> int:
     value = _force_value(args.value)
     if value is None:
-        print(f"softplc force: value {args.value!r} is not 0/1, true/false or an integer",
+        print(f"softplc force: value {args.value!r} is not true/false or a number",
               file=sys.stderr)
         return EXIT_REFUSED
     code, reply = _call(args, "force", lambda client: client.force(args.symbol, value))

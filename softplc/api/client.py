@@ -5,13 +5,16 @@ ApiUnreachable (nothing answers at the URL), the event-stream reader.
 Does not know: argparse or exit codes (clicmds.py), the server's internals.
 
 Proxies from the environment and redirects are not followed: the token must go to the
-PLC named by the URL and nowhere else.
+PLC named by the URL and nowhere else. Over https the server is verified against a CA file:
+`ca`, else $SOFTPLC_API_CA, else the certificate of the PLC's state directory (given, or this
+account's server at a loopback URL), else the system's CAs (api/tls.py, the pin rule).
 """
 
 from __future__ import annotations
 
 import base64
 import json
+import os
 import re
 import time
 import urllib.error
@@ -21,7 +24,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, Final
 
-from softplc.api import auth
+from softplc.api import auth, secopts, tls
 from softplc.core.errors import SoftplcError
 
 DEFAULT_URL: Final = "http://127.0.0.1:8080"
@@ -33,6 +36,8 @@ DOWNLOAD_TIMEOUT_S: Final = 65.0  # the server waits up to 60 s for a big compil
 # command; a frozen or dead one is still reported within about a second.
 NOT_SENT_WINDOW_S: Final = 1.0
 NOT_SENT_RETRY_S: Final = 0.1
+CA_ENV: Final = "SOFTPLC_API_CA"
+SIGNATURE_HEADER: Final = "X-Softplc-Signature"  # api/signed.py reads it
 
 
 class ApiError(SoftplcError):
@@ -67,7 +72,7 @@ class ApiClient:
     def __init__(self, url: str = DEFAULT_URL, token: str | None = None,
                  timeout_s: float = 10.0, *, state_dir: Path | str | None = None,
                  user: str | None = None, password: str | None = None,
-                 local: bool = True) -> None:
+                 local: bool = True, ca: Path | str | None = None) -> None:
         parts = urllib.parse.urlsplit(url)
         if parts.scheme not in ("http", "https") or not parts.netloc:
             raise ValueError(f"API URL must look like {DEFAULT_URL}, not {url!r}")
@@ -79,7 +84,13 @@ class ApiClient:
         else:
             found = auth.client_token(token, state_dir, url if local else None)
             self._authorization = f"Bearer {found}" if found else None
-        self._opener = urllib.request.build_opener(urllib.request.ProxyHandler({}), _NoRedirect())
+        handlers: list[urllib.request.BaseHandler] = [urllib.request.ProxyHandler({}),
+                                                      _NoRedirect()]
+        self.ca: Path | None = None  # what an https server is verified against (None: system)
+        if parts.scheme == "https":
+            self.ca = server_ca(ca, state_dir, url if local else None)
+            handlers.append(urllib.request.HTTPSHandler(context=tls.client_context(self.ca)))
+        self._opener = urllib.request.build_opener(*handlers)
 
     def __repr__(self) -> str:
         return f"ApiClient({self.url!r}, token={'set' if self._authorization else 'none'})"
@@ -97,7 +108,9 @@ class ApiClient:
                                   replace)
 
     def download_text(self, text: str, online: bool = False, name: str | None = None,
-                      replace: bool = False, dry_run: bool = False) -> dict[str, Any]:
+                      replace: bool = False, dry_run: bool = False,
+                      signature: str | None = None) -> dict[str, Any]:
+        """`signature`: the line `softplc sign` made of exactly `text` (UTF-8)."""
         query = {"online": "true" if online else "false"}
         if replace:
             query["replace"] = "true"
@@ -106,19 +119,19 @@ class ApiClient:
         if name:  # the server takes plain file names only
             query["name"] = re.sub(r"[^A-Za-z0-9._-]", "_", name)[:128]
         return self._json("POST", "/program", text.encode(), "application/yaml", query,
-                          max(self.timeout_s, DOWNLOAD_TIMEOUT_S))
+                          max(self.timeout_s, DOWNLOAD_TIMEOUT_S), _signed(signature))
 
     def download_bundle(self, blob: bytes, online: bool = False, replace: bool = False,
-                        dry_run: bool = False) -> dict[str, Any]:
+                        dry_run: bool = False, signature: str | None = None) -> dict[str, Any]:
         """Download a bundle (softplc/program/bundle.py); with `dry_run` the answer's `plan`
-        says what it would do, and nothing is applied."""
+        says what it would do, and nothing is applied. `signature`: of exactly `blob`."""
         query = {"online": "true" if online else "false"}
         if replace:
             query["replace"] = "true"
         if dry_run:
             query["dry_run"] = "true"
         return self._json("POST", "/program", blob, "application/zip", query,
-                          max(self.timeout_s, DOWNLOAD_TIMEOUT_S))
+                          max(self.timeout_s, DOWNLOAD_TIMEOUT_S), _signed(signature))
 
     def upload(self) -> bytes:
         """The running program's bundle, byte for byte."""
@@ -157,22 +170,23 @@ class ApiClient:
         symbols: dict[str, Any] = self._json("GET", "/symbols")["symbols"]
         return symbols
 
-    def read_symbol(self, name: str) -> bool | int:
-        value: bool | int = self._json("GET", f"/symbols/{_quote(name)}")["value"]
+    def read_symbol(self, name: str) -> bool | int | float | str:
+        """The typed value (a real as a number; "NaN"/"Infinity" as text)."""
+        value: bool | int | float | str = self._json("GET", f"/symbols/{_quote(name)}")["value"]
         return value
 
-    def write_symbol(self, name: str, value: bool | int) -> dict[str, Any]:
+    def write_symbol(self, name: str, value: bool | int | float) -> dict[str, Any]:
         """Journal a write, applied at the next scan start (202)."""
         body = json.dumps({"value": value}).encode()
         return self._json("PUT", f"/symbols/{_quote(name)}", body, "application/json")
 
     # -- forcing (docs/web.md) ----------------------------------------------------------------
 
-    def forces(self) -> dict[str, int]:
-        forced: dict[str, int] = self._json("GET", "/forces").get("forced") or {}
+    def forces(self) -> dict[str, int | float]:
+        forced: dict[str, int | float] = self._json("GET", "/forces").get("forced") or {}
         return forced
 
-    def force(self, name: str, value: bool | int) -> dict[str, Any]:
+    def force(self, name: str, value: bool | int | float) -> dict[str, Any]:
         """Force `name` to `value` from the next scan on, until released."""
         body = json.dumps({"value": value}).encode()
         return self._json("PUT", f"/forces/{_quote(name)}", body, "application/json")
@@ -227,14 +241,15 @@ class ApiClient:
 
     def _json(self, method: str, path: str, body: bytes | None = None,
               content_type: str | None = None, query: dict[str, str] | None = None,
-              timeout_s: float | None = None) -> dict[str, Any]:
+              timeout_s: float | None = None,
+              headers: dict[str, str] | None = None) -> dict[str, Any]:
         # A command refused because the PLC was not publishing (a starved or restarting scan
         # process) was never sent: asking again until the timeout cannot apply it twice.
         give_up = time.monotonic() + min(timeout_s or self.timeout_s, NOT_SENT_WINDOW_S)
         while True:
             try:
-                response = self._open(method, path, body, content_type, query,
-                                      timeout_s=timeout_s)
+                response = self._open(method, path, body, content_type, query, headers,
+                                      timeout_s)
                 break
             except ApiError as exc:
                 if not exc.not_sent or time.monotonic() + NOT_SENT_RETRY_S > give_up:
@@ -274,6 +289,26 @@ class ApiClient:
             raise ApiUnreachable(
                 f"cannot reach the softplc API at {self.url}: {reason}. Is `softplc run` "
                 f"serving its API there (--api HOST:PORT)?") from None
+
+
+def server_ca(ca: Path | str | None, state_dir: Path | str | None,
+              url: str | None) -> Path | None:
+    """The CA file to verify an https server against: `ca`, $SOFTPLC_API_CA, the certificate
+    the PLC of `state_dir` (or of this account's server at a loopback `url`) serves with;
+    None: the system's CAs."""
+    if ca or (ca := os.environ.get(CA_ENV, "").strip()):
+        return Path(ca)
+    if state_dir is None and url is not None:
+        state_dir = auth.indexed_state_dir(url)
+    if state_dir is None:
+        return None
+    given = secopts.load(Path(state_dir)).tls.cert
+    cert = Path(given) if given else tls.generated_paths(Path(state_dir))[0]
+    return cert if cert.is_file() else None
+
+
+def _signed(signature: str | None) -> dict[str, str] | None:
+    return {SIGNATURE_HEADER: signature.strip()} if signature else None
 
 
 def _quote(name: str) -> str:

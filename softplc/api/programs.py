@@ -1,9 +1,9 @@
 """The program routes: download (`POST /api/v1/program`, YAML text or a bundle) and upload
 (`GET /api/v1/program`, the running program's bundle byte for byte).
 
-Owns: what is checked before a download reaches the scan process (UTF-8, not empty, no
-character YAML forbids, a usable bundle, a plain name), and turning a refused download into
-422 with one located problem per line.
+Owns: what is checked before a download reaches the scan process (the signature when keys
+are trusted: signed.py; UTF-8, not empty, no character YAML forbids, a usable bundle, a plain
+name), and turning a refused download into 422 with one located problem per line.
 Does not know: compiling (the scan process does, behind the channel), the lifecycle.
 """
 
@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import json
 import re
 from pathlib import Path
 from typing import Final
@@ -21,6 +22,7 @@ from softplc.api.commands import Record
 from softplc.api.openapi import API_PREFIX
 from softplc.api.problems import ApiProblem, flag, idempotency_key
 from softplc.api.service import ApiService
+from softplc.api.signed import SIGNATURE_HEADER, DownloadSigning
 from softplc.core.lifecycle import Command
 from softplc.core.snapshot import DOWNLOAD_REFUSED, CommandReply
 from softplc.program import boot
@@ -32,9 +34,9 @@ _NOT_YAML: Final = re.compile(
     "[^\x09\x0A\x0D\x20-\x7E\x85\xA0-\uD7FF\uE000-\uFFFD\U00010000-\U0010FFFF]")
 
 
-def register(app: web.Application, api: ApiService) -> None:
+def register(app: web.Application, api: ApiService, signing: DownloadSigning) -> None:
     """Add the program routes to `app` (server.py's build_app calls this once)."""
-    routes = _Routes(api)
+    routes = _Routes(api, signing)
     app.router.add_post(f"{API_PREFIX}/program", routes.download)
     app.router.add_get(f"{API_PREFIX}/program", routes.upload)
 
@@ -50,8 +52,9 @@ def unprintable(text: str, name: str) -> list[str]:
 
 
 class _Routes:
-    def __init__(self, api: ApiService) -> None:
+    def __init__(self, api: ApiService, signing: DownloadSigning) -> None:
         self._api = api
+        self._signing = signing
 
     async def download(self, request: web.Request) -> web.Response:
         online = flag(request.query.get("online", request.headers.get("X-Softplc-Online")),
@@ -62,6 +65,10 @@ class _Routes:
         if name is not None and not _NAME.fullmatch(name):
             raise ApiProblem(400, "name must be a plain file name (letters, digits, . _ -)")
         body = await request.read()
+        # The exact bytes, before anything else reads them: nothing unsigned reaches a parser.
+        signer = await self._signing.check(body, request.headers.get(SIGNATURE_HEADER))
+        if signer is not None and not dry_run:
+            await self._signing.remember(body, signer)
         if request.content_type == bundles.CONTENT_TYPE or bundles.is_bundle(body):
             try:  # checked here, so that a bad archive never reaches the scan process
                 bundle = await asyncio.to_thread(bundles.unpack, body)
@@ -70,7 +77,7 @@ class _Routes:
             reply = await self._api.command(Command.DOWNLOAD, None, bundle.program, online,
                                             idempotency_key(request), replace=replace,
                                             bundle=body, dry_run=dry_run)
-            return self._answer(reply)
+            return self._answer(reply, signer)
         try:
             text = body.decode("utf-8")
         except UnicodeDecodeError as exc:
@@ -84,9 +91,9 @@ class _Routes:
         reply = await self._api.command(Command.DOWNLOAD, text, name, online,
                                         idempotency_key(request), replace=replace,
                                         dry_run=dry_run)
-        return self._answer(reply)
+        return self._answer(reply, signer)
 
-    def _answer(self, reply: CommandReply | Record) -> web.Response:
+    def _answer(self, reply: CommandReply | Record, signer: str | None) -> web.Response:
         if isinstance(reply, CommandReply) and reply.refusal is not None \
                 and reply.refusal.of_program:
             raise ApiProblem(422, reply.message.partition("\n")[0].rstrip(":"),
@@ -94,8 +101,17 @@ class _Routes:
                              refusal=reply.refusal.value)
         if isinstance(reply, CommandReply) and reply.ok and reply.detail is not None:
             return web.json_response({"ok": True, "message": reply.message, "id": reply.id,
-                                      "state": reply.state.name, "plan": reply.detail})
-        return self._api.answer(reply)
+                                      "state": reply.state.name, "plan": reply.detail,
+                                      "signer": signer})
+        response = self._api.answer(reply)
+        if signer is not None and response.status == 200 and isinstance(response.body, bytes):
+            # In the answer and so in the audit record's message: who signed what was applied.
+            answer = json.loads(response.body)
+            answer["signer"] = signer
+            answer["message"] = f"{answer.get('message') or 'download'} (signed by {signer})"
+            return web.json_response(answer, headers={
+                k: v for k, v in response.headers.items() if k == "Location"})
+        return response
 
     async def upload(self, request: web.Request) -> web.Response:
         """The running program's bundle, byte for byte as it was downloaded."""

@@ -2,7 +2,8 @@
 
 Owns: the application (its routes: program.py, symbols.py, events.py, web.py and
 accessroutes.py add theirs), the guard (Host/Origin checks, then the route's role against
-the request's principal and the audit record of a change: accessroutes.py), the body
+the request's principal and the audit record of a change: accessroutes.py), TLS when
+asked (tls.py; `softplc run` hands its options over in STATE_DIR/security.json), the body
 limit, turning any failure into a JSON error ({"error", "problems"}, 4xx for bad input,
 never a traceback), sending lifecycle commands with an id and a deadline (api/commands.py
 keeps their outcomes) and mapping scan replies to status codes, and the status document.
@@ -26,7 +27,7 @@ from typing import Any, Final
 
 from aiohttp import web
 
-from softplc.api import accessroutes, auth, debug, programs, symbols
+from softplc.api import accessroutes, auth, debug, programs, secopts, symbols, tls
 from softplc.api import web as web_page
 from softplc.api.access import Gate
 from softplc.api.commands import (
@@ -43,6 +44,8 @@ from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
 from softplc.api.problems import MAX_JSON_BYTES, ApiProblem, idempotency_key
 from softplc.api.roles import Role
 from softplc.api.service import BoardSource, CommandChannel
+from softplc.api.signed import DownloadSigning
+from softplc.api.tlsproto import TlsRunner
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import Command
 from softplc.core.snapshot import (
@@ -86,7 +89,8 @@ class ApiServer:
                  *, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, state_dir: Path,
                  token_required: bool | None = None, heartbeat_s: float = HEARTBEAT_S,
                  command_timeout_s: float = COMMAND_TIMEOUT_S,
-                 limits: HttpLimits | None = None) -> None:
+                 limits: HttpLimits | None = None,
+                 security: secopts.SecuritySettings | None = None) -> None:
         self.host = host
         self.port = port
         self.state_dir = Path(state_dir)
@@ -104,6 +108,10 @@ class ApiServer:
         self._runner: web.AppRunner | None = None
         # Connection cap, request classes, header and body timeouts.
         self.bounds = HttpBounds(limits, request_class, pools=len(STREAM_POOLS))
+        # None: what `softplc run` asked for (none: plain HTTP, STATE_DIR/trusted_keys).
+        self.security = security or secopts.load(self.state_dir)
+        self.signing = DownloadSigning(self.state_dir, self.security.trusted_dir(self.state_dir))
+        self.tls_cert: Path | None = None  # the certificate served, when TLS is on
 
     @property
     def token_file(self) -> Path:
@@ -119,13 +127,22 @@ class ApiServer:
 
     async def start(self) -> None:
         self.gate.set_owner(await asyncio.to_thread(auth.load_or_create_token, self.state_dir))
-        self._runner = self.bounds.runner(self.build_app(), shutdown_timeout=2.0,
-                                          access_log_format='%a "%r" %s %b %Tfs')
+        runner = self.bounds.runner(self.build_app(), shutdown_timeout=2.0,
+                                    access_log_format='%a "%r" %s %b %Tfs')
+        if self.security.tls.wanted(self.host):
+            cert, key, made = await asyncio.to_thread(tls.certificate, self.security.tls,
+                                                      self.state_dir, self.host)
+            runner = TlsRunner.around(runner, tls.server_context(cert, key))
+            self.tls_cert = cert
+            log.info("HTTPS with %s certificate %s (SHA-256 %s)", "a new" if made else "the",
+                     cert, await asyncio.to_thread(tls.fingerprint, cert))
+        self._runner = runner
         await self._runner.setup()
         await self.bounds.site(self._runner, self.host, self.port).start()
         with contextlib.suppress(OSError):  # the owner's CLI then gives --state-dir itself
             self._indexed = auth.register_server(self.bound_port, self.state_dir)
-        log.info("HTTP API on %s:%d (without credentials: %s)", self.host, self.bound_port,
+        log.info("HTTP API on %s://%s:%d (without credentials: %s)",
+                 "https" if self.tls_cert else "http", self.host, self.bound_port,
                  "nothing" if self.token_required else "read only")
 
     async def stop(self) -> None:
@@ -148,7 +165,7 @@ class ApiServer:
         app.router.add_get(f"{p}/events", self._events)
         app.router.add_get(f"{p}/openapi.json", self._openapi)
         accessroutes.register(app, self.gate)  # login, logout, whoami, audit
-        programs.register(app, self)  # download and upload
+        programs.register(app, self, self.signing)  # download and upload
         symbols.register(app, self)
         debug.register(app, self)  # why (docs/debug.md)
         web_page.register(app, self)  # the operator's page, live stream, forcing (docs/web.md)
@@ -314,6 +331,8 @@ class ApiServer:
                 status.setdefault("program_hash", s.program_hash or None)
                 status.setdefault("timing", {"p99_lateness_us": s.p99_lateness_us,
                                              "overruns": s.overruns})
+        status["program_signer"] = await self.signing.running_signer(
+            status.get("program_hash"))
         status["http"] = self.bounds.report()  # refusals counted here, not logged one by one
         status["audit"] = await self.gate.chain()  # "ok": false names the first bad record
         status["last_event_seq"] = max(

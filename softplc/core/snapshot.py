@@ -98,6 +98,7 @@ class Refusal(Enum):
     WITHDRAWN = "withdrawn"  # a stop or kill sent after it came first
     STATE = "state"  # the lifecycle table or the online-change rules refuse it in this state
     EXPIRED = "expired"  # drained after its deadline, never applied
+    SIGNATURE = "signature"  # not signed by a trusted key (the service refuses it, unsent)
 
     @property
     def of_program(self) -> bool:
@@ -106,7 +107,8 @@ class Refusal(Enum):
 
 
 _PROGRAM_REFUSALS = frozenset({Refusal.PROGRAM, Refusal.ANALYSIS, Refusal.DEVICE,
-                               Refusal.COMPILER, Refusal.BOOT, Refusal.SIZES})
+                               Refusal.COMPILER, Refusal.BOOT, Refusal.SIZES,
+                               Refusal.SIGNATURE})
 
 
 @dataclass(frozen=True, slots=True)

@@ -23,6 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from softplc.api import secopts
 from softplc.core.problems import ProgramError
 from softplc.program.compiler import compile_file
 from softplc.runtime.leftovers import remove_stale_segments
@@ -140,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
     if trouble := _startup_problem(args):
         print(f"softplc: {trouble}", file=sys.stderr)
         return EXIT_START
-    if trouble := resolve_boot_policy(args):
+    if trouble := resolve_boot_policy(args) or secopts.prepare(args):  # TLS, trusted keys
         print(f"softplc: {trouble}", file=sys.stderr)
         return EXIT_START
     remove_stale_segments()
@@ -167,8 +168,7 @@ def run(args: argparse.Namespace) -> int:
     notifier.send(f"READY=1\nMAINPID={os.getpid()}\nSTATUS=scanning")
     _banner(args, supervisor.status())
     print(f"  scan process pid {supervisor.scan.pid} ({supervisor.status().get('realtime', '?')}), "
-          f"communication process pid {supervisor.comm.pid if supervisor.comm else '-'}",
-          flush=True)
+          f"{supervisor.pids()}", flush=True)
     print(f"  supervisor pid {os.getpid()}: SIGTERM or SIGINT stops everything within "
           f"{STOP_S:g} s; exit code 0 then, 3 if it gives up restarting", flush=True)
     return _supervise(supervisor, args, lambda: stopping, notifier)
@@ -228,7 +228,10 @@ def _banner(args: argparse.Namespace, doc: dict[str, Any]) -> None:
               f"mbpoll -m tcp -p {port} -a 1 -0 -1 -t 0 -r 0 -c 8 {host}")
     if args.api:
         host, port = args.api
-        print(f"  HTTP API on http://{host}:{port}; try: curl -s http://{host}:{port}/api/v1/status")
+        url = f"{getattr(args, 'api_scheme', 'http')}://{host}:{port}"
+        print(f"  HTTP API on {url}; try: curl -s {url}/api/v1/status"
+              + (f"\n  TLS: {args.api_tls} (curl --cacert it)" if getattr(args, "api_tls", "")
+                 else ""))
     if getattr(args, "opcua", None):
         host, port = args.opcua
         print(f"  OPC UA server on opc.tcp://{host}:{port} (writes and methods: user token)")

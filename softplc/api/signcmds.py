@@ -1,0 +1,146 @@
+"""The CLI of signed programs: `softplc keys new|list|trust`, `softplc sign`, and the
+signature options of `softplc download` (--sign-key, --signature).
+
+Owns: where an engineer's keys live (--dir, default $XDG_CONFIG_HOME/softplc/keys), what
+`softplc download` sends for a program (its bundle, or its text when its files are not all
+here; a bundle zip as it is), and so what `softplc sign` signs: exactly those bytes, into
+FILE.sig. Does not know: HTTP (client.py), Ed25519 (program/signing.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import shutil
+import sys
+from pathlib import Path
+from typing import Any, Final
+
+from softplc.api.secopts import TRUSTED_DIR
+from softplc.program import bundle as bundles
+
+EXIT_OK: Final = 0
+EXIT_REFUSED: Final = 1
+SIG_SUFFIX: Final = ".sig"
+
+
+def keys_dir() -> Path:
+    base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
+    return Path(base) / "softplc" / "keys"
+
+
+def add_signing_commands(subparsers: Any) -> None:
+    keys = subparsers.add_parser("keys", help="an engineer's Ed25519 keys for signing "
+                                 "programs, and a PLC's trusted keys")
+    verbs = keys.add_subparsers(dest="verb", required=True, metavar="VERB",
+                                help="new, list or trust")
+    new = verbs.add_parser("new", help="make a key pair NAME.key (private, 0600) and NAME.pub "
+                           "(what a PLC trusts)")
+    new.add_argument("name", help="the key's name: the signer status names (a-z 0-9 _ -)")
+    listed = verbs.add_parser("list", help="the key pairs in --dir and their fingerprints")
+    for parser in (new, listed):
+        parser.add_argument("--dir", metavar="DIR", type=Path, default=None,
+                            help=f"where the keys are (default: {keys_dir()})")
+    trust = verbs.add_parser("trust", help="copy a public key into a PLC's trusted keys: "
+                             "downloads must then be signed by a trusted key")
+    trust.add_argument("public_key", type=Path, help="NAME.pub (the signer is called NAME)")
+    trust.add_argument("--state-dir", metavar="DIR", default="state",
+                       help="the PLC's state directory (default: %(default)s)")
+    trust.add_argument("--trusted-keys", metavar="DIR", default=None,
+                       help=f"the PLC's --trusted-keys (default: STATE_DIR/{TRUSTED_DIR})")
+    keys.set_defaults(func=cmd_keys)
+    sign = subparsers.add_parser("sign", help="sign a program (the bundle softplc download "
+                                 "sends) or a bundle zip with an engineer's key: FILE.sig")
+    sign.add_argument("program", help="a program file (YAML) or a bundle (.zip)")
+    sign.add_argument("--key", required=True, help="a private key file, or the NAME of one in "
+                      f"{keys_dir()} (required)")
+    sign.add_argument("-o", "--output", metavar="FILE", default=None,
+                      help="where the signature goes (default: PROGRAM.sig)")
+    sign.set_defaults(func=cmd_sign)
+
+
+def add_download_options(download: argparse.ArgumentParser) -> None:
+    given = download.add_mutually_exclusive_group()
+    given.add_argument("--sign-key", metavar="KEY", default=None,
+                       help="sign what is sent with this private key (a file, or a NAME in "
+                       f"{keys_dir()}) (default: unsigned, or --signature)")
+    given.add_argument("--signature", metavar="FILE", default=None,
+                       help="send this signature (softplc sign's PROGRAM.sig) (default: none)")
+
+
+def download_body(program: str) -> tuple[bytes, bool, list[Path]]:
+    """What `softplc download PROGRAM` sends: (the bytes, a bundle?, files not found here
+    and so resolved by the server: then the text goes alone)."""
+    raw = Path(program).read_bytes()
+    if bundles.is_bundle(raw):
+        return raw, True, []
+    raw.decode("utf-8")  # UnicodeDecodeError: not a program
+    absent = bundles.missing(program)
+    if absent:
+        return raw, False, absent
+    return bundles.pack(bundles.from_files(program)), True, []
+
+
+def private_key_path(key: str) -> Path:
+    path = Path(key)
+    return path if path.exists() or os.sep in key else keys_dir() / f"{key}.key"
+
+
+def signature_for(args: argparse.Namespace, body: bytes) -> str | None:
+    """The signature line to send with `body`: made with --sign-key, or read from
+    --signature; None without either. Raises SigningError or OSError."""
+    from softplc.program import signing
+
+    if getattr(args, "sign_key", None):
+        return signing.sign(body, signing.load_private(private_key_path(args.sign_key)))
+    if getattr(args, "signature", None):
+        line = Path(args.signature).read_text(encoding="ascii").strip()
+        signing.Signature.parse(line)  # malformed: said here, not by the PLC
+        return line
+    return None
+
+
+def cmd_sign(args: argparse.Namespace) -> int:
+    from softplc.program import signing
+
+    try:
+        body, is_bundle, absent = download_body(args.program)
+        line = signing.sign(body, signing.load_private(private_key_path(args.key)))
+        out = Path(args.output or args.program + SIG_SUFFIX)
+        out.write_text(line + "\n", encoding="ascii")
+    except (OSError, UnicodeDecodeError, bundles.BundleError, signing.SigningError) as exc:
+        print(f"softplc sign: {exc}", file=sys.stderr)
+        return EXIT_REFUSED
+    what = "bundle" if is_bundle else "text (its files are not all here: " + \
+        ", ".join(map(str, absent)) + ")"
+    print(f"{out}: {line.split()[1]} signed the {what}, {len(body)} bytes, SHA-256 "
+          f"{hashlib.sha256(body).hexdigest()}")
+    print(f"send it: softplc download {args.program} --signature {out}")
+    return EXIT_OK
+
+
+def cmd_keys(args: argparse.Namespace) -> int:
+    from softplc.program import signing
+
+    try:
+        if args.verb == "new":
+            private, public = signing.new_key_pair(args.dir or keys_dir(), args.name)
+            print(f"private key {private} (0600: keep it to yourself)")
+            print(f"public key  {public}  {signing.fingerprint(signing.load_public(public))}")
+            print(f"on the PLC: softplc keys trust {public.name} --state-dir STATE_DIR")
+        elif args.verb == "list":
+            for public in sorted((args.dir or keys_dir()).glob("*.pub")):
+                print(f"{public.stem:<20} {signing.fingerprint(signing.load_public(public))}")
+        else:
+            signing.check_name(args.public_key.stem)
+            key = signing.load_public(args.public_key)
+            target = Path(args.trusted_keys or Path(args.state_dir) / TRUSTED_DIR)
+            target.mkdir(mode=0o700, parents=True, exist_ok=True)
+            shutil.copyfile(args.public_key, target / f"{args.public_key.stem}.pub")
+            print(f"{target / args.public_key.name}: {args.public_key.stem} "
+                  f"{signing.fingerprint(key)} trusted; downloads must now be signed")
+    except (OSError, signing.SigningError) as exc:
+        print(f"softplc keys {args.verb}: {exc}", file=sys.stderr)
+        return EXIT_REFUSED
+    return EXIT_OK

@@ -1,0 +1,159 @@
+"""Signed programs (issue 31, item 4): Ed25519 keys, the signature of the exact bytes sent,
+and a PLC with trusted keys refusing unsigned, wrongly signed and changed downloads before
+they reach the scan process, naming the signer of the running program in status; without
+trusted keys unsigned downloads are taken as before. A real ScanLoop and ApiServer
+(tests/api/conftest.py), downloads sent by the client and the CLI."""
+
+from __future__ import annotations
+
+import shutil
+import stat
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from softplc.api.client import ApiClient, ApiError
+from softplc.api.signcmds import download_body
+from softplc.program import signing
+from softplc.program.signing import SignatureRefused, SigningError, TrustedKeys
+from softplc.runtime.loop import LoopConfig
+from tests.api.conftest import PERIOD_NS, ROOT, Plc, ScanThread, make_server
+from tests.api.conftest import plc_parts as plc_parts  # a pytest fixture, reexported
+from tests.support import eventually
+
+TRANSPORT = ROOT / "programs" / "transport.yaml"
+
+
+@pytest.fixture
+def keys(tmp_path: Path) -> Path:
+    directory = tmp_path / "keys"
+    for name in ("alice", "mallory"):
+        signing.new_key_pair(directory, name)
+    return directory
+
+
+def test_a_key_pair_is_private_and_never_overwritten(keys: Path) -> None:
+    assert stat.S_IMODE((keys / "alice.key").stat().st_mode) == 0o600
+    with pytest.raises(SigningError, match="exists already"):
+        signing.new_key_pair(keys, "alice")
+    (keys / "alice.key").chmod(0o644)
+    with pytest.raises(SigningError, match="readable by others"):
+        signing.load_private(keys / "alice.key")
+
+
+def test_only_a_trusted_key_over_the_exact_bytes_verifies(keys: Path, tmp_path: Path) -> None:
+    trusted_dir = tmp_path / "trusted"
+    trusted_dir.mkdir()
+    shutil.copy(keys / "alice.pub", trusted_dir)
+    trusted = TrustedKeys.load(trusted_dir)
+    body = TRANSPORT.read_bytes()
+    line = signing.sign(body, signing.load_private(keys / "alice.key"))
+    assert trusted.verify(body, line) == "alice"
+    with pytest.raises(SignatureRefused, match=r"not signed by a trusted key \(trusted: alice\)"):
+        trusted.verify(body, None)
+    changed = body[:10] + bytes([body[10] ^ 1]) + body[11:]
+    with pytest.raises(SignatureRefused, match="signature by alice does not match"):
+        trusted.verify(changed, line)
+    other = signing.sign(body, signing.load_private(keys / "mallory.key"))
+    with pytest.raises(SignatureRefused, match=r"which this PLC does not trust \(trusted: alice"):
+        trusted.verify(body, other)
+    with pytest.raises(SignatureRefused, match="unreadable signature"):
+        trusted.verify(body, "ed25519 nonsense")
+
+
+# -- against a running PLC ----------------------------------------------------------------------
+
+@pytest.fixture
+def plc(plc_parts: Plc, tmp_path: Path) -> Iterator[tuple[ApiClient, Path]]:
+    """A scan loop keeping its boot program in STATE and the service on STATE (whose
+    trusted_keys the test fills); the owner's client."""
+    state = tmp_path / "state"
+    config = LoopConfig(root=str(ROOT), period_ns=PERIOD_NS, state_dir=str(state))
+    with ScanThread(plc_parts.channel, plc_parts.writer, plc_parts.board, config), \
+            make_server(plc_parts, state) as api:
+        yield ApiClient(api.url, state_dir=state, timeout_s=60), state
+
+
+def trust(keys: Path, state: Path, name: str) -> None:
+    (state / "trusted_keys").mkdir(exist_ok=True)
+    shutil.copy(keys / f"{name}.pub", state / "trusted_keys")
+
+
+def refused(client: ApiClient, blob: bytes, signature: str | None) -> ApiError:
+    with pytest.raises(ApiError) as caught:
+        client.download_bundle(blob, signature=signature)
+    assert caught.value.status == 422
+    return caught.value
+
+
+def test_without_trusted_keys_unsigned_downloads_are_taken(
+        plc: tuple[ApiClient, Path]) -> None:
+    client, _ = plc
+    blob, _, _ = download_body(str(TRANSPORT))
+    assert client.download_bundle(blob)["state"] == "STOPPED"
+    status = eventually(lambda: (s := client.status())["program"] == "transport" and s, 30,
+                        "transport loaded")
+    assert status["program_signer"] is None
+
+
+def test_trusted_keys_refuse_unsigned_untrusted_and_changed_downloads(
+        plc: tuple[ApiClient, Path], keys: Path) -> None:
+    client, state = plc
+    trust(keys, state, "alice")
+    blob, _, _ = download_body(str(TRANSPORT))
+    error = refused(client, blob, None)
+    assert error.message == "download refused: not signed by a trusted key (trusted: alice)"
+    by_mallory = signing.sign(blob, signing.load_private(keys / "mallory.key"))
+    assert "does not trust (trusted: alice)" in refused(client, blob, by_mallory).message
+    by_alice = signing.sign(blob, signing.load_private(keys / "alice.key"))
+    changed = bytearray(blob)
+    changed[len(blob) // 2] ^= 0x01
+    assert "does not match" in refused(client, bytes(changed), by_alice).message
+    assert client.status()["program"] is None  # none of them reached the scan
+    audit = [r for r in _trail(state) if r["action"] == "POST program"]
+    assert [r["outcome"] for r in audit] == ["refused"] * 3
+
+
+def test_a_signed_download_runs_and_status_names_its_signer(
+        plc: tuple[ApiClient, Path], keys: Path) -> None:
+    client, state = plc
+    trust(keys, state, "alice")
+    blob, _, _ = download_body(str(TRANSPORT))
+    line = signing.sign(blob, signing.load_private(keys / "alice.key"))
+    reply = client.download_bundle(blob, signature=line)
+    assert reply["signer"] == "alice" and "signed by alice" in reply["message"]
+    eventually(lambda: client.status()["program_signer"] == "alice", 30,
+               "status naming the signer")
+    applied = [r for r in _trail(state) if r["action"] == "POST program"][-1]
+    assert applied["outcome"] == "applied" and "signed by alice" in applied["detail"]["message"]
+
+
+def test_the_cli_signs_and_sends_a_signature(plc: tuple[ApiClient, Path], keys: Path,
+                                             tmp_path: Path) -> None:
+    client, state = plc
+    trust(keys, state, "alice")
+    env_key = str(keys / "alice.key")
+    signed = _cli("sign", str(TRANSPORT), "--key", env_key, "-o", str(tmp_path / "t.sig"))
+    assert signed.returncode == 0, signed.stderr
+    unsigned = _cli("download", str(TRANSPORT), "--api", client.url, "--state-dir", str(state))
+    assert unsigned.returncode == 1 and "not signed by a trusted key" in unsigned.stderr
+    sent = _cli("download", str(TRANSPORT), "--api", client.url, "--state-dir", str(state),
+                "--signature", str(tmp_path / "t.sig"))
+    assert sent.returncode == 0, sent.stderr
+    assert "signed by alice" in sent.stdout
+    eventually(lambda: client.status()["program_signer"] == "alice", 30, "signer in status")
+
+
+def _cli(*argv: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "softplc.cli", *argv], capture_output=True,
+                          text=True, timeout=120, cwd=ROOT)
+
+
+def _trail(state: Path) -> list[dict[str, Any]]:
+    from softplc.api.audit import AuditTrail
+
+    return list(AuditTrail(state).records(None, 1000))
