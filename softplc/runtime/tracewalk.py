@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import Any
 
 from softplc.core.context import ScanContext
-from softplc.core.engine import Engine
 from softplc.core.expr import EvalContext
 from softplc.core.image import ProcessImage, parse_address
 from softplc.core.net import CompiledNet, NetState
@@ -82,26 +81,30 @@ def walk(trace_path: str | Path, net: CompiledNet,
 
 @contextlib.contextmanager
 def _capturing(plc: Plc, rounds: list[Capture]) -> Iterator[None]:
-    """Copy what the round of this one scan is given. The engine is wrapped for the length
-    of one scan() call, in this process only (a CLI command): the round's inputs exactly as
-    the scan builds them (commands applied, HMI writes, forces, events), with no hook on the
-    scan's own path, which stays as it is for every scan nobody asks about."""
-    original = Engine.fire_round
+    """Copy what the round of this one scan is given: the round's inputs exactly as the scan
+    builds them (commands applied, HMI writes, forces, events). Only this PLC's engine is
+    wrapped (an attribute of the instance, for the length of one scan() call, in a CLI
+    process), so the scan's own path stays as it is for every scan nobody asks about."""
+    engine = plc.engine
+    if engine is None:  # no program: the scan runs no round
+        yield
+        return
+    original = engine.fire_round
 
-    def fire_round(engine: Engine, ctx: EvalContext, now_ns: int,
-                   changed: Collection[str] = (), only: int | None = None) -> Any:
+    def fire_round(ctx: EvalContext, now_ns: int, changed: Collection[str] = (),
+                   only: int | None = None) -> Any:
         if isinstance(ctx, ScanContext):
             copied = ScanContext(ctx.image.copy(), ctx.prev.copy(), dict(ctx.locations),
-                                 frozenset(ctx.events))
+                                 frozenset(ctx.events), ctx.typed, ctx.scaled)
             rounds.append(Capture(engine.net, engine.state.copy(), copied, now_ns,
                                   plc.forces.values()))
-        return original(engine, ctx, now_ns, changed, only)
+        return original(ctx, now_ns, changed, only)
 
-    setattr(Engine, "fire_round", fire_round)  # noqa: B010 - mypy refuses a method assignment
+    engine.fire_round = fire_round  # type: ignore[method-assign]
     try:
         yield
     finally:
-        setattr(Engine, "fire_round", original)  # noqa: B010
+        del engine.fire_round  # the class's method again
 
 
 def why_at(trace_path: str | Path, net: CompiledNet, name: str, at_scan: int) -> Why:
