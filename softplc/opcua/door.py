@@ -7,9 +7,11 @@ session or is idle longest, else refuse), closing a connection that announces a 
 larger than the negotiated buffer (before it is buffered), refusing a request with too many
 operations before its body is decoded (limits.operations), one session per connection and
 at most `max_sessions` (sessions left by their connection go first), the subscription and
-monitored-item caps and the publishing-interval floor, and the counts of all refusals:
-logged as one summary line at most every SUMMARY_S, never one line per refusal.
-Does not know: symbols, the channel, the PLC.
+monitored-item caps and the publishing-interval floor, refusing an OpenSecureChannel whose
+certificate `channel_check` refuses (before anything is decrypted: an Error message, then
+close), passing each request through `guard` (server.py: logins), and the counts of all
+refusals: logged as one summary line at most every SUMMARY_S, never one line per refusal.
+Does not know: symbols, the channel, the PLC, users, which certificates are trusted.
 
 asyncua 2.1 keeps its door in OPCUAProtocol/BinaryServer/UaProcessor with no hooks for
 these rules, so the connection class is a subclass and the processor's dispatch and the
@@ -25,7 +27,7 @@ import math
 import resource
 import struct
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import replace
 from functools import partial
 from typing import Any, Final
@@ -36,6 +38,7 @@ from asyncua.common.utils import Buffer, ServiceError
 from asyncua.server.binary_server_asyncio import BinaryServer, OPCUAProtocol
 from asyncua.server.internal_server import InternalServer
 from asyncua.server.uaprocessor import UaProcessor
+from asyncua.ua.ua_binary import struct_from_binary, uatcp_to_binary
 
 from softplc.hmi.admission import Limits, Slot, Verdict, decide
 from softplc.opcua.ids import numeric_id, status_code
@@ -47,6 +50,11 @@ SUMMARY_S: Final = 10.0  # at most one summary line of refusals per this
 FD_RESERVE: Final = 64  # descriptors kept for the listener, the channel, shm, logs
 _HEADER: Final = struct.Struct("<3scI")  # message type, chunk type, message size
 _CREATE_SESSION: Final = numeric_id(ua.ObjectIds.CreateSessionRequest_Encoding_DefaultBinary)
+# (peer, SecurityPolicyUri, the sender's certificate) -> a refusal's status code, or None
+ChannelCheck = Callable[[str, str, bytes | None], int | None]
+# (peer, processor, typeid, requesthdr, body, the request's dispatch) -> its answer
+Guard = Callable[[str, UaProcessor, ua.NodeId, Any, Buffer, Callable[[], Awaitable[Any]]],
+                 Awaitable[Any]]
 
 
 def usable_connections(limits: OpcUaLimits) -> int:
@@ -61,9 +69,11 @@ def usable_connections(limits: OpcUaLimits) -> int:
 class DoorServer(Server):
     """asyncua's Server whose transport is our `Door` and whose limits are `limits`."""
 
-    def __init__(self, limits: OpcUaLimits, **kwargs: Any) -> None:
+    def __init__(self, limits: OpcUaLimits, channel_check: ChannelCheck | None = None,
+                 guard: Guard | None = None, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.door_limits = limits
+        self.channel_check, self.guard = channel_check, guard
         self.limits = TransportLimits(
             max_recv_buffer=limits.chunk_bytes, max_send_buffer=limits.chunk_bytes,
             max_chunk_count=limits.max_chunk_count, max_message_size=limits.max_message_bytes)
@@ -76,6 +86,7 @@ class DoorServer(Server):
         await self.iserver.start()
         host, port = self._get_bind_socket_info()
         door = Door(self.iserver, host, port, self.limits, self.door_limits)
+        door.channel_check, door.guard = self.channel_check, self.guard
         self.bserver = self.door = door
         door.set_policies(self._policies)
         try:
@@ -162,6 +173,8 @@ class Door(BinaryServer):
         self.admission = Limits(usable_connections(limits), limits.max_per_peer,
                                 limits.activation_timeout_s, limits.live_window_s)
         self.stats = DoorStats()
+        self.channel_check: ChannelCheck | None = None
+        self.guard: Guard | None = None
         self._reported = DoorStats()
         self._next_summary_s = 0.0
 
@@ -200,9 +213,9 @@ class Door(BinaryServer):
         self._reported = self.stats
         self._next_summary_s = now_s + SUMMARY_S
 
-    async def check_request(self, processor: UaProcessor, inner: Callable[..., Any],
-                            typeid: ua.NodeId, requesthdr: Any, seqhdr: Any,
-                            body: Buffer) -> Any:
+    async def check_request(self, peer: str, processor: UaProcessor,
+                            inner: Callable[..., Any], typeid: ua.NodeId, requesthdr: Any,
+                            seqhdr: Any, body: Buffer) -> Any:
         """The processor's dispatch, after the request's size and the session rules."""
         refusal = self._refusal(processor, typeid, body)
         if refusal is not None:
@@ -210,7 +223,10 @@ class Door(BinaryServer):
             raise ServiceError(refusal)  # answered as a ServiceFault by asyncua
         if typeid == _CREATE_SESSION:
             await self._make_room_for_session()
-        return await inner(typeid, requesthdr, seqhdr, body)
+        dispatch = partial(inner, typeid, requesthdr, seqhdr, body)
+        if self.guard is None:
+            return await dispatch()
+        return await self.guard(peer, processor, typeid, requesthdr, body, dispatch)
 
     def _refusal(self, processor: UaProcessor, typeid: ua.NodeId, body: Buffer) -> int | None:
         if typeid == _CREATE_SESSION:
@@ -259,7 +275,34 @@ class Connection(OPCUAProtocol):
         processor = self.processor
         if processor is not None:
             processor._process_message = partial(  # type: ignore[method-assign]
-                self.door.check_request, processor, processor._process_message)
+                self.door.check_request, self.peer, processor, processor._process_message)
+
+    async def _process_one_msg(self, header: Any, buf: Buffer) -> bool:
+        refusal = self._channel_refusal(header, buf)
+        if refusal is None:
+            return await super()._process_one_msg(header, buf)
+        self.door.count("untrusted")
+        if self.transport is not None:  # Part 6: an Error message, then the socket closes
+            error = ua.ErrorMessage(status_code(refusal),
+                                    ua.String("the client certificate is not trusted"))
+            self.transport.write(uatcp_to_binary(ua.MessageType.Error,  # type: ignore[arg-type]
+                                                 error))
+        self.close()
+        return False
+
+    def _channel_refusal(self, header: Any, buf: Buffer) -> int | None:
+        """The check of a new secure channel's certificate, from its header alone: nothing
+        is decrypted (RSA) for a peer that is refused anyway."""
+        check, processor = self.door.channel_check, self.processor
+        if check is None or processor is None or processor._connection.is_open() \
+                or header.MessageType != ua.MessageType.SecureOpen:
+            return None
+        try:
+            security = struct_from_binary(ua.AsymmetricAlgorithmHeader,
+                                          buf.copy(header.body_size))
+        except Exception:  # malformed: asyncua answers it as it does
+            return None
+        return check(self.peer, security.SecurityPolicyURI, security.SenderCertificate)
 
     def is_open(self) -> bool:
         return self.transport is not None and not self.transport.is_closing()

@@ -74,6 +74,7 @@ class DoorStats:
     not_activated: int = 0  # closed after activation_timeout_s without a session
     oversized: int = 0  # a chunk or message over its bound: connection closed
     requests_refused: int = 0  # too many operations, sessions, subscriptions or items
+    untrusted: int = 0  # a secure channel with a certificate not in the trust list: closed
 
 
 _I32: Final = struct.Struct("<i")

@@ -1,10 +1,11 @@
 """The OPC UA server of the communication process (asyncua), beside Modbus and the HTTP API.
 
-Owns: starting/stopping asyncua on one endpoint, who may do what (anonymous sessions read on
-a loopback bind; writes and method calls need the user token whose password is the API token
-of STATE_DIR), symbol writes (checked against the Modbus write policy and the symbol's type,
-then journaled through the channel like Modbus and API writes, never stored in the address
-space), polling the snapshot (every `poll_s`) and the status board (every `board_poll_s`) and
+Owns: starting/stopping asyncua on its endpoints (secure.py sets up certificates, trust and
+logins), who may do what (access.py: each session's role; writes and method calls need the
+role the same command needs over HTTP), the audit records of writes and method calls, symbol
+writes (checked against the Modbus write policy and the symbol's type, then journaled
+through the channel like Modbus and API writes, never stored in the address space), polling
+the snapshot (every `poll_s`) and the status board (every `board_poll_s`) and
 pushing only changed values, rebuilding the program's nodes when a download changes the
 program hash, and turning board events, downloads, state changes and faults into OPC UA events
 (access.py decides who may act; mirror.py keeps the address space in step with the PLC).
@@ -23,8 +24,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import logging
-import socket
 from collections.abc import Callable
 from datetime import UTC, datetime
 from functools import partial
@@ -36,19 +37,19 @@ from asyncua.crypto.permission_rules import User, UserRole
 from asyncua.server.internal_session import InternalSession
 
 import softplc
-from softplc.api import auth
 from softplc.core.snapshot import (
     ChannelFull,
     HmiWrite,
     SnapshotSource,
     SnapshotUnavailable,
 )
-from softplc.opcua.access import ClientServices, TokenUsers, may_act
+from softplc.opcua.access import METHOD_ROLES, WRITE_ROLE, may, role_of, who
 from softplc.opcua.door import DoorServer
 from softplc.opcua.ids import numeric_id, status_code, string_id
 from softplc.opcua.limits import DoorStats, OpcUaLimits
 from softplc.opcua.mirror import Mirror
 from softplc.opcua.program import CommandChannel, Outcome, ProgramHandling, arguments
+from softplc.opcua.secure import Security, application_uri
 from softplc.opcua.sessions import hook, written_value
 from softplc.opcua.space import METHODS, NAMESPACE_URI, PROGRAM, Space, SymbolNode
 
@@ -84,6 +85,7 @@ class OpcUaServer:
         self._methods: dict[ua.NodeId, str] = {}
         self._mirror: Mirror | None = None  # the address space kept in step, once started
         self._task: asyncio.Task[None] | None = None
+        self.security = Security(self.state_dir, host, port)
 
     @property
     def endpoint(self) -> str:
@@ -108,14 +110,12 @@ class OpcUaServer:
 
     async def start(self) -> None:
         _quiet_asyncua()
-        token = await asyncio.to_thread(auth.load_or_create_token, self.state_dir)
-        server = DoorServer(self.limits,
-                            user_manager=TokenUsers(token, auth.is_loopback(self.host)))
+        await self.security.prepare()
+        server = self.security.server(self.limits)
         await server.init()
         server.set_endpoint(f"opc.tcp://{self.host}:{self.port}")
         await _identify(server, self.port)
-        server.set_security_policy([ua.SecurityPolicyType.NoSecurity], ClientServices())
-        server.set_identity_tokens([ua.AnonymousIdentityToken, ua.UserNameIdentityToken])
+        await self.security.apply(server)
         ns = await server.register_namespace(NAMESPACE_URI)
         self._server, self.space = server, Space(server, ns)
         self._handling.space = self.space  # Part 10 checks of calls (part10.py)
@@ -127,8 +127,8 @@ class OpcUaServer:
         await self._first_look(self._mirror)
         await server.start()
         self._task = asyncio.create_task(self._poll(), name="softplc-opcua-poll")
-        log.info("OPC UA on %s (anonymous read %s)", self.endpoint,
-                 "on" if auth.is_loopback(self.host) else "off")
+        log.info("OPC UA on %s (security None and anonymous read %s)", self.endpoint,
+                 "on" if self.security.loopback else "off")
 
     async def stop(self) -> None:
         if self._task is not None:
@@ -141,6 +141,7 @@ class OpcUaServer:
             with contextlib.suppress(Exception):  # a half-started server still releases its port
                 await self._server.stop()
             self._server = None
+        await self.security.stop()
 
     # -- setup ------------------------------------------------------------------------------
 
@@ -174,7 +175,7 @@ class OpcUaServer:
             if external:  # the server's own session keeps asyncua's behaviour
                 session.write = partial(self._write, session, session.write)  # type: ignore
                 session.call = partial(self._call, session, session.call)  # type: ignore
-                hook(session)  # Read per session, Republish as the spec says
+                hook(session, self._methods.get)  # Read per role, Republish as the spec says
             return session
 
         iserver.create_session = create_session  # type: ignore[method-assign]
@@ -192,6 +193,7 @@ class OpcUaServer:
                      params: ua.WriteParameters) -> list[ua.StatusCode]:
         results: list[ua.StatusCode | None] = []
         others: list[ua.WriteValue] = []
+        written: dict[str, tuple[object, int]] = {}  # symbol -> (value, status): audited
         for value in params.NodesToWrite:
             symbol = self._mirror.by_node.get(value.NodeId) if self._mirror else None
             if symbol is None and value.NodeId not in session.iserver.aspace:
@@ -200,18 +202,38 @@ class OpcUaServer:
                 others.append(value)
                 results.append(None)
             else:
-                results.append(status_code(self._write_symbol(session, symbol, value)))
+                code = self._write_symbol(session, symbol, value)
+                written[symbol.name] = (_plain(value), code)
+                results.append(status_code(code))
+        if written:
+            await self._audit_writes(session, written)
         if others:
             passed = iter(await inner(ua.WriteParameters(NodesToWrite=others)))
             results = [r if r is not None else next(passed) for r in results]
         return [r for r in results if r is not None]
 
+    async def _audit_writes(self, session: InternalSession,
+                            written: dict[str, tuple[object, int]]) -> None:
+        """One record per Write request (a request of 1,000 symbols is one fsync, not
+        1,000; the trail keeps the first 32 of them)."""
+        refused = {name: code for name, (_, code) in written.items()
+                   if code != ua.StatusCodes.Good}
+        outcome = "queued" if not refused else "partly" if len(refused) < len(written) \
+            else "denied" if ua.StatusCodes.BadUserAccessDenied in refused.values() \
+            else "refused"
+        detail: dict[str, object] = {"values": {n: v for n, (v, _) in written.items()}}
+        if refused:
+            detail["refused"] = {n: status_code(c).name for n, c in refused.items()}
+        await self.security.recorder.record(
+            who(session), "write", outcome, next(iter(refused.values()), ua.StatusCodes.Good),
+            detail)
+
     def _write_symbol(self, session: InternalSession, symbol: SymbolNode,
                       value: ua.WriteValue) -> int:
         if value.AttributeId != ua.AttributeIds.Value:
             return ua.StatusCodes.BadNotWritable
-        if not may_act(session):
-            return ua.StatusCodes.BadUserAccessDenied  # anonymous: read only
+        if not may(session, WRITE_ROLE):
+            return ua.StatusCodes.BadUserAccessDenied  # anonymous and viewers: read only
         if not symbol.writable:
             return ua.StatusCodes.BadNotWritable  # an input, or the write policy says no
         with contextlib.suppress(SnapshotUnavailable):
@@ -237,14 +259,34 @@ class OpcUaServer:
             method = self._handling.method_of(request)  # type's ids too (issue 29)
             if method is None:
                 results.extend(await inner([request]))
-            elif not may_act(session):
-                results.append(Outcome(ua.StatusCodes.BadUserAccessDenied,
-                                       f"{method} needs the operator's user token "
-                                       "(password: the API token in STATE_DIR/api_token)").result())
+                continue
+            needed = METHOD_ROLES[method]
+            if not may(session, needed):
+                role = role_of(session)
+                result = Outcome(ua.StatusCodes.BadUserAccessDenied,
+                                 f"{method} needs the {needed.label} role (this session: "
+                                 f"{role.label if role else 'none'})").result()
             else:
-                results.append(await self._handling.call(method, request.InputArguments or [],
-                                                         request.ObjectId))
+                result = await self._handling.call(method, request.InputArguments or [],
+                                                   request.ObjectId)
+            await self._audit_call(session, method, request, result)
+            results.append(result)
         return results
+
+    async def _audit_call(self, session: InternalSession, method: str,
+                          request: ua.CallMethodRequest, result: ua.CallMethodResult) -> None:
+        code = result.StatusCode.value
+        outcome = "applied" if code == ua.StatusCodes.Good else "denied" if \
+            code == ua.StatusCodes.BadUserAccessDenied else "refused"
+        outputs = result.OutputArguments or []
+        detail: dict[str, object] = {"message": outputs[0].Value if outputs else ""}
+        args = [a.Value for a in request.InputArguments or []]
+        if method == "Download" and args and isinstance(args[0], str):
+            body = args[0].encode()
+            detail.update(sha256=hashlib.sha256(body).hexdigest(), bytes=len(body),
+                          online=args[1] if len(args) > 1 else None,
+                          name=args[2] if len(args) > 2 else None)
+        await self.security.recorder.record(who(session), method, outcome, code, detail)
 
     async def _after_command(self, method: str, outcome: Outcome) -> None:
         assert self._mirror is not None
@@ -312,7 +354,7 @@ async def _identify(server: DoorServer, port: int) -> None:
     server.set_server_name("softplc")
     server.product_uri = NAMESPACE_URI
     server.manufacturer_name = "softplc"
-    uri = f"urn:softplc:{socket.gethostname()}:{port}"
+    uri = application_uri(port)
     await server.set_application_uri(uri)  # NamespaceArray[1]; ServerArray[0] too (Part 5)
     await server.get_node(numeric_id(ua.ObjectIds.Server_ServerArray)).write_value(
         ua.Variant([uri], ua.VariantType.String))
@@ -328,6 +370,13 @@ def _quiet_asyncua() -> None:
     logger = logging.getLogger("asyncua")
     if logger.level == logging.NOTSET:
         logger.setLevel(logging.CRITICAL)
+
+
+def _plain(value: ua.WriteValue) -> object:
+    """The written value as the audit trail keeps it (JSON: a number, a bool or text)."""
+    variant = value.Value.Value if value.Value is not None else None
+    plain = variant.Value if variant is not None else None
+    return plain if isinstance(plain, int | float | str | None) else repr(plain)
 
 
 async def _unguarded(parent: ua.NodeId, *args: ua.Variant) -> ua.StatusCode:

@@ -1,8 +1,9 @@
 """What each client session is told, where asyncua answers the same for everyone or not as
 the spec says (issue 29).
 
-Owns: the Read answer per session (UserAccessLevel without the write bits and UserExecutable
-false for a session that may not act; the timestamps the request asked for), Republish as
+Owns: the Read answer per session (UserAccessLevel without the write bits for a role below
+the one symbol writes need, UserExecutable false on a method the session's role may not call:
+access.py's table; the timestamps the request asked for), Republish as
 Part 4 says (BadSubscriptionIdInvalid for a subscription the session does not hold,
 BadMessageNotAvailable for a message no longer kept: asyncua 2.1.0 answers Good and an empty
 message, so a client whose server restarted republishes for ever instead of re-creating its
@@ -21,7 +22,8 @@ from asyncua import ua
 from asyncua.common.utils import ServiceError
 from asyncua.server.internal_session import InternalSession
 
-from softplc.opcua.access import may_act
+from softplc.api.roles import Role
+from softplc.opcua.access import METHOD_ROLES, WRITE_ROLE, role_of
 
 # The AccessLevel bits that let a session change something (Part 3, AccessLevelType).
 _WRITE_BITS: Final = sum(1 << int(bit) for bit in (
@@ -29,36 +31,45 @@ _WRITE_BITS: Final = sum(1 << int(bit) for bit in (
     ua.AccessLevel.TimestampWrite))
 
 Reader = Callable[[ua.ReadParameters], Awaitable[list[ua.DataValue]]]
+MethodOf = Callable[[ua.NodeId], str | None]  # a method node -> its program method, if one
 
 
-def hook(session: InternalSession) -> None:
+def hook(session: InternalSession, method_of: MethodOf) -> None:
     """Wrap `session`'s Read and Republish (asyncua's own session keeps its behaviour)."""
-    session.read = partial(read, session, session.read)  # type: ignore[method-assign]
+    session.read = partial(read, session, session.read, method_of)  # type: ignore[method-assign]
     session.republish = partial(republish, session,  # type: ignore[method-assign]
                                 session.republish)
 
 
-async def read(session: InternalSession, inner: Reader,
+async def read(session: InternalSession, inner: Reader, method_of: MethodOf,
                params: ua.ReadParameters) -> list[ua.DataValue]:
     results = await inner(params)
-    acts = may_act(session)
+    role = role_of(session)
     wanted = params.TimestampsToReturn
-    return [_told(item.AttributeId, value, acts, wanted)
+    return [_told(item, value, role, method_of, wanted)
             for item, value in zip(params.NodesToRead, results, strict=True)]
 
 
-def _told(attribute: int, value: ua.DataValue, acts: bool,
+def _told(item: ua.ReadValueId, value: ua.DataValue, role: Role | None, method_of: MethodOf,
           wanted: ua.TimestampsToReturn) -> ua.DataValue:
+    attribute = item.AttributeId
     if attribute == ua.AttributeIds.Value:
         return _timestamps(value, wanted)
-    if acts or value.Value is None:
+    if value.Value is None:
         return value
-    if attribute == ua.AttributeIds.UserAccessLevel and isinstance(value.Value.Value, int):
+    if attribute == ua.AttributeIds.UserAccessLevel and isinstance(value.Value.Value, int) \
+            and not _holds(role, WRITE_ROLE):
         level = value.Value.Value & ~_WRITE_BITS
         return dataclasses.replace(value, Value=ua.Variant(level, ua.VariantType.Byte))
-    if attribute == ua.AttributeIds.UserExecutable:
-        return dataclasses.replace(value, Value=ua.Variant(False, ua.VariantType.Boolean))
+    if attribute == ua.AttributeIds.UserExecutable and value.Value.Value is True:
+        method = method_of(item.NodeId)
+        if not _holds(role, METHOD_ROLES.get(method or "", Role.OPERATOR)):
+            return dataclasses.replace(value, Value=ua.Variant(False, ua.VariantType.Boolean))
     return value
+
+
+def _holds(role: Role | None, needed: Role) -> bool:
+    return role is not None and role >= needed
 
 
 def _timestamps(value: ua.DataValue, wanted: ua.TimestampsToReturn) -> ua.DataValue:

@@ -1,0 +1,81 @@
+"""The CLI's trust list: `softplc trust list|accept NAME|remove NAME` (issue 31).
+
+Owns: their arguments, what a person reads, exit codes (0 done, 1 refused), and the audit
+records of changes made here. They act on STATE_DIR/pki directly, as the account that owns
+it; a running OPC UA server sees a change at the next secure channel it opens.
+Does not know: OPC UA, the PLC, how a certificate is checked (trust.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import getpass
+import os
+import sys
+from typing import Any, Final
+
+from softplc.api.audit import AuditTrail
+from softplc.api.roles import Role
+from softplc.api.trust import Certificate, TrustError, TrustList
+from softplc.api.users import OWNER
+
+EXIT_OK: Final = 0
+EXIT_REFUSED: Final = 1
+_STATE_HELP: Final = "the PLC's state directory, as given to softplc run (default: %(default)s)"
+
+
+def add_trust_commands(subparsers: Any) -> None:
+    trust = subparsers.add_parser(
+        "trust", help="client certificates the OPC UA server trusts (STATE_DIR/pki): a refused "
+        "one waits in rejected/ until accepted")
+    verbs = trust.add_subparsers(dest="verb", required=True, metavar="VERB",
+                                 help="list, accept or remove")
+    verbs.add_parser("list", help="trusted and rejected certificates")
+    accept = verbs.add_parser("accept", help="trust a rejected certificate, or a certificate "
+                              "file (DER or PEM)")
+    accept.add_argument("name", help="a name from `softplc trust list` (or a unique start of "
+                        "it, or of the thumbprint), or a file")
+    remove = verbs.add_parser("remove", help="forget a trusted or rejected certificate")
+    remove.add_argument("name", help="a name from `softplc trust list` (or a unique start)")
+    for parser in (verbs.choices["list"], accept, remove):
+        parser.add_argument("--state-dir", metavar="DIR", default="state", help=_STATE_HELP)
+    trust.set_defaults(func=cmd_trust)
+
+
+def cmd_trust(args: argparse.Namespace) -> int:
+    trust = TrustList(args.state_dir)
+    try:
+        if args.verb == "list":
+            print(_table(trust.certificates()))
+            return EXIT_OK
+        entry = trust.accept(args.name) if args.verb == "accept" else trust.remove(args.name)
+    except TrustError as exc:
+        print(f"softplc trust {args.verb}: {exc}", file=sys.stderr)
+        return EXIT_REFUSED
+    except OSError as exc:
+        print(f"softplc trust {args.verb}: {exc.filename or args.state_dir}: {exc.strerror}",
+              file=sys.stderr)
+        return EXIT_REFUSED
+    _audit(args, f"trust {args.verb} {entry.name}", entry)
+    print(f"{entry.name} {'trusted' if args.verb == 'accept' else 'removed'} ({entry.subject})")
+    return EXIT_OK
+
+
+def _table(entries: list[Certificate]) -> str:
+    if not entries:
+        return "no client certificates (a refused one appears here as rejected)"
+    rows = [f"{'name':<44} {'state':<9} {'valid until':<18} subject / ApplicationUri"]
+    rows += [f"{c.name:<44} {c.state:<9} {c.not_after:<18} {c.subject} {c.uri}".rstrip()
+             for c in entries]
+    return "\n".join(rows)
+
+
+def _audit(args: argparse.Namespace, action: str, entry: Certificate) -> None:
+    try:
+        account = getpass.getuser()
+    except (KeyError, OSError):
+        account = str(os.geteuid())
+    AuditTrail(args.state_dir).append({
+        "user": OWNER, "role": Role.ADMIN.label, "via": f"account {account}", "peer": "local",
+        "iface": "cli", "action": action, "outcome": "applied", "status": 0,
+        "detail": {"thumbprint": entry.thumbprint, "subject": entry.subject, "uri": entry.uri}})
