@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from softplc.core.context import ScanContext
+from softplc.core.errors import SoftplcError
 from softplc.core.expr import EvalContext
 from softplc.core.image import ProcessImage, parse_address
 from softplc.core.net import CompiledNet, NetState
@@ -29,7 +30,7 @@ from softplc.runtime.runner import observed_from
 from softplc.runtime.trace import image_digest, read_trace
 
 
-class TraceDiverges(ValueError):
+class TraceDiverges(SoftplcError, ValueError):
     """The trace does not replay with this program (another program, or another version)."""
 
 
