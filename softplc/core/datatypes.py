@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from softplc.core.errors import SoftplcError
+
 Number = int | float
 
 
@@ -60,7 +62,7 @@ INFO: dict[SymType, TypeInfo] = {
 NATURAL = {"X": SymType.BOOL, "W": SymType.WORD, "D": SymType.DINT, "L": SymType.LREAL}
 
 
-class TypeRangeError(ArithmeticError):
+class TypeRangeError(SoftplcError, ArithmeticError):
     """A value its target type cannot hold: out of range, NaN, infinite, or a fraction for an
     integer type. An ArithmeticError, so a guard or action reports it as a diagnostic."""
 
