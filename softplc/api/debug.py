@@ -89,7 +89,8 @@ def state_of(net: CompiledNet, doc: dict[str, Any]) -> tuple[NetState, ScanConte
         symbol = net.io.symbols.get(name)
         if symbol is not None and isinstance(entry, dict):
             with contextlib.suppress(TypeError, ValueError, OverflowError):
-                image.set(symbol.address, entry.get("value", 0))
+                image.set(symbol.address, entry["raw"] if "raw" in entry  # the bits
+                          else entry.get("value", 0))
     locations = {s.name: (s.address.attr, s.address.index) for s in net.io.symbols.values()}
     return state, ScanContext(image, image, locations, frozenset()), now_ns
 

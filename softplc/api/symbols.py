@@ -1,15 +1,15 @@
 """The symbol routes: `GET /api/v1/symbols`, `GET` and `PUT /api/v1/symbols/{name}`.
 
 Owns: a symbol's view (name, address, type, direction, value: from the latest snapshot, or
-the board's value when no snapshot can be read), and checking a write against the symbol's
-direction, `hmi_writable` and type before it is queued for the next scan.
+the board's value when no snapshot can be read, typed by core/present.py), and checking a
+write against the symbol's direction, `hmi_writable` and type before it is queued for the next
+scan (`write_raw`, which forces use too).
 Does not know: the image's layout (core/image.py parses addresses), the channel's pipes.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 from collections.abc import Mapping
 from typing import Any
 
@@ -18,7 +18,8 @@ from aiohttp import web
 from softplc.api.openapi import API_PREFIX
 from softplc.api.problems import ApiProblem, json_body
 from softplc.api.service import ApiService
-from softplc.core.image import AddressError, parse_address
+from softplc.core.image import AddressError, parse_address, split_registers
+from softplc.core.present import Shown, ValueRefused, accepted, shown
 from softplc.core.snapshot import ChannelFull, HmiWrite
 
 
@@ -31,31 +32,38 @@ def register(app: web.Application, api: ApiService) -> None:
 
 
 def view(name: str, entry: Mapping[str, Any], image: Any) -> dict[str, Any]:
-    """A symbol's answer: the board's entry, its value read from `image` when there is one."""
-    value = entry.get("value", 0)
-    if image is not None:
-        with contextlib.suppress(AddressError, TypeError, KeyError):
-            value = image.get(parse_address(str(entry["address"])))
-    if entry.get("type") == "bool":
-        value = bool(value)
+    """A symbol's answer: the board's entry, its value read from `image` when there is one,
+    as its type reads (core/present.py): a negative int, a real as a decimal number."""
     return {"name": name, "address": entry.get("address"), "type": entry.get("type"),
-            "direction": entry.get("direction"), "value": value}
+            "direction": entry.get("direction"), "value": value_of_entry(entry, image)}
 
 
-def write_value(name: str, entry: Mapping[str, Any], body: Any) -> bool | int:
-    """The value of a symbol write, checked against the symbol's type."""
+def value_of_entry(entry: Mapping[str, Any], image: Any) -> Shown:
+    """The typed value of a board entry: from `image` (the latest snapshot) when it can be
+    read there, else the board's own (already typed) value."""
+    if image is not None:
+        with contextlib.suppress(AddressError, TypeError, KeyError, IndexError):
+            return shown(entry.get("type"), image.get(parse_address(str(entry["address"]))))
+    value: Shown = entry.get("value", 0)
+    return bool(value) if entry.get("type") == "bool" else value
+
+
+def write_raw(name: str, entry: Mapping[str, Any] | None, body: Any) -> int:
+    """The raw bits a write or a force of `{"value": v}` to `name` stores, checked against the
+    symbol's type in the board `entry` (core/present.py); 422 naming the symbol, its type and
+    what it takes. Without an entry (a program the board does not show yet) a bool or an
+    integer goes as it is: the scan checks it against the program it runs."""
     if not isinstance(body, dict) or "value" not in body:
         raise ApiProblem(422, 'the body must be a JSON object {"value": n}')
     value = body["value"]
-    if entry.get("type") == "bool":
-        if isinstance(value, bool) or (type(value) is int and value in (0, 1)):
-            return bool(value)
-        raise ApiProblem(422, f"symbol {name} is a bool: value must be true/false or 0/1, "
-                              f"not {json.dumps(value)[:40]}")
-    if type(value) is int and 0 <= value <= 0xFFFF:
-        return value
-    raise ApiProblem(422, f"symbol {name} is a word: value must be an integer 0..65535, "
-                          f"not {json.dumps(value)[:40]}")
+    if entry is None:
+        if isinstance(value, bool) or type(value) is int:
+            return int(value)
+        raise ApiProblem(422, f"no symbol {name!r} in the loaded program")
+    try:
+        return accepted(entry.get("type"), value, name)
+    except ValueRefused as exc:
+        raise ApiProblem(422, str(exc)) from None
 
 
 class _Routes:
@@ -90,14 +98,16 @@ class _Routes:
                                   "inputs belong to the drivers")
         if entry.get("hmi_writable") is False:
             raise ApiProblem(403, f"symbol {name} is declared hmi_writable: false")
-        value = write_value(name, entry, await json_body(request))
+        raw = write_raw(name, entry, await json_body(request))
         try:
             address = parse_address(str(entry.get("address")))
         except AddressError as exc:
             raise ApiProblem(409, f"symbol {name} has no usable address: {exc}") from None
-        try:
-            self._api.channel.send_hmi_write(HmiWrite(address, (int(value),)))
+        try:  # a double or long word goes whole, as its 2 or 4 registers (one HMI write)
+            registers = (raw,) if address.is_bit else tuple(split_registers(raw, address.width))
+            self._api.channel.send_hmi_write(HmiWrite(address, registers))
         except ChannelFull as exc:
             raise ApiProblem(503, str(exc), headers={"Retry-After": "1"}) from None
-        return web.json_response({"name": name, "address": str(address), "value": value,
-                                  "queued": True}, status=202)
+        return web.json_response({"name": name, "address": str(address),
+                                  "value": shown(entry.get("type"), raw), "queued": True},
+                                 status=202)

@@ -24,8 +24,9 @@ from aiohttp import web
 
 from softplc.api.openapi import API_PREFIX
 from softplc.api.pagedoc import LIVE_HZ
-from softplc.api.problems import ApiProblem, json_body
+from softplc.api.problems import json_body
 from softplc.api.service import ApiService
+from softplc.api.symbols import value_of_entry, write_raw
 from softplc.core.lifecycle import Command
 from softplc.core.snapshot import CommandReply, SnapshotUnavailable
 
@@ -144,16 +145,9 @@ class _LiveHub:
 def live_frame(document: dict[str, Any], status: Any, image: Any,
                events: list[dict[str, Any]]) -> dict[str, Any]:
     """What a page needs each frame: state, marking, live net, values, forces, timing."""
-    from softplc.core.image import AddressError, parse_address
-
     symbols = document.get("symbols") or {}
-    values: dict[str, int] = {}
-    for name, entry in symbols.items():
-        value = entry.get("value", 0) if isinstance(entry, dict) else 0
-        if image is not None and isinstance(entry, dict):
-            with contextlib.suppress(AddressError, TypeError, KeyError, IndexError):
-                value = image.get(parse_address(str(entry["address"])))
-        values[name] = int(value)
+    values = {name: value_of_entry(entry, image) if isinstance(entry, dict) else 0
+              for name, entry in symbols.items()}  # typed: core/present.py
     timing = document.get("timing") or {}
     frame: dict[str, Any] = {
         "wall_ms": int(time.time() * 1000),
@@ -233,9 +227,11 @@ class _Routes:
 
     async def force(self, request: web.Request) -> web.Response:
         name = request.match_info["name"]
-        value = _force_value(name, await json_body(request))
+        body = await json_body(request)
+        entry = ((await self._api.board_document()).get("symbols") or {}).get(name)
+        raw = write_raw(name, entry if isinstance(entry, dict) else None, body)
         return await self._reply(await self._api.command(Command.FORCE, symbol=name,
-                                                          value=value))
+                                                          value=raw))
 
     async def unforce(self, request: web.Request) -> web.Response:
         name = request.match_info.get("name")
@@ -249,18 +245,3 @@ class _Routes:
             return _problem(status, reply.message, state=reply.state.name)
         return web.json_response({"ok": True, "message": reply.message,
                                   "state": reply.state.name})
-
-
-
-
-def _force_value(name: str, body: Any) -> int:
-    """true/false or an integer; the scan checks it against the symbol's type."""
-    if not isinstance(body, dict) or "value" not in body:
-        raise ApiProblem(422, 'the body must be a JSON object {"value": n}')
-    value = body["value"]
-    if isinstance(value, bool):
-        return int(value)
-    if type(value) is int and -(1 << 31) <= value < (1 << 31):
-        return value
-    raise ApiProblem(422, f"force {name}: value must be true/false or an integer, "
-                          f"not {json.dumps(value)[:40]}")

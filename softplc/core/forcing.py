@@ -20,11 +20,14 @@ there).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
+from softplc.core.datatypes import INFO, value_of
 from softplc.core.errors import SoftplcError
-from softplc.core.image import WORD_MAX, ProcessImage
+from softplc.core.image import ProcessImage
+from softplc.core.present import Shown, shown_number
 from softplc.core.symbols import Symbol, SymType
 
 
@@ -39,7 +42,8 @@ class Force:
     symbol: str
     area: str  # "ix", "qw", ...: the image array
     index: int
-    value: int
+    value: int  # raw bits, as the image holds them
+    type: SymType | None = None  # the symbol's type when forced: the bits' meaning
 
     @property
     def is_input(self) -> bool:
@@ -47,14 +51,32 @@ class Force:
 
 
 def check_value(sym: Symbol, value: int) -> int:
-    """`value` as the symbol holds it: bools 0/1, words 0..65535. Raises ForceRefused."""
+    """`value`, the raw bits the symbol's location will hold (bools 0/1, words 0..65535, double
+    and long words 0..2^32-1 and 0..2^64-1; core/present.py turns a typed value into them),
+    checked against the symbol's type: a real never forced to NaN or an infinity. Raises
+    ForceRefused."""
     if sym.type is SymType.BOOL:
         if value not in (0, 1):
             raise ForceRefused(f"symbol {sym.name} is a bool: force it to 0 or 1, not {value}")
         return value
-    if not 0 <= value <= WORD_MAX:
-        raise ForceRefused(f"symbol {sym.name} is a word: force it to 0..65535, not {value}")
+    high = (1 << INFO[sym.type].bits) - 1
+    if sym.type is SymType.WORD or sym.type is SymType.UDINT:
+        if not 0 <= value <= high:
+            raise ForceRefused(f"symbol {sym.name} is a {sym.type.value}: force it to "
+                               f"0..{high}, not {value}")
+        return value
+    if not 0 <= value <= high:
+        raise ForceRefused(f"symbol {sym.name} is {_article(sym.type)} {sym.type.value}: a "
+                           f"force carries its raw bits 0..{high}, not {value}")
+    shown = value_of(sym.type, value)
+    if isinstance(shown, float) and not math.isfinite(shown):
+        raise ForceRefused(f"symbol {sym.name} is {_article(sym.type)} {sym.type.value}: "
+                           f"force it to a finite number, not {shown}")
     return value
+
+
+def _article(t: SymType) -> str:
+    return "an" if t in (SymType.INT, SymType.LREAL) else "a"
 
 
 class Forces:
@@ -76,8 +98,14 @@ class Forces:
         return bool(self._by_name)
 
     def values(self) -> dict[str, int]:
-        """Symbol -> forced value, sorted by symbol (status, retain, trace)."""
+        """Symbol -> forced value (raw bits), sorted by symbol (retain, trace)."""
         return {name: self._by_name[name].value for name in sorted(self._by_name)}
+
+    def shown(self) -> dict[str, Shown]:
+        """Symbol -> forced value as people read it (core/present.py; a bool as 0/1), sorted
+        by symbol: status, the API, the page."""
+        return {name: shown_number(f.type.value if f.type else None, f.value)
+                for name, f in sorted(self._by_name.items())}
 
     def force(self, symbols: Mapping[str, Symbol], name: str, value: int,
               image: ProcessImage | None = None) -> Force:
@@ -85,7 +113,8 @@ class Forces:
         sym = symbols.get(name)
         if sym is None:
             raise ForceRefused(f"no symbol {name!r} in the loaded program")
-        entry = Force(name, sym.address.attr, sym.address.index, check_value(sym, value))
+        entry = Force(name, sym.address.attr, sym.address.index, check_value(sym, value),
+                      sym.type)
         if not entry.is_input and name not in self.shadow:
             self.shadow[name] = 0 if image is None else int(getattr(image, entry.area)[entry.index])
         self._by_name[name] = entry
@@ -108,16 +137,18 @@ class Forces:
 
     def rebind(self, symbols: Mapping[str, Symbol]) -> list[str]:
         """Re-resolve every force against a newly loaded program's symbols; drop (and return)
-        those it does not declare or whose value its type does not take."""
+        those it does not declare, or declares with another type (the forced bits would mean
+        another value there)."""
         kept: dict[str, Force] = {}
         dropped = []
         for name, old in sorted(self._by_name.items()):
             sym = symbols.get(name)
             try:
-                if sym is None or sym.address.attr[0] != old.area[0]:
-                    raise ForceRefused(name)  # gone, or now another direction
+                if sym is None or sym.address.attr[0] != old.area[0] or \
+                        old.type not in (None, sym.type):
+                    raise ForceRefused(name)  # gone, now another direction or another type
                 kept[name] = Force(name, sym.address.attr, sym.address.index,
-                                   check_value(sym, old.value))
+                                   check_value(sym, old.value), sym.type)
             except ForceRefused:
                 dropped.append(name)
                 self.shadow.pop(name, None)

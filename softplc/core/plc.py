@@ -5,6 +5,8 @@ handling per the lifecycle table (download, start, stop, resume, reset, kill), o
 with the marking carried over by place name, frozen timers while stopped, faults and device
 recovery, HMI writes and safe outputs; ProgramCommand, a command as the scan applies it
 (ScanContext, the guards' view of the image, is core/context.py's, imported here for scan.py).
+The outputs kept while the program does not drive them, safe values and the devices a start
+waits for are core/held.py's.
 Does not know: the order of a scan (core/scan.py), clocks, processes, sockets, YAML.
 """
 
@@ -20,8 +22,9 @@ from softplc.core import online
 from softplc.core.context import ScanContext
 from softplc.core.datatypes import raw_of
 from softplc.core.engine import Engine
-from softplc.core.faults import DeviceMonitor, Verdict
+from softplc.core.faults import DeviceMonitor
 from softplc.core.forcing import Force, ForceRefused, Forces
+from softplc.core.held import HeldOutputs, IoWait, awaited_devices, drive_safe
 from softplc.core.image import AREAS, Area, ProcessImage
 from softplc.core.lifecycle import (
     Command,
@@ -34,10 +37,11 @@ from softplc.core.lifecycle import (
 )
 from softplc.core.net import Busy, CompiledNet, NetState
 from softplc.core.online import CarryPlan
+from softplc.core.present import shown_number
 from softplc.core.problems import FaultCode
 from softplc.core.result import ScanResult
 from softplc.core.snapshot import HmiWrite
-from softplc.core.symbols import Direction, DriverSpec, FaultPolicy, SymType, unretained_memory
+from softplc.core.symbols import DriverSpec, FaultPolicy, SymType, unretained_memory
 
 # Kept for readers of older code and tests: the codes are FaultCode's.
 FAULT_NONE, FAULT_WATCHDOG, FAULT_DEVICE = FaultCode.NONE, FaultCode.WATCHDOG, FaultCode.DEVICE
@@ -53,7 +57,7 @@ class ProgramCommand:
     online: bool = False
     id: int = 0
     symbol: str | None = None  # FORCE/UNFORCE: the symbol (UNFORCE None: release all)
-    value: int = 0  # FORCE: the forced value
+    value: int = 0  # FORCE: the forced value's raw bits (core/present.py converts a typed one)
     replace: bool = False  # a download of another program while RUNNING: replace it
     # Built off the scan for `net` (runtime/loop.py): the engine's tables and the carry plan
     # against the running net, so that the swap costs a few array operations.
@@ -73,7 +77,7 @@ class Plc:
     events: event_conditions.EventMemory = field(default_factory=event_conditions.EventMemory)
     last_events: frozenset[str] = frozenset()  # emitted last scan: visible to guards now
     true_last: frozenset[str] = frozenset()  # every event true last scan: guards re-check
-    held: tuple[np.ndarray, np.ndarray] | None = None  # outputs at stop, restored on resume
+    held: HeldOutputs | None = None  # outputs at stop, restored on resume (core/held.py)
     written_last: set[str] = field(default_factory=set)
     scan_count: int = 0
     fault_code: FaultCode = FaultCode.NONE
@@ -97,7 +101,7 @@ class Plc:
     # them (since when, and the program's outputs: safe values go out meanwhile).
     open_devices: Mapping[str, DriverSpec | None] | None = None
     waiting_io: tuple[str, ...] = ()
-    io_wait: tuple[int, np.ndarray, np.ndarray] | None = None
+    io_wait: IoWait | None = None
     first_round: bool = True  # the next firing round is the first since a start (first_scan)
     _io_ready: tuple[object, object, object] | None = None  # awaited() found none for these
 
@@ -151,10 +155,9 @@ class Plc:
             self.first_round = True
         if target is not PlcState.RUNNING and self.state is PlcState.RUNNING:
             self.stopped_at_ns = now_ns
-            self.held = (self.image.qx.copy(), self.image.qw.copy())
+            self.held = HeldOutputs.of(self.image)
         if cmd.command is Command.RESUME and self.held is not None:
-            np.copyto(self.image.qx, self.held[0])
-            np.copyto(self.image.qw, self.held[1])
+            self.held.restore(self.image)
         if cmd.command is not Command.STOP:
             self.held = None
         self.state = target
@@ -213,18 +216,19 @@ class Plc:
         except ForceRefused as exc:
             raise CommandRejected(self.state, cmd.command, f"{cmd.command.value} refused: "
                                   f"{exc}") from None
-        return f"force: {entry.symbol} = {entry.value} (state {self.state.name})"
+        shown = shown_number(entry.type.value if entry.type else None, entry.value)
+        return f"force: {entry.symbol} = {shown} (state {self.state.name})"
 
     def _unshadow(self, entry: Force, shadow: int | None) -> None:
         """A released output gets the program's value back (image while RUNNING, the outputs
         held at a stop otherwise)."""
         if shadow is None:
             return
-        value = bool(shadow) if entry.area.endswith("x") else shadow
         if self.state is PlcState.RUNNING:
-            getattr(self.image, entry.area)[entry.index] = value
-        elif self.held is not None and entry.area in ("qx", "qw"):
-            self.held[0 if entry.area == "qx" else 1][entry.index] = value
+            arr = getattr(self.image, entry.area)
+            arr[entry.index] = bool(shadow) if entry.area.endswith("x") else shadow
+        elif self.held is not None:
+            self.held.put(entry.area, entry.index, shadow)
 
     def _thaw(self, now_ns: int) -> None:
         """Timers were frozen at stop: shift them by the time spent stopped."""
@@ -250,23 +254,16 @@ class Plc:
         ready, opened = self._io_ready, self.open_devices
         if ready and ready[0] is self.net and ready[1] is opened and ready[2] is answering:
             return ()  # the steady scan: a device that answered once has delivered
-        waiting: list[str] = []
-        if self.net is not None and opened is not None:
-            waiting += [name for name, spec in self.net.io.drivers.items()
-                        if name not in opened or opened[name] not in (None, spec)]
-        watches = self.devices.watches
-        for name in answering:
-            watch = watches.get(name)
-            if watch is not None and not watch.answered and watch.verdict is not Verdict.FAULT:
-                waiting.append(name)
+        waiting = awaited_devices(self.net.io.drivers if self.net else None, opened,
+                                  answering, self.devices.watches)
         self._io_ready = None if waiting else (self.net, opened, answering)
-        return tuple(waiting)
+        return waiting
 
     def wait_for_io(self, now_ns: int) -> None:
         """RUNNING without every device's first input image: no round, timers frozen, safe
         outputs; the program's outputs are kept for when the wait ends."""
         if self.io_wait is None:
-            self.io_wait = (now_ns, self.image.qx.copy(), self.image.qw.copy())
+            self.io_wait = IoWait(now_ns, HeldOutputs.of(self.image))
         self.drive_safe()
 
     def end_io_wait(self, now_ns: int | None) -> None:
@@ -274,12 +271,10 @@ class Plc:
         had left, the program's outputs come back (without `now_ns` nothing is kept)."""
         if self.io_wait is None:
             return
-        since, qx, qw = self.io_wait
-        self.io_wait = None
+        wait, self.io_wait = self.io_wait, None
         if now_ns is not None:
-            self._shift_timers(now_ns - since)
-            np.copyto(self.image.qx, qx)
-            np.copyto(self.image.qw, qw)
+            self._shift_timers(now_ns - wait.since_ns)
+            wait.outputs.restore(self.image)
 
     def _online_change(self, cmd: ProgramCommand) -> str:
         """A download while RUNNING (docs/programs.md, online change; core/online.py)."""
@@ -332,7 +327,7 @@ class Plc:
         if self.state is PlcState.RUNNING:
             self.end_io_wait(now_ns)
             self.stopped_at_ns = now_ns
-            self.held = None if now_ns is None else (self.image.qx.copy(), self.image.qw.copy())
+            self.held = None if now_ns is None else HeldOutputs.of(self.image)
         if self.state in (PlcState.RUNNING, PlcState.STOPPED):
             self.state = PlcState.FAULTED
             self.fault_code, self.fault_reason = FaultCode(code), reason or code.name.lower()
@@ -346,8 +341,7 @@ class Plc:
                 or self.held is None):
             return False
         self._thaw(now_ns)
-        np.copyto(self.image.qx, self.held[0])
-        np.copyto(self.image.qw, self.held[1])
+        self.held.restore(self.image)
         self.held = None
         self.state, self.fault_code, self.fault_reason = PlcState.RUNNING, FAULT_NONE, ""
         self.first_round = True
@@ -364,13 +358,7 @@ class Plc:
                 self.image.write_registers(write.address, write.values)
 
     def drive_safe(self) -> None:
-        for area in (self.image.qx, self.image.qw, self.image.qd, self.image.ql):
-            area[:] = 0
-        if self.net is None:
-            return
-        for sym in self.net.io.symbols.values():
-            if sym.direction is Direction.OUT:
-                self.image.set(sym.address, sym.safe_raw)
+        drive_safe(self.image, self.net.io.symbols.values() if self.net else ())
 
     def _changed(self) -> set[str]:
         changed: set[str] = set()

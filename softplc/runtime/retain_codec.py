@@ -22,6 +22,7 @@ import numpy as np
 
 from softplc.core.errors import SoftplcError
 from softplc.core.events import EventMemory
+from softplc.core.held import KEPT_AREAS, HeldOutputs
 from softplc.core.image import AREAS, ProcessImage
 from softplc.core.lifecycle import PlcState
 from softplc.core.net import (
@@ -56,7 +57,7 @@ class Capture:
     now_ns: int
     net_state: NetState
     image: ProcessImage
-    held: tuple[np.ndarray, np.ndarray] | None
+    held: HeldOutputs | None  # the program's outputs kept at a stop or device fault
     stopped_at_ns: int | None
     events_last: dict[str, int | float]
     events_armed: dict[str, bool]
@@ -69,7 +70,7 @@ def capture(plc: Plc, now_ns: int, plants: dict[str, object]) -> Capture | None:
     """The PLC after the scan at `now_ns`; None when there is no program to retain."""
     if plc.net is None or plc.engine is None:
         return None
-    held = None if plc.held is None else (plc.held[0].copy(), plc.held[1].copy())
+    held = None if plc.held is None else plc.held.copy()
     return Capture(plc.net, plc.state, plc.fault_code, plc.scan_count, now_ns,
                    plc.engine.state.copy(), plc.image.copy(), held, plc.stopped_at_ns,
                    dict(plc.events.last), dict(plc.events.armed),
@@ -95,7 +96,7 @@ def encode(cap: Capture, seq: int, wall_ns: int) -> dict[str, Any]:
             for p, n, r in b.produce]}
             for t, b in st.busy.items()},
         "image": {area: _pack(getattr(cap.image, area)) for area in AREAS},
-        "held": None if cap.held is None else [_pack(a) for a in cap.held],
+        "held": None if cap.held is None else [_pack(cap.held.areas[a]) for a in KEPT_AREAS],
         "events": {"last": cap.events_last, "armed": cap.events_armed},
         "field_simulation_only": {name: base64.b64encode(blob).decode()
                                   for name, blob in cap.field.items()},
@@ -157,17 +158,27 @@ def restore(plc: Plc, payload: dict[str, Any], resume: bool) -> PlcState:
     plc.forces.restore(net.io.symbols, [(str(n), int(v), s) for n, v, s in
                                         payload.get("forces", [])])
     was = PlcState[payload["state"]]
-    held = payload["held"]
-    plc.held = None if held is None else (_unpack(held[0], plc.image.qx),
-                                          _unpack(held[1], plc.image.qw))
+    plc.held = _held(payload["held"], plc.image)
     plc.stopped_at_ns = payload["stopped_at_ns"]
     plc.state = was
     _initial_unretained(plc)
     if was is PlcState.RUNNING and not resume:
         plc.state = PlcState.STOPPED
         plc.stopped_at_ns = payload["now_ns"]
-        plc.held = (plc.image.qx.copy(), plc.image.qw.copy())
+        plc.held = HeldOutputs.of(plc.image)
     return plc.state
+
+
+def _held(packed: list[str] | None, image: ProcessImage) -> HeldOutputs | None:
+    """The kept outputs, area by area in KEPT_AREAS' order. A file from before %QD/%QL were
+    kept holds %QX and %QW only: the others keep what the image holds (the safe values a
+    stopped PLC drives), as a resume put them then."""
+    if packed is None:
+        return None
+    held = HeldOutputs.of(image)
+    for area, text in zip(KEPT_AREAS, packed, strict=False):
+        held.areas[area][:] = _unpack(text, held.areas[area])
+    return held
 
 
 def _initial_unretained(plc: Plc) -> None:

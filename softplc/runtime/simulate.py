@@ -14,6 +14,7 @@ from typing import Any
 
 from softplc.core.image import ProcessImage
 from softplc.core.net import CompiledNet
+from softplc.core.present import Shown, shown_number
 from softplc.core.scan import ScanResult
 from softplc.core.snapshot import HmiWrite
 from softplc.core.symbols import Direction, Symbol
@@ -59,25 +60,30 @@ class Timeline:
 
     watched: tuple[Symbol, ...]  # outputs and memory, by declaration order
     names: dict[str, str]  # address -> symbol, to show HMI writes by name
-    last: dict[str, int]
+    last: dict[str, int]  # raw bits
+    types: dict[str, str]  # symbol -> type, to show values as they read (core/present.py)
     entries: list[dict[str, Any]]
 
     @classmethod
     def of(cls, net: CompiledNet, image: ProcessImage) -> Timeline:
         watched = tuple(s for s in net.io.symbols.values() if s.direction is not Direction.IN)
         names = {str(s.address): s.name for s in net.io.symbols.values()}
-        return cls(watched, names, {s.name: image.get(s.address) for s in watched}, [])
+        types = {s.name: s.type.value for s in net.io.symbols.values()}
+        return cls(watched, names, {s.name: image.get(s.address) for s in watched}, types, [])
 
     def record(self, k: int, now_ns: int, result: ScanResult, image: ProcessImage,
                hmi: tuple[HmiWrite, ...], forced: dict[str, int | str]) -> None:
         values = {s.name: image.get(s.address) for s in self.watched}
-        changed = {n: v for n, v in values.items() if self.last.get(n) != v}
+        changed = {n: shown_number(self.types[n], v) for n, v in values.items()
+                   if self.last.get(n) != v}
         self.last = values
+        typed: dict[str, Shown] = {n: v if isinstance(v, str) else shown_number(
+            self.types.get(n), v) for n, v in forced.items()}
         entry: dict[str, Any] = {"k": k, "t_s": now_ns / 1e9}
         writes = [f"{self.names.get(str(w.address), w.address)}={','.join(map(str, w.values))}"
                   for w in hmi]
         for key, value in (("hmi", writes),
-                           ("forced", forced), ("fired", list(result.fired)),
+                           ("forced", typed), ("fired", list(result.fired)),
                            ("done", list(result.completed)), ("marking", result.marking_changes),
                            ("events", list(result.events)), ("changed", changed)):
             if value:
@@ -121,8 +127,8 @@ def _report(net: CompiledNet, runner: Any, scans: int, period_ns: int, seed: int
             trace: TraceWriter, script: Script | None, line: Timeline | None) -> dict[str, Any]:
     plc = runner.plc
     plants = [d.plant.report().as_dict() for d in runner.drivers if isinstance(d, SimDriver)]
-    outputs = {s.name: plc.image.get(s.address) for s in net.io.symbols.values()
-               if s.direction.value != "in"}
+    outputs = {s.name: shown_number(s.type.value, plc.image.get(s.address))
+               for s in net.io.symbols.values() if s.direction.value != "in"}
     report = {
         "program": net.name,
         "program_hash": net.program_hash,

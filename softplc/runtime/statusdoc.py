@@ -15,7 +15,9 @@ from typing import Any, Protocol
 from softplc.core.judge import CycleWatchdog
 from softplc.core.lifecycle import Stage
 from softplc.core.net import CompiledNet, NetState
+from softplc.core.present import shown
 from softplc.core.snapshot import Status
+from softplc.core.symbols import Symbol
 from softplc.runtime import netview
 from softplc.runtime.bootkeeper import BootKeeper
 from softplc.runtime.clock import Clock
@@ -76,11 +78,8 @@ def document(loop: LoopView) -> dict[str, Any]:
     timing["stalls"] = loop.stalls
     timing["longest_gap_us"] = loop.longest_gap_ns // 1000
     net = plc.net
-    symbols = {} if net is None else {
-        s.name: {"address": str(s.address), "type": s.type.value,
-                 "direction": s.direction.value, "value": plc.image.get(s.address),
-                 "hmi_writable": s.hmi_writable, "description": s.description}
-        for s in net.io.symbols.values()}
+    symbols = {} if net is None else {s.name: _symbol(s, plc.image.get(s.address))
+                                      for s in net.io.symbols.values()}
     return {
         "state": plc.state.name, "program": net.name if net else None,
         "program_hash": net.program_hash if net else None, "scan_count": plc.scan_count,
@@ -108,7 +107,7 @@ def document(loop: LoopView) -> dict[str, Any]:
         "diagnostic_count": plc.engine.diagnostic_count if plc.engine else 0,
         "tokens": _records(net, plc.engine.state if plc.engine else None),
         "symbols": symbols, "events": list(loop.events),
-        "forced": plc.forces.values(),  # forcing (docs/design.md section 10)
+        "forced": plc.forces.shown(),  # forcing (docs/design.md section 10), typed
         # The operator's page (docs/web.md): structure cached per program, live state.
         "net": netview.structure(net) if net else None,
         "net_live": netview.live(net, plc.engine.state if plc.engine else None,
@@ -127,6 +126,14 @@ def status(loop: LoopView) -> Status:
                   plc.net.program_hash if plc.net else "", int(plc.fault_code),
                   loop.config.period_ns // 1000, len(plc.forces), bool(plc.waiting_io),
                   plc.stage is Stage.SUSPENDED)
+
+
+def _symbol(s: Symbol, raw: int) -> dict[str, Any]:
+    """A symbol's board entry: `value` as people read it (core/present.py: a negative int, a
+    real), `raw` the bits its location holds (what the why route puts back into an image)."""
+    return {"address": str(s.address), "type": s.type.value, "direction": s.direction.value,
+            "value": shown(s.type.value, raw), "raw": raw, "hmi_writable": s.hmi_writable,
+            "description": s.description}
 
 
 def _records(net: CompiledNet | None, state: NetState | None) -> dict[str, list[Any]]:

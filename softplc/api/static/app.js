@@ -295,10 +295,17 @@ function cell(tr, className, content) {
   return td;
 }
 
+/* What each type takes (docs/programs.md, types); the server checks the range and says why. */
+const TAKES = {
+  bool: "0/1", int: "-32768..32767", word: "0..65535", dint: "-2147483648..2147483647",
+  udint: "0..4294967295", real: "a number, e.g. 12.5", lreal: "a number, e.g. 12.5",
+};
+const DECIMAL = new Set(["real", "lreal"]);
+
 function valueInput(sym, label, onValue) {
   const wrap = document.createElement("span");
   const input = document.createElement("input");
-  input.placeholder = sym.type === "bool" ? "0/1" : "0..65535";
+  input.placeholder = TAKES[sym.type] || "a number";
   input.className = label;
   const button = document.createElement("button");
   button.className = "small " + label;
@@ -314,7 +321,9 @@ function parseValue(sym, raw) {
     if (["0", "false", "off"].includes(raw.toLowerCase())) return false;
     return null;
   }
+  if (raw === "") return null;
   const n = Number(raw);
+  if (DECIMAL.has(sym.type)) return Number.isFinite(n) ? n : null;
   return Number.isInteger(n) ? n : null;
 }
 
@@ -361,6 +370,8 @@ function buildImage() {
 
 function updateImage(frame) {
   for (const [name, row] of Object.entries(page.rows)) {
+    // Values arrive typed (softplc/core/present.py): a negative int, a real as a decimal
+    // number, "NaN"/"Infinity" as text; shown as they are, never as raw bits.
     const v = frame.values[name];
     const shown = row.sym.type === "bool" ? (v ? "1" : "0") : String(v === undefined ? "" : v);
     text(row.value, shown);
