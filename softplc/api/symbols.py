@@ -34,8 +34,11 @@ def register(app: web.Application, api: ApiService) -> None:
 def view(name: str, entry: Mapping[str, Any], image: Any) -> dict[str, Any]:
     """A symbol's answer: the board's entry, its value read from `image` when there is one,
     as its type reads (core/present.py): a negative int, a real as a decimal number."""
-    return {"name": name, "address": entry.get("address"), "type": entry.get("type"),
-            "direction": entry.get("direction"), "value": value_of_entry(entry, image)}
+    answer = {"name": name, "address": entry.get("address"), "type": entry.get("type"),
+              "direction": entry.get("direction"), "value": value_of_entry(entry, image)}
+    if "scale" in entry:  # the value is in engineering units (docs/programs.md, scaling)
+        answer["unit"], answer["scale"] = entry.get("unit", ""), entry["scale"]
+    return answer
 
 
 def value_of_entry(entry: Mapping[str, Any], image: Any) -> Shown:
@@ -43,7 +46,8 @@ def value_of_entry(entry: Mapping[str, Any], image: Any) -> Shown:
     read there, else the board's own (already typed) value."""
     if image is not None:
         with contextlib.suppress(AddressError, TypeError, KeyError, IndexError):
-            return shown(entry.get("type"), image.get(parse_address(str(entry["address"]))))
+            return shown(entry.get("type"), image.get(parse_address(str(entry["address"]))),
+                         entry.get("scale"))
     value: Shown = entry.get("value", 0)
     return bool(value) if entry.get("type") == "bool" else value
 
@@ -61,7 +65,7 @@ def write_raw(name: str, entry: Mapping[str, Any] | None, body: Any) -> int:
             return int(value)
         raise ApiProblem(422, f"no symbol {name!r} in the loaded program")
     try:
-        return accepted(entry.get("type"), value, name)
+        return accepted(entry.get("type"), value, name, entry.get("scale"))
     except ValueRefused as exc:
         raise ApiProblem(422, str(exc)) from None
 
@@ -109,5 +113,6 @@ class _Routes:
         except ChannelFull as exc:
             raise ApiProblem(503, str(exc), headers={"Retry-After": "1"}) from None
         return web.json_response({"name": name, "address": str(address),
-                                  "value": shown(entry.get("type"), raw), "queued": True},
+                                  "value": shown(entry.get("type"), raw, entry.get("scale")),
+                                  "queued": True},
                                  status=202)

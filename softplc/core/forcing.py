@@ -28,6 +28,7 @@ from softplc.core.datatypes import INFO, value_of
 from softplc.core.errors import SoftplcError
 from softplc.core.image import ProcessImage
 from softplc.core.present import Shown, shown_number
+from softplc.core.scaling import Scaling
 from softplc.core.symbols import Symbol, SymType
 
 
@@ -44,6 +45,7 @@ class Force:
     index: int
     value: int  # raw bits, as the image holds them
     type: SymType | None = None  # the symbol's type when forced: the bits' meaning
+    scaling: Scaling | None = None  # and its scaling: forces are shown in engineering units
 
     @property
     def is_input(self) -> bool:
@@ -104,7 +106,7 @@ class Forces:
     def shown(self) -> dict[str, Shown]:
         """Symbol -> forced value as people read it (core/present.py; a bool as 0/1), sorted
         by symbol: status, the API, the page."""
-        return {name: shown_number(f.type.value if f.type else None, f.value)
+        return {name: shown_number(f.type.value if f.type else None, f.value, f.scaling)
                 for name, f in sorted(self._by_name.items())}
 
     def force(self, symbols: Mapping[str, Symbol], name: str, value: int,
@@ -114,7 +116,7 @@ class Forces:
         if sym is None:
             raise ForceRefused(f"no symbol {name!r} in the loaded program")
         entry = Force(name, sym.address.attr, sym.address.index, check_value(sym, value),
-                      sym.type)
+                      sym.type, sym.scaling)
         if not entry.is_input and name not in self.shadow:
             self.shadow[name] = 0 if image is None else int(getattr(image, entry.area)[entry.index])
         self._by_name[name] = entry
@@ -148,7 +150,7 @@ class Forces:
                         old.type not in (None, sym.type):
                     raise ForceRefused(name)  # gone, now another direction or another type
                 kept[name] = Force(name, sym.address.attr, sym.address.index,
-                                   check_value(sym, old.value), sym.type)
+                                   check_value(sym, old.value), sym.type, sym.scaling)
             except ForceRefused:
                 dropped.append(name)
                 self.shadow.pop(name, None)

@@ -216,7 +216,7 @@ class Plc:
         except ForceRefused as exc:
             raise CommandRejected(self.state, cmd.command, f"{cmd.command.value} refused: "
                                   f"{exc}") from None
-        shown = shown_number(entry.type.value if entry.type else None, entry.value)
+        shown = shown_number(entry.type.value if entry.type else None, entry.value, entry.scaling)
         return f"force: {entry.symbol} = {shown} (state {self.state.name})"
 
     def _unshadow(self, entry: Force, shadow: int | None) -> None:

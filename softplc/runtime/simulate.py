@@ -15,9 +15,10 @@ from typing import Any
 from softplc.core.image import ProcessImage
 from softplc.core.net import CompiledNet
 from softplc.core.present import Shown, shown_number
+from softplc.core.scaling import Scaling
 from softplc.core.scan import ScanResult
 from softplc.core.snapshot import HmiWrite
-from softplc.core.symbols import Direction, Symbol
+from softplc.core.symbols import Direction, Symbol, scalings
 from softplc.devices.driver import Health
 from softplc.devices.sim import SimDriver
 from softplc.runtime.runner import boot
@@ -63,22 +64,24 @@ class Timeline:
     last: dict[str, int]  # raw bits
     types: dict[str, str]  # symbol -> type, to show values as they read (core/present.py)
     entries: list[dict[str, Any]]
+    scales: dict[str, Scaling]  # symbol -> scaling: scaled values shown in engineering units
 
     @classmethod
     def of(cls, net: CompiledNet, image: ProcessImage) -> Timeline:
         watched = tuple(s for s in net.io.symbols.values() if s.direction is not Direction.IN)
         names = {str(s.address): s.name for s in net.io.symbols.values()}
         types = {s.name: s.type.value for s in net.io.symbols.values()}
-        return cls(watched, names, {s.name: image.get(s.address) for s in watched}, types, [])
+        return cls(watched, names, {s.name: image.get(s.address) for s in watched}, types, [],
+                   dict(scalings(net.io)))
 
     def record(self, k: int, now_ns: int, result: ScanResult, image: ProcessImage,
                hmi: tuple[HmiWrite, ...], forced: dict[str, int | str]) -> None:
         values = {s.name: image.get(s.address) for s in self.watched}
-        changed = {n: shown_number(self.types[n], v) for n, v in values.items()
-                   if self.last.get(n) != v}
+        changed = {n: shown_number(self.types[n], v, self.scales.get(n))
+                   for n, v in values.items() if self.last.get(n) != v}
         self.last = values
         typed: dict[str, Shown] = {n: v if isinstance(v, str) else shown_number(
-            self.types.get(n), v) for n, v in forced.items()}
+            self.types.get(n), v, self.scales.get(n)) for n, v in forced.items()}
         entry: dict[str, Any] = {"k": k, "t_s": now_ns / 1e9}
         writes = [f"{self.names.get(str(w.address), w.address)}={','.join(map(str, w.values))}"
                   for w in hmi]
@@ -127,7 +130,7 @@ def _report(net: CompiledNet, runner: Any, scans: int, period_ns: int, seed: int
             trace: TraceWriter, script: Script | None, line: Timeline | None) -> dict[str, Any]:
     plc = runner.plc
     plants = [d.plant.report().as_dict() for d in runner.drivers if isinstance(d, SimDriver)]
-    outputs = {s.name: shown_number(s.type.value, plc.image.get(s.address))
+    outputs = {s.name: shown_number(s.type.value, plc.image.get(s.address), s.scaling)
                for s in net.io.symbols.values() if s.direction.value != "in"}
     report = {
         "program": net.name,

@@ -130,10 +130,16 @@ def status(loop: LoopView) -> Status:
 
 def _symbol(s: Symbol, raw: int) -> dict[str, Any]:
     """A symbol's board entry: `value` as people read it (core/present.py: a negative int, a
-    real), `raw` the bits its location holds (what the why route puts back into an image)."""
-    return {"address": str(s.address), "type": s.type.value, "direction": s.direction.value,
-            "value": shown(s.type.value, raw), "raw": raw, "hmi_writable": s.hmi_writable,
-            "description": s.description}
+    real, a scaled symbol's engineering value with its `unit` and `scale`), `raw` the bits
+    its location holds (what the why route puts back into an image)."""
+    entry: dict[str, Any] = {
+        "address": str(s.address), "type": s.type.value, "direction": s.direction.value,
+        "value": shown(s.type.value, raw, s.scaling), "raw": raw,
+        "hmi_writable": s.hmi_writable, "description": s.description}
+    if s.scaling is not None:  # the value is in engineering units; the raw count in `raw`
+        entry["scale"] = s.scaling.as_dict()
+        entry["unit"] = s.scaling.unit
+    return entry
 
 
 def _records(net: CompiledNet | None, state: NetState | None) -> dict[str, list[Any]]:

@@ -15,6 +15,7 @@ import pytest
 
 from softplc.api.client import ApiClient, ApiError
 from softplc.cli import main
+from softplc.core.image import parse_address
 from softplc.program import bundle
 from tests.api.conftest import ServerThread
 from tests.api.helpers import call
@@ -30,6 +31,7 @@ symbols:
   level:  {address: "%ML0", type: lreal}
   out_t:  {address: "%QD0", type: real}
   out_n:  {address: "%QW0", type: int}
+  pct:    {address: "%QW1", type: int, scale: {raw: [0, 27648], eng: [0.0, 100.0], unit: "%"}}
 """
 PROGRAM = """program: typed
 io_image: io.yaml
@@ -39,7 +41,7 @@ places:
 transitions:
   begin: {from: [idle], to: [run],
           do: ["temp = 12.5", "small = -3", "count = -70000", "level = -1e300",
-               "out_t = 0.1", "out_n = -42"]}
+               "out_t = 0.1", "out_n = -42", "pct = 50.0"]}
 """
 WRITTEN = {"temp": 12.5, "small": -3, "count": -70000, "level": -1e300, "out_t": 0.1,
            "out_n": -42, "hold": False, "big": 0}
@@ -164,3 +166,25 @@ def test_a_force_of_an_unknown_symbol_is_refused(client: ApiClient) -> None:
     with pytest.raises(ApiError) as refused:
         client.force("nope", 1.5)
     assert refused.value.status == 422 and "no symbol 'nope'" in refused.value.message
+
+
+def test_a_scaled_symbol_is_read_written_and_forced_in_engineering_units(
+        api: ServerThread, client: ApiClient) -> None:
+    """The program wrote 50.0 %: the count 13824 is what the driver moves, 50.0 % is what
+    every reader sees; writes and forces are given in % and scaled back as the program's
+    writes are."""
+    entry = client.symbols()["pct"]
+    assert (entry["value"], entry["unit"], entry["scale"]["raw"]) == (50.0, "%", [0, 27648])
+    assert raw_count(api) == 13824
+    assert client.force("pct", 25.0)["message"] == "force: pct = 25.0 (state RUNNING)"
+    eventually(lambda: client.read_symbol("pct") == 25.0 and raw_count(api) == 6912, 10,
+               "forced at 25 %")
+    assert client.forces() == {"pct": 25.0}
+    client.unforce()
+    status, body = put(api, "/symbols/pct", b'{"value": 200.0}')  # raw 55296: past an int
+    assert status == 422 and "pct is scaled (0..100 % on a int)" in body["error"]
+
+
+def raw_count(api: ServerThread) -> int:
+    """What the image (the drivers' side) holds at pct's address, from the snapshot."""
+    return int(api.server.snapshots.latest().image.get(parse_address("%QW1")))

@@ -155,3 +155,21 @@ def test_a_force_is_dropped_when_a_download_changes_the_symbols_type(
     bench.scan(20, [ProgramCommand(Command.STOP)])
     bench.scan(30, [ProgramCommand(Command.DOWNLOAD, other)])
     assert "setp" not in bench.plc.forces.values()  # its bits would read 1069547520 there
+
+
+def test_a_scaled_symbol_is_shown_and_given_in_engineering_units() -> None:
+    """The board carries the scale as a mapping (Scaling.as_dict): the same numbers either
+    way, and a write scaled back to raw as a program's write is (half to even)."""
+    scale = {"raw": [0, 27648], "eng": [0.0, 100.0], "unit": "%", "clamp": True}
+    assert shown("int", 13824, scale) == 50.0
+    assert shown("int", 0xFFFF, scale) == 0.0  # raw -1, clamped to the span
+    assert accepted("int", 50.0, "level", scale) == 13824
+    assert accepted("int", 117, "level", scale) == 27648  # clamped
+    signed = {"raw": [-500, 1500], "eng": [-50.0, 150.0], "unit": "°C"}
+    assert shown("int", 0xFFFF - 29, signed) == -3.0  # raw -30 tenths
+    assert accepted("int", -3.0, "temperature", signed) == 0xFFFF - 29
+    with pytest.raises(ValueRefused, match=r"temperature is scaled \(-50..150 °C on a int\)"):
+        accepted("int", 4000.0, "temperature", signed)  # raw 40000: past an int
+    with pytest.raises(ValueRefused, match="engineering units"):
+        accepted("int", "hot", "temperature", signed)
+    assert shown("int", 7, {"raw": "?"}) == 7  # a scale this version cannot read: unscaled
