@@ -488,6 +488,8 @@ def test_the_outlet_empties_the_tank_and_a_delivery_is_counted_once() -> None:
     plant.advance(10 * S)  # 600 l at 60 l/s
     plant.advance(20 * S)
     assert plant.read_sensors()["level"] == 0
+    assert plant.report().extra["emptied"] == 1 and plant.report().parts_out == 0
+    plant.set_actuators({"outlet": 0})  # the batch is out: the outlet closes
     assert plant.report().parts_out == 1
     assert plant.report().extra["volume_l"] == 0
 

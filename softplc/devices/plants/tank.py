@@ -51,7 +51,7 @@ class TankConfig:
 
 
 class TankPlant:
-    """One tank: `pump` fills it, `outlet` empties it; `level` (raw count), `high_switch`
+    """One tank: `pump` fills it, `outlet` delivers a batch; `level` (raw count), `high_switch`
     and `temperature` (signed tenths of a degree) are its sensors."""
 
     actuators: tuple[str, ...] = ("pump", "outlet")
@@ -66,13 +66,16 @@ class TankPlant:
         self._now_ns = 0
         self._fills = 0  # pump starts
         self._drains = 0  # times the tank was emptied through the outlet
+        self._deliveries = 0  # times the outlet was opened and closed again
         self._overflowed_nl = 0
         self._faults: list[str] = []
         self._freezing_reported = False
 
     def set_actuators(self, values: Mapping[str, int | float]) -> None:
-        before = self._valves["pump"]
+        before, outlet = self._valves["pump"], self._valves["outlet"]
         apply_actuators(self._valves, values)
+        if outlet and not self._valves["outlet"]:
+            self._deliveries += 1
         if self._valves["pump"] and not before:
             self._fills += 1
             if self.temperature_tenths() <= self.config.freezing_tenths \
@@ -123,7 +126,7 @@ class TankPlant:
     def report(self) -> PlantReport:
         return PlantReport(
             parts_in=self._fills,
-            parts_out=self._drains,
+            parts_out=self._deliveries,
             parts_drilled=0,
             in_flight=int(self._volume_nl > 0),
             faults=tuple(self._faults),
@@ -133,5 +136,6 @@ class TankPlant:
                 "level_raw": self.level_raw(),
                 "temperature_tenths": self.temperature_tenths(),
                 "overflowed_l": self._overflowed_nl // NL_PER_L,
+                "emptied": self._drains,
             },
         )
