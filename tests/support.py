@@ -1,8 +1,11 @@
-"""What many test files need: a free loopback port, bounded polling, a simulated Modbus server.
+"""What many test files need: a free loopback port, bounded polling, a real `softplc run`
+process, a simulated Modbus server.
 
 Owns: `free_port`; `wait_until` (a truth value the caller asserts) and `eventually` (the first
 truthy value, or AssertionError), both bounded by `timeout_s`; `eventually_reachable`, the
-same for processes that refuse connections while they start; `SimModbusServer`, a real
+same for processes that refuse connections while they start; `softplc_run`, a real `softplc
+run` process, ready once a probe says so and ended (SIGTERM, then SIGKILL) whatever the test
+did; `SimModbusServer`, a real
 pymodbus 3.16.1 server on 127.0.0.1 in its own thread and loop that records every request.
 Does not know: any test's subject. Modules with more behaviour (a remote-I/O module with a
 communication watchdog: tests/devices/remote_io_device.py) build on these.
@@ -11,10 +14,15 @@ communication watchdog: tests/devices/remote_io_device.py) build on these.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import os
 import socket
+import subprocess
+import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 from typing import Any, TypeVar
 
 from pymodbus.pdu import ModbusPDU
@@ -24,6 +32,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 from softplc.api.client import ApiError
 
 T = TypeVar("T")
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def free_port() -> int:
@@ -77,6 +86,41 @@ def _seen(show: Callable[[], object] | None, errors: tuple[type[BaseException], 
         return f" (last seen: {show()})"
     except errors as exc:
         return f" (last seen: {exc})"
+
+
+@contextlib.contextmanager
+def softplc_run(args: Sequence[str], ready: Callable[[], object], *, cwd: Path = ROOT,
+                timeout_s: float = 60.0, stdout: int = subprocess.PIPE,
+                what: str = "softplc run answering",
+                errors: tuple[type[BaseException], ...] = (OSError, ApiError, ValueError)
+                ) -> Iterator[subprocess.Popen[str]]:
+    """`softplc run ARGS` as a real process (the checkout's softplc, from `cwd`), yielded once
+    `ready()` is truthy (`errors` it raises count as not yet: a server still starting refuses
+    or half-answers; bounded by `timeout_s`: the processes spawn on a loaded machine), ended
+    at the end with SIGTERM, then SIGKILL."""
+    proc = subprocess.Popen([sys.executable, "-m", "softplc.cli", "run", *args], cwd=cwd,
+                            stdout=stdout, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)})
+    try:
+        def up() -> object:
+            if proc.poll() is not None:
+                raise AssertionError(f"softplc run ended: {proc.communicate()}")
+            return ready()
+
+        eventually(up, timeout_s, what, step_s=0.1, errors=errors)
+        yield proc
+    finally:
+        stop_process(proc)
+
+
+def stop_process(proc: subprocess.Popen[Any], grace_s: float = 15.0) -> None:
+    """SIGTERM, then SIGKILL after `grace_s`: a test never leaves a process behind."""
+    proc.terminate()
+    try:
+        proc.wait(grace_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(10)
 
 
 class SimModbusServer:

@@ -7,10 +7,6 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import os
-import subprocess
-import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -19,7 +15,7 @@ import pytest
 
 from softplc.api.client import ApiClient, ApiError
 from softplc.cli import main
-from tests.support import eventually, free_port
+from tests.support import eventually, free_port, softplc_run
 
 ROOT = Path(__file__).resolve().parents[2]
 PROGRAM = """program: gate
@@ -47,27 +43,11 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """`softplc run programs/transport.yaml --plant transport --start` (make run's PLC)."""
     state = tmp_path_factory.mktemp("state")
     port = free_port()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "softplc.cli", "run", "programs/transport.yaml", "--plant",
-         "transport", "--start", "--api", f"127.0.0.1:{port}", "--modbus",
-         f"127.0.0.1:{free_port()}", "--opcua", "off", "--state-dir", str(state), "--quiet"],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        env={**os.environ, "PYTHONPATH": str(ROOT)})
     url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 60  # processes spawning on a loaded machine
-        while not running(url):
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "softplc run did not answer"
-            time.sleep(0.1)
+    with softplc_run(["programs/transport.yaml", "--plant", "transport", "--start", "--api",
+                      f"127.0.0.1:{port}", "--modbus", f"127.0.0.1:{free_port()}", "--opcua",
+                      "off", "--state-dir", str(state), "--quiet"], lambda: running(url)):
         yield url
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
 
 
 def running(url: str) -> bool:

@@ -11,8 +11,6 @@ import json
 import os
 import shutil
 import subprocess
-import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -20,7 +18,7 @@ import pytest
 
 from softplc.api.client import ApiClient, ApiError
 from softplc.cli import main
-from tests.support import eventually, free_port
+from tests.support import eventually, free_port, softplc_run
 
 ROOT = Path(__file__).resolve().parents[2]
 FILES = ("deep/sub/c.yaml", "deep/nets/conveyor.yaml", "io/transport.yaml")
@@ -65,26 +63,11 @@ def server(tmp_path: Path) -> Iterator[str]:
     where = tmp_path / "server"
     where.mkdir()
     port = free_port()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "softplc.cli", "run", "--api", f"127.0.0.1:{port}",
-         "--modbus", f"127.0.0.1:{free_port()}", "--opcua", "off", "--state-dir", "state",
-         "--quiet", "--period", "10ms"],
-        cwd=where, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 40  # two processes spawning on a loaded machine
-        while not answers(url):
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "softplc run did not answer"
-            time.sleep(0.1)
+    with softplc_run(["--api", f"127.0.0.1:{port}", "--modbus", f"127.0.0.1:{free_port()}",
+                      "--opcua", "off", "--state-dir", "state", "--quiet", "--period", "10ms"],
+                     lambda: answers(url), cwd=where):
         yield url
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
 
 
 def answers(url: str) -> bool:

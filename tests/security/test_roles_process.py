@@ -17,9 +17,9 @@ from pathlib import Path
 
 import pytest
 
-from softplc.api.client import ApiClient, ApiError
+from softplc.api.client import ApiClient
 from tests.api.helpers import Answer, call
-from tests.support import eventually, free_port
+from tests.support import eventually, free_port, softplc_run
 
 ROOT = Path(__file__).resolve().parents[2]
 PASSWORDS = {"op": "operator-pass-1", "view": "viewer-pass-1"}
@@ -45,24 +45,13 @@ def plc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, Path]]:
         assert added.returncode == 0, added.stderr
         assert PASSWORDS[name] not in added.stdout + added.stderr
     port = free_port()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "softplc.cli", "run", str(ROOT / "programs" / "transport.yaml"),
-         "--start", "--api", f"127.0.0.1:{port}", "--modbus", "off", "--opcua", "off",
-         "--state-dir", "state", "--quiet", "--period", "10ms"],
-        cwd=where, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     url = f"http://127.0.0.1:{port}"
-    try:
-        eventually(lambda: proc.poll() is None and _state(url) == "RUNNING", 60,
-                   "softplc run answering and RUNNING", step_s=0.1,
-                   errors=(OSError, ApiError, ValueError))
+    with softplc_run([str(ROOT / "programs" / "transport.yaml"), "--start", "--api",
+                      f"127.0.0.1:{port}", "--modbus", "off", "--opcua", "off", "--state-dir",
+                      "state", "--quiet", "--period", "10ms"],
+                     lambda: _state(url) == "RUNNING", cwd=where, stdout=subprocess.DEVNULL,
+                     what="softplc run answering and RUNNING"):
         yield url, where
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
 
 
 def _state(url: str) -> str:

@@ -18,9 +18,9 @@ from pathlib import Path
 import pytest
 
 from softplc.api import tls
-from softplc.api.client import ApiClient, ApiError, ApiUnreachable
+from softplc.api.client import ApiClient, ApiUnreachable
 from softplc.program import signing
-from tests.support import eventually, free_port
+from tests.support import eventually, free_port, softplc_run
 
 ROOT = Path(__file__).resolve().parents[2]
 PASSWORDS = {"op": "operator-pass-1", "view": "viewer-pass-1"}
@@ -45,26 +45,15 @@ def plc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, Path, P
     (where / "trusted").mkdir()
     shutil.copy(where / "keys" / "alice.pub", where / "trusted")
     port = free_port()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "softplc.cli", "run", str(ROOT / "programs" / "transport.yaml"),
-         "--start", "--api", f"127.0.0.1:{port}", "--tls", "on", "--modbus", "off",
-         "--opcua", "off", "--state-dir", "state", "--quiet", "--period", "10ms",
-         "--trusted-keys", "trusted"],
-        cwd=where, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     url, cert = f"https://127.0.0.1:{port}", where / "state" / "tls" / "cert.pem"
-    try:
-        eventually(lambda: proc.poll() is None and cert.exists()
-                   and ApiClient(url, ca=cert, timeout_s=5).status()["state"] == "RUNNING",
-                   60, "softplc run answering over https and RUNNING", step_s=0.2,
-                   errors=(OSError, ApiError, ValueError))
+    with softplc_run([str(ROOT / "programs" / "transport.yaml"), "--start", "--api",
+                      f"127.0.0.1:{port}", "--tls", "on", "--modbus", "off", "--opcua", "off",
+                      "--state-dir", "state", "--quiet", "--period", "10ms", "--trusted-keys",
+                      "trusted"],
+                     lambda: cert.exists() and ApiClient(url, ca=cert, timeout_s=5).status()[
+                         "state"] == "RUNNING",
+                     cwd=where, what="softplc run answering over https and RUNNING"):
         yield url, where, cert
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
 
 
 def curl(cert: Path, *argv: str) -> tuple[int, str, str]:
