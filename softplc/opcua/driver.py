@@ -4,7 +4,8 @@ component).
 
 Owns: the channel syntax, the I/O thread with its own asyncio loop and asyncua client, the
 last good inputs, the latest outputs, method calls on rising edges with their done/failed
-inputs, health, problem(), go_safe().
+inputs, health, problem(), go_safe(). Values move typed (typed.py): a remote Float into a
+`real`, a `dint` written as the remote variable's DataType; never wrapped.
 Does not know: the scan, the Petri net, the local OPC UA server.
 
 Channels (the symbol's `channel:`):
@@ -35,6 +36,7 @@ from asyncua import Client, ua
 from softplc.core.image import ProcessImage
 from softplc.core.symbols import Direction, DriverSpec, Symbol, SymType
 from softplc.devices.driver import Health
+from softplc.opcua.typed import VARIANT_TYPES, remote_raw, remote_variant
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +92,7 @@ class OpcUaIoDriver:
         self._lock = threading.Lock()
         self._inputs: dict[str, int] = {}  # symbol -> value (I/O thread writes)
         self._outputs: dict[str, int] = {}  # symbol -> value (scan writes)
+        self._vtypes: dict[str, ua.VariantType] = {}  # output symbol -> remote DataType
         self._calls: dict[str, str] = {}  # output symbol -> "", "done", "failed"
         self._cycles = 0
         self._delivered = False  # read_inputs copied one completed cycle's inputs since open()
@@ -221,12 +224,15 @@ class OpcUaIoDriver:
     async def _resolve(self, client: Client) -> dict[str, Any]:
         ns = await client.get_namespace_index(str(self.params.get("namespace", "urn:softplc")))
         nodes: dict[str, Any] = {}
+        self._vtypes = {}
         for b in self.bindings:
             if b.kind in ("var", "call"):
                 text = b.target
                 if not text.startswith(("ns=", "i=", "s=", "g=", "b=")):
                     text = f"ns={ns};s={text}"
-                nodes[b.symbol.name] = client.get_node(text)
+                nodes[b.symbol.name] = node = client.get_node(text)
+                if b.kind == "var" and b.symbol.direction is Direction.OUT:
+                    self._vtypes[b.symbol.name] = await _data_type(node, b.symbol)
         return nodes
 
     async def _cycles_on(self, client: Client, nodes: dict[str, Any]) -> None:
@@ -240,21 +246,42 @@ class OpcUaIoDriver:
             self._wake.clear()
             with self._lock:
                 outputs = dict(self._outputs)
+            problems: list[str] = []
             for b in self.bindings:
                 name = b.symbol.name
                 if name not in outputs or written.get(name) == outputs[name]:
                     continue
                 if b.kind == "var":
-                    await nodes[name].write_value(_variant(b.symbol, outputs[name]))
+                    try:
+                        variant = remote_variant(b.symbol.type, outputs[name], self._vtypes[name])
+                    except ValueError as exc:  # not written: the remote keeps its value
+                        problems.append(f"output {name} not written to {b.target}: {exc}")
+                        continue
+                    await nodes[name].write_value(variant)
                 elif b.kind == "call":
                     await self._edge(client, nodes[name], name, bool(outputs[name]))
                 written[name] = outputs[name]
             values = await client.read_values([nodes[b.symbol.name] for b in inputs])
-            with self._cycle_done:
-                self._inputs = {b.symbol.name: int(v) for b, v in zip(inputs, values, strict=True)}
-                self._cycles += 1
-                self._ok = True
-                self._cycle_done.notify_all()
+            fresh = {}
+            for b, value in zip(inputs, values, strict=True):
+                try:
+                    fresh[b.symbol.name] = remote_raw(b.symbol.type, value)
+                except ValueError as exc:  # the input keeps its last good value
+                    problems.append(f"input {b.symbol.name} from {b.target}: {exc}")
+            self._cycle(fresh, problems)
+
+    def _cycle(self, fresh: dict[str, int], problems: list[str]) -> None:
+        """A cycle's inputs; one whose values did not fit is DEGRADED (the fault policy
+        decides), its text in problem()."""
+        text = "; ".join(problems[:3])
+        with self._cycle_done:
+            self._inputs = {**self._inputs, **fresh}
+            self._cycles += 1
+            self._ok = not problems
+            logged, self._error = self._error, text or self._error
+            self._cycle_done.notify_all()
+        if text and text != logged:
+            log.warning("opcua driver %s: %s", self.name, text)
 
     async def _edge(self, client: Client, node: Any, name: str, high: bool) -> None:
         """Rising edge: call the method on its parent; falling edge: clear done/failed."""
@@ -283,7 +310,12 @@ class OpcUaIoDriver:
             log.info("opcua driver %s: %s", self.name, error or "connected")
 
 
-def _variant(symbol: Symbol, value: int) -> ua.Variant:
-    if symbol.type is SymType.BOOL:
-        return ua.Variant(bool(value), ua.VariantType.Boolean)
-    return ua.Variant(int(value) & 0xFFFF, ua.VariantType.UInt16)
+async def _data_type(node: Any, symbol: Symbol) -> ua.VariantType:
+    """The remote variable's DataType, which a write must carry (a softplc refuses any
+    other); the symbol's own (typed.py) when the remote one is abstract (Number) or
+    unreadable."""
+    with contextlib.suppress(ua.UaError, ValueError):
+        vtype: ua.VariantType = await node.read_data_type_as_variant_type()
+        if vtype is not ua.VariantType.Variant:
+            return vtype
+    return VARIANT_TYPES[symbol.type]

@@ -193,9 +193,10 @@ class Mirror:
         (snapshot or board), so it carries the last snapshot's quality and publish time; else
         it is this process's own (Good, Source = now)."""
         status = self._quality if fed else ua.StatusCodes.Good
-        if self._values.get(nodeid) == (variant.Value, status):
+        key = (_same(variant.Value), status)
+        if self._values.get(nodeid) == key:
             return
-        self._values[nodeid] = (variant.Value, status)
+        self._values[nodeid] = key
         if fed:
             self._fed[nodeid] = variant
         now = ua.DateTime.now(UTC)
@@ -209,6 +210,12 @@ class Mirror:
         event.EventName, event.Seq, event.Scan = name, seq & 0xFFFFFFFF, scan
         event.Severity = severity
         await trigger_everywhere(self._events, message)
+
+
+def _same(value: object) -> object:
+    """What `value` is compared by: a float by its bits, so a NaN real equals itself (and is
+    not written again, and notified, at every poll) and -0.0 differs from 0.0."""
+    return value.hex() if isinstance(value, float) else value
 
 
 def newest_seq(document: Mapping[str, Any]) -> int:

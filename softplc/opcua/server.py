@@ -3,7 +3,8 @@
 Owns: starting/stopping asyncua on its endpoints (secure.py sets up certificates, trust and
 logins), who may do what (access.py: each session's role; writes and method calls need the
 role the same command needs over HTTP), the audit records of writes and method calls, symbol
-writes (checked against the Modbus write policy and the symbol's type, then journaled
+writes (checked against the Modbus write policy and the node's DataType, converted to the
+symbol's raw bits by typed.py (core/present.py's `accepted`), then journaled
 through the channel like Modbus and API writes, never stored in the address space), polling
 the snapshot (every `poll_s`) and the status board (every `board_poll_s`) and
 pushing only changed values, rebuilding the program's nodes when a download changes the
@@ -26,6 +27,7 @@ import asyncio
 import contextlib
 import hashlib
 import logging
+import math
 from collections.abc import Callable
 from datetime import UTC, datetime
 from functools import partial
@@ -37,6 +39,8 @@ from asyncua.crypto.permission_rules import User, UserRole
 from asyncua.server.internal_session import InternalSession
 
 import softplc
+from softplc.core.image import split_registers
+from softplc.core.present import NOT_FINITE
 from softplc.core.snapshot import (
     ChannelFull,
     HmiWrite,
@@ -50,8 +54,9 @@ from softplc.opcua.limits import DoorStats, OpcUaLimits
 from softplc.opcua.mirror import Mirror
 from softplc.opcua.program import CommandChannel, Outcome, ProgramHandling, arguments
 from softplc.opcua.secure import Security, application_uri
-from softplc.opcua.sessions import hook, written_value
+from softplc.opcua.sessions import hook
 from softplc.opcua.space import METHODS, NAMESPACE_URI, PROGRAM, Space, SymbolNode
+from softplc.opcua.typed import Refusal
 
 log = logging.getLogger(__name__)
 
@@ -239,15 +244,17 @@ class OpcUaServer:
         with contextlib.suppress(SnapshotUnavailable):
             if self._snapshots.latest().status.program_hash != self._built_hash():
                 return ua.StatusCodes.BadInvalidState  # a download is being rebuilt: browse again
-        variant = value.Value.Value if value.Value is not None else None
-        number = written_value(symbol.name, symbol.is_bool, variant)
-        if isinstance(number, str):
-            log.info("OPC UA write to %s refused: %s", symbol.name, number)
-            return ua.StatusCodes.BadTypeMismatch
-        if symbol.location is None:
+        raw = symbol.written(value.Value.Value if value.Value is not None else None)
+        if isinstance(raw, Refusal):
+            log.info("OPC UA write to %s refused: %s", symbol.name, raw.text)
+            return raw.code
+        location = symbol.location
+        if location is None:
             return ua.StatusCodes.BadNodeIdUnknown
+        # a double or long word goes whole, as its 2 or 4 registers (one HMI write)
+        registers = (raw,) if location.is_bit else tuple(split_registers(raw, location.width))
         try:
-            self._channel.send_hmi_write(HmiWrite(symbol.location, (number,)))
+            self._channel.send_hmi_write(HmiWrite(location, registers))
         except ChannelFull:
             return ua.StatusCodes.BadResourceUnavailable
         return ua.StatusCodes.Good
@@ -376,6 +383,8 @@ def _plain(value: ua.WriteValue) -> object:
     """The written value as the audit trail keeps it (JSON: a number, a bool or text)."""
     variant = value.Value.Value if value.Value is not None else None
     plain = variant.Value if variant is not None else None
+    if isinstance(plain, float) and not math.isfinite(plain):
+        return NOT_FINITE[repr(plain)]  # JSON has no NaN: the text the API shows
     return plain if isinstance(plain, int | float | str | None) else repr(plain)
 
 

@@ -7,7 +7,7 @@ access.py's table; the timestamps the request asked for), Republish as
 Part 4 says (BadSubscriptionIdInvalid for a subscription the session does not hold,
 BadMessageNotAvailable for a message no longer kept: asyncua 2.1.0 answers Good and an empty
 message, so a client whose server restarted republishes for ever instead of re-creating its
-subscriptions), and which value a symbol write carries (exactly the node's DataType).
+subscriptions).
 Does not know: the address space layout, the channel, which symbols exist (server.py does).
 """
 
@@ -96,19 +96,3 @@ def republish(session: InternalSession,
     if params.RetransmitSequenceNumber not in subscription._not_acknowledged_results:
         raise ServiceError(ua.StatusCodes.BadMessageNotAvailable)
     return inner(params)
-
-
-def written_value(name: str, is_bool: bool, variant: ua.Variant | None) -> int | str:
-    """The image value of a client's write, or why it does not fit: the variant's type must be
-    the node's DataType exactly (Boolean for bits, UInt16 for words: no conversions, so an
-    Int32 is refused like a UInt16 written to a Boolean)."""
-    want = ua.VariantType.Boolean if is_bool else ua.VariantType.UInt16
-    if variant is None or variant.VariantType is not want or variant.is_array:
-        got = "nothing" if variant is None else variant.VariantType.name
-        return f"{name} is {want.name}, got {got}"
-    value = variant.Value
-    if is_bool:
-        return int(bool(value))
-    if isinstance(value, int) and 0 <= value <= 0xFFFF:
-        return value
-    return f"{name} is UInt16 (0..65535), got {value!r}"

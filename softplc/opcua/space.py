@@ -1,9 +1,11 @@
 """The address space of one loaded program: which nodes exist and what they are called.
 
 Owns: node ids (stable strings, so a client or another softplc can name them without
-browsing), the symbols folder built from the board's symbol table (Boolean/UInt16, description,
-access level), the status variables, the marking folder, the Program object (an instance of
-OPC UA Part 10's ProgramStateMachineType) and the mapping of PLC states onto its states.
+browsing), the symbols folder built from the board's symbol table (each symbol's DataType from
+its type, typed.py; a scaled symbol an AnalogItemType with EngineeringUnits and EURange;
+description, access level), the status variables, the marking folder, the Program object (an
+instance of OPC UA Part 10's ProgramStateMachineType) and the mapping of PLC states onto its
+states.
 Does not know: sockets, sessions, the channel, when values change (server.py does).
 """
 
@@ -19,6 +21,7 @@ from asyncua import Node, Server, ua
 from softplc.core.image import Address, AddressError, parse_address
 from softplc.core.lifecycle import PlcState, Stage, stage_of
 from softplc.opcua.ids import numeric_id, string_id
+from softplc.opcua.typed import UNKNOWN, Refusal, TypedSymbol, eu_information, eu_range
 
 NAMESPACE_URI: Final = "urn:softplc"
 PLC: Final = "PLC"
@@ -70,15 +73,18 @@ _PART10: Final = {Stage.EMPTY: PartState.HALTED, Stage.KILLED: PartState.HALTED,
 class SymbolNode:
     name: str
     address: str
-    is_bool: bool
+    typed: TypedSymbol
     writable: bool
     node: Node
     location: Address | None  # None: the board's address does not parse (never written)
 
-    def variant(self, value: int) -> ua.Variant:
-        if self.is_bool:
-            return ua.Variant(bool(value), ua.VariantType.Boolean)
-        return ua.Variant(int(value) & 0xFFFF, ua.VariantType.UInt16)
+    def variant(self, raw: int) -> ua.Variant:
+        """The node's value for the raw bits of the symbol's location."""
+        return self.typed.variant(raw)
+
+    def written(self, variant: ua.Variant | None) -> int | Refusal:
+        """The raw bits a client's write stores, or why it is refused."""
+        return self.typed.written(self.name, variant)
 
 
 # name -> (OPC UA type, initial value); fed from the snapshot's Status and the board.
@@ -183,13 +189,14 @@ class Space:
 
     async def _symbol(self, folder: Node, name: str, entry: Mapping[str, Any],
                       policy: str) -> SymbolNode:
-        is_bool = entry.get("type") == "bool"
-        writable = writable_symbol(entry, policy)
-        value = entry.get("value", 0)
-        vtype = ua.VariantType.Boolean if is_bool else ua.VariantType.UInt16
-        node = await folder.add_variable(
-            self.nid(symbol_id(name)), f"{self.ns}:{name}",
-            ua.Variant(bool(value) if is_bool else int(value) & 0xFFFF, vtype))
+        typed = TypedSymbol.of(entry)
+        writable = writable_symbol(entry, policy) and typed.vtype is not UNKNOWN
+        raw = entry.get("raw")
+        variant = typed.variant(raw if isinstance(raw, int) else 0)  # the snapshot's next
+        node = await _variable(folder, self.nid(symbol_id(name)), f"{self.ns}:{name}",
+                               variant, analog=typed.scale is not None)
+        if typed.scale is not None:
+            await _analog_properties(node, typed)
         text = f"{entry.get('address')} ({entry.get('direction')})"
         description = str(entry.get("description") or "")
         await node.write_attribute(ua.AttributeIds.Description, ua.DataValue(
@@ -201,7 +208,47 @@ class Space:
             location: Address | None = parse_address(str(entry.get("address")))
         except AddressError:
             location = None
-        return SymbolNode(name, str(entry.get("address")), is_bool, writable, node, location)
+        return SymbolNode(name, str(entry.get("address")), typed, writable, node, location)
+
+
+async def _variable(folder: Node, nodeid: ua.NodeId, name: str, variant: ua.Variant, *,
+                    analog: bool) -> Node:
+    """A symbol's variable: DataType the variant's (Int16 for an int, not the BaseDataType
+    a guess would give a Variant), type definition Part 8's AnalogItemType for a scaled
+    symbol (asyncua has no helper: its add_variable always makes a BaseDataVariableType)."""
+    if not analog:
+        return await folder.add_variable(nodeid, name, variant,
+                                         datatype=numeric_id(variant.VariantType.value))
+    qname = ua.QualifiedName.from_string(name)
+    attrs = ua.VariableAttributes(
+        DisplayName=ua.LocalizedText(qname.Name), Description=ua.LocalizedText(qname.Name),
+        DataType=numeric_id(variant.VariantType.value), Value=variant,
+        ValueRank=ua.ValueRank.Scalar, WriteMask=0, UserWriteMask=0,
+        Historizing=False, AccessLevel=ua.AccessLevel.CurrentRead.mask,
+        UserAccessLevel=ua.AccessLevel.CurrentRead.mask)
+    item = ua.AddNodesItem(
+        ParentNodeId=folder.nodeid, ReferenceTypeId=numeric_id(ua.ObjectIds.HasComponent),
+        RequestedNewNodeId=nodeid, BrowseName=qname, NodeClass=ua.NodeClass.Variable,
+        NodeAttributes=attrs, TypeDefinition=numeric_id(ua.ObjectIds.AnalogItemType))
+    result = (await folder.session.add_nodes([item]))[0]
+    result.StatusCode.check()
+    return Node(folder.session, result.AddedNodeId)
+
+
+async def _analog_properties(node: Node, typed: TypedSymbol) -> None:
+    """Part 8's EURange (mandatory) and EngineeringUnits (when the scale names a unit)."""
+    assert typed.scale is not None
+    base = f"{node.nodeid.Identifier!s}"
+    await node.add_property(
+        string_id(f"{base}.EURange", node.nodeid.NamespaceIndex), "0:EURange",
+        ua.Variant(eu_range(typed.scale), ua.VariantType.ExtensionObject),
+        datatype=numeric_id(ua.ObjectIds.Range))
+    if typed.scale.unit:
+        await node.add_property(
+            string_id(f"{base}.EngineeringUnits", node.nodeid.NamespaceIndex),
+            "0:EngineeringUnits",
+            ua.Variant(eu_information(typed.scale.unit), ua.VariantType.ExtensionObject),
+            datatype=numeric_id(ua.ObjectIds.EUInformation))
 
 
 async def _optional_child(node: Node, path: str) -> Node | None:
