@@ -21,7 +21,6 @@ import logging
 import secrets
 import time
 from collections import OrderedDict
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
@@ -29,6 +28,7 @@ from typing import Any, Final
 from aiohttp import web
 
 from softplc.api.audit import AuditTrail
+from softplc.api.backoff import Backoff
 from softplc.api.problems import ApiProblem
 from softplc.api.roles import Role
 from softplc.api.users import OWNER, User, UserError, UserStore
@@ -38,10 +38,6 @@ log = logging.getLogger(__name__)
 COOKIE: Final = "softplc_session"
 SESSION_S: Final = 8 * 3600.0  # a shift
 MAX_SESSIONS: Final = 256
-FREE_FAILURES: Final = 3  # failed logins before the back-off starts
-BACKOFF_BASE_S: Final = 1.0  # doubles with each further failure
-BACKOFF_MAX_S: Final = 60.0
-BACKOFF_ENTRIES: Final = 4096  # users and peers remembered; the least recent go first
 BASIC_CACHE: Final = 64  # verified user:password pairs kept, so scripts pay scrypt once
 BASIC_CACHE_S: Final = 300.0
 CHAIN_CHECK_S: Final = 5.0  # status re-verifies the trail at most this often, when it changed
@@ -60,35 +56,6 @@ class Principal:
     def audit(self) -> dict[str, Any]:
         return {"user": self.user, "role": self.role.label if self.role else None,
                 "via": self.via}
-
-
-class Backoff:
-    """Failures per key (("user", name) or ("peer", address)): after FREE_FAILURES, each
-    further one closes that key for BACKOFF_BASE_S x 2**k, at most BACKOFF_MAX_S; a success
-    clears it. At most BACKOFF_ENTRIES keys: an address flood evicts the oldest, it does not
-    grow the table."""
-
-    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
-        self._clock = clock
-        self._table: OrderedDict[tuple[str, str], tuple[int, float]] = OrderedDict()
-
-    def wait_s(self, *keys: tuple[str, str]) -> float:
-        now = self._clock()
-        return max([self._table.get(k, (0, now))[1] - now for k in keys] + [0.0])
-
-    def failed(self, *keys: tuple[str, str]) -> None:
-        now = self._clock()
-        for key in keys:
-            count = self._table.pop(key, (0, now))[0] + 1
-            delay = 0.0 if count <= FREE_FAILURES else min(
-                BACKOFF_BASE_S * 2 ** (count - FREE_FAILURES - 1), BACKOFF_MAX_S)
-            self._table[key] = (count, now + delay)
-            while len(self._table) > BACKOFF_ENTRIES:
-                self._table.popitem(last=False)
-
-    def succeeded(self, *keys: tuple[str, str]) -> None:
-        for key in keys:
-            self._table.pop(key, None)
 
 
 class Gate:

@@ -14,7 +14,6 @@ from __future__ import annotations
 import contextlib
 import datetime
 import hashlib
-import ipaddress
 import os
 import socket
 import ssl
@@ -117,24 +116,19 @@ def _self_signed(host: str) -> tuple[bytes, bytes]:
     from cryptography import x509  # only when a certificate is made
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.hazmat.primitives.asymmetric import ec
-    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    from softplc.api.certnames import alt_names, subject
 
     key = ec.generate_private_key(ec.SECP256R1())
     names = _names(host)
-    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"softplc@{names[-1]}"),
-                         x509.NameAttribute(NameOID.ORGANIZATION_NAME, "softplc")])
-    alt: list[x509.GeneralName] = []
-    for name in names:
-        try:
-            alt.append(x509.IPAddress(ipaddress.ip_address(name)))
-        except ValueError:
-            alt.append(x509.DNSName(name))
     now = datetime.datetime.now(datetime.UTC)
-    cert = (x509.CertificateBuilder().subject_name(subject).issuer_name(subject)
+    cert = (x509.CertificateBuilder().subject_name(subject(names[-1]))
+            .issuer_name(subject(names[-1]))
             .public_key(key.public_key()).serial_number(x509.random_serial_number())
             .not_valid_before(now - EARLY)
             .not_valid_after(now + datetime.timedelta(days=VALID_DAYS))
-            .add_extension(x509.SubjectAlternativeName(alt), critical=False)
+            .add_extension(alt_names(names), critical=False)
             # Not a CA: it can vouch for nothing but itself (client_context's pin rule).
             .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
             .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH]),

@@ -30,6 +30,7 @@ from asyncua.server.internal_session import InternalSession
 from asyncua.server.user_managers import UserManager
 
 from softplc.api.audit import AuditTrail
+from softplc.api.backoff import Backoff
 from softplc.api.openapi import API_PREFIX
 from softplc.api.roles import Role, required_role
 from softplc.api.users import OWNER, UserError, UserStore
@@ -49,12 +50,6 @@ METHOD_ROLES: Final = {method: _route_role("POST", route) for method, route in (
     ("Start", "start"), ("Suspend", "stop"), ("Resume", "resume"), ("Halt", "kill"),
     ("Reset", "reset"), ("Download", "program"))}
 WRITE_ROLE: Final = _route_role("PUT", "symbols/{name}")  # an HMI write of a symbol
-# The policy of api/access.py's Backoff, not imported from there: it brings aiohttp, 0.4 s
-# more at every start of the OPC UA process (measured on the loaded 2-core machine).
-FREE_FAILURES: Final = 3
-BACKOFF_BASE_S: Final = 1.0
-BACKOFF_MAX_S: Final = 60.0
-BACKOFF_ENTRIES: Final = 4096
 VERIFIED_KEPT: Final = 64  # verified name:password pairs: a reconnecting client pays scrypt once
 VERIFIED_S: Final = 300.0
 
@@ -86,32 +81,6 @@ def role_of(session: InternalSession) -> Role | None:
 def may(session: InternalSession, needed: Role) -> bool:
     role = role_of(session)
     return role is not None and role >= needed
-
-
-class Backoff:
-    """api/access.py's rule: after FREE_FAILURES, each further failure of a key (("user",
-    name) or ("peer", address)) closes it for 1 s doubling to 60 s; a success clears it."""
-
-    def __init__(self) -> None:
-        self._table: OrderedDict[tuple[str, str], tuple[int, float]] = OrderedDict()
-
-    def wait_s(self, *keys: tuple[str, str]) -> float:
-        now = time.monotonic()
-        return max([self._table.get(k, (0, now))[1] - now for k in keys] + [0.0])
-
-    def failed(self, *keys: tuple[str, str]) -> None:
-        now = time.monotonic()
-        for key in keys:
-            count = self._table.pop(key, (0, now))[0] + 1
-            delay = 0.0 if count <= FREE_FAILURES else min(
-                BACKOFF_BASE_S * 2 ** (count - FREE_FAILURES - 1), BACKOFF_MAX_S)
-            self._table[key] = (count, now + delay)
-            while len(self._table) > BACKOFF_ENTRIES:
-                self._table.popitem(last=False)
-
-    def succeeded(self, *keys: tuple[str, str]) -> None:
-        for key in keys:
-            self._table.pop(key, None)
 
 
 class Users(UserManager):

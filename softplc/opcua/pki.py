@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime
-import ipaddress
 import logging
 import os
 import tempfile
@@ -23,8 +22,9 @@ from typing import Final
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import rsa
-from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+from cryptography.x509.oid import ExtendedKeyUsageOID
 
+from softplc.api.certnames import alt_names, subject
 from softplc.api.trust import PKI_DIR, TrustList, thumbprint
 
 log = logging.getLogger(__name__)
@@ -92,20 +92,13 @@ def _names_uri(der: bytes, uri: str) -> bool:
 
 
 def _self_signed(key: rsa.RSAPrivateKey, uri: str, hosts: list[str]) -> bytes:
-    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"softplc@{hosts[0]}"),
-                      x509.NameAttribute(NameOID.ORGANIZATION_NAME, "softplc")])
-    alt: list[x509.GeneralName] = [x509.UniformResourceIdentifier(uri)]
-    for host in dict.fromkeys(hosts):
-        try:
-            alt.append(x509.IPAddress(ipaddress.ip_address(host)))
-        except ValueError:
-            alt.append(x509.DNSName(host))
+    name = subject(hosts[0])
     now = datetime.datetime.now(datetime.UTC)
     builder = (x509.CertificateBuilder().subject_name(name).issuer_name(name)
                .public_key(key.public_key()).serial_number(x509.random_serial_number())
                .not_valid_before(now - EARLY)
                .not_valid_after(now + datetime.timedelta(days=VALID_DAYS))
-               .add_extension(x509.SubjectAlternativeName(alt), critical=False)
+               .add_extension(alt_names(hosts, uri), critical=False)
                # self-signed: its own issuer, as asyncua's and UA-.NET's own certificates are
                .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
                .add_extension(x509.KeyUsage(

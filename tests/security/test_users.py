@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from softplc.api import users as users_module
-from softplc.api.access import BACKOFF_ENTRIES, FREE_FAILURES, Backoff
+from softplc.api.backoff import BACKOFF_ENTRIES, FREE_FAILURES, Backoff
 from softplc.api.roles import ROUTE_ROLES, Role, required_role
 from softplc.api.server import ApiServer
 from softplc.api.users import OWNER, UserError, UserStore, hash_password, password_matches
