@@ -3,7 +3,8 @@
 Owns: `HttpLimits`, `Capacity` (the limits cut to the descriptors the process really has),
 aiohttp's header limits and header/idle timeout, a site whose connections pass a gate (the
 cap; eviction, idle unauthenticated connections first), the request classes and their
-bounds, refusal counts for status (a summary log line per minute at most), the body deadline.
+bounds, refusal counts for status (a summary log line per minute at most), the body deadline,
+and a JSON body declared too big refused before any of it is read.
 Does not know: routes, auth, the PLC, the channel (api/server.py classifies its routes).
 Streams and ordinary requests are bounded below the cap, so `reserve` connections at least
 are free or idle for priority requests (stop, status, the page): docs/api.md.
@@ -31,6 +32,7 @@ from typing import Any, Final
 
 from aiohttp import web
 
+from softplc.api.problems import MAX_JSON_BYTES
 from softplc.core.errors import SoftplcError
 
 log = logging.getLogger(__name__)
@@ -38,12 +40,9 @@ log = logging.getLogger(__name__)
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 _REFUSAL_BODY: Final = json.dumps({"error": "too many connections: every connection is in a "
                                    "request; retry", "problems": []}).encode()
-REFUSAL: Final = (
-    b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
-    b"Retry-After: 1\r\nConnection: close\r\n"
-    + f"Content-Length: {len(_REFUSAL_BODY)}\r\n\r\n".encode()
-    + _REFUSAL_BODY
-)
+REFUSAL: Final = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+                  b"Retry-After: 1\r\nConnection: close\r\nContent-Length: %d\r\n\r\n%s"
+                  % (len(_REFUSAL_BODY), _REFUSAL_BODY))
 SUMMARY_S: Final = 60.0  # refusals reach the log as one summary line per minute at most
 MIN_CONNECTIONS: Final = 8  # even a process starved of descriptors serves stop and status
 
@@ -67,7 +66,7 @@ class HttpLimits:
     max_streams_per_peer: int = 8
     # Connections that streams and ordinary requests can never hold: stop, status, the page.
     reserve: int = 16
-    # Of the descriptors free when the server starts; Modbus and OPC UA share the process.
+    # Of the descriptors free when the server starts (the HTTP process has its own table).
     fd_share: float = 0.25
     # A new connection must deliver a complete request head within this, and a kept-alive
     # connection is closed after this long without a request.
@@ -87,17 +86,15 @@ class HttpLimits:
                     "max_headers")
         bad = [f"{name} must be > 0, got {getattr(self, name)}" for name in positive
                if not getattr(self, name) > 0]
-        bad += [f"{name} must be >= 0, got {value}"
-                for name, value in (("lingering_s", self.lingering_s), ("reserve", self.reserve))
-                if value < 0]
+        bad += [f"{name} must be >= 0, got {getattr(self, name)}"
+                for name in ("lingering_s", "reserve") if getattr(self, name) < 0]
         if bad:
             raise ValueError("; ".join(bad))
 
     def handler_args(self) -> dict[str, Any]:
         """aiohttp RequestHandler arguments, passed through `web.AppRunner(**...)`."""
-        sizes = {k: getattr(self, k) for k in ("max_line_size", "max_field_size", "max_headers")}
         return {"keepalive_timeout": self.header_timeout_s, "lingering_time": self.lingering_s,
-                **sizes}
+                **{k: getattr(self, k) for k in ("max_line_size", "max_field_size", "max_headers")}}
 
 
 @dataclass(frozen=True, slots=True)
@@ -138,6 +135,7 @@ class ConnectionStats:
     streams_refused: int = 0  # 503: the stream pool (or the peer's share of it) was full
     busy_refused: int = 0  # 503: too many ordinary requests in progress
     body_timeouts: int = 0  # 408: the body did not arrive within body_timeout_s
+    too_large: int = 0  # 413 unread: a JSON body declared over MAX_JSON_BYTES (problems.py)
 
 
 class Refused(SoftplcError):
@@ -173,9 +171,6 @@ class _Gate:
         self._streams: Counter[tuple[str, str]] = Counter()  # (pool, peer) -> open streams
         self._ordinary = 0
         self._logged, self._logged_s = ConnectionStats(), -SUMMARY_S
-
-    def __len__(self) -> int:
-        return len(self._entries)
 
     def admit(self, transport: asyncio.BaseTransport, peer: str, now_s: float) -> bool:
         if len(self._entries) >= self.capacity.connections and not self._evict_one():
@@ -271,10 +266,9 @@ class _GatedProtocol(asyncio.Protocol):
         self._transport: asyncio.BaseTransport | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        loop = asyncio.get_running_loop()
         peer = transport.get_extra_info("peername")
         peer = str(peer[0]) if isinstance(peer, tuple) and peer else "?"
-        if not self._gate.admit(transport, peer, loop.time()):
+        if not self._gate.admit(transport, peer, asyncio.get_running_loop().time()):
             if isinstance(transport, asyncio.WriteTransport):
                 transport.write(REFUSAL)
             transport.close()
@@ -353,7 +347,7 @@ class HttpBounds:
 
     @property
     def connection_count(self) -> int:
-        return len(self._gate)
+        return int(self._gate.report()["connections"])
 
     def report(self) -> dict[str, Any]:
         """Counts since start, connections and streams open, the capacity: for status."""
@@ -388,6 +382,12 @@ class HttpBounds:
 
     @web.middleware
     async def _body_deadline(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        # A JSON value write declared too big is never read; aiohttp drops it (lingering_s).
+        declared = request.content_length or 0
+        if declared > MAX_JSON_BYTES and request.content_type.endswith("json"):
+            self._gate.count("too_large", asyncio.get_running_loop().time())
+            return web.json_response({"error": f"JSON body of {declared} bytes: at most "
+                                      f"{MAX_JSON_BYTES}", "problems": []}, status=413)
         if request.can_read_body:
             try:
                 async with asyncio.timeout(self.limits.body_timeout_s):

@@ -5,7 +5,11 @@ HTTP `/status` poller (load.py) run alone, then beside each abuse in turn, each 
 process of its own: many idle OPC UA connections, a huge OPC UA Read, many OPC UA sessions
 with monitored items, 300 HTTP event streams, JSON bombs to the symbol and force routes.
 Keys, per abuse A: `modbus_p99_ratio_A`, `http_p99_ratio_A`, `scan_p99_ratio_A` (p99 under
-the abuse / the same figure without abuse just before it, same run), the worst (`*_max`).
+the abuse / the same figure without abuse just before it, same run), the worst (`*_max`),
+`scan_p99_over_floor_max` (the worst scan p99 of any phase / the empty loop's); per phase,
+the CPU seconds each service process and the abuser used: the abusers run at normal
+priority on the services' CPUs, so a ratio also holds the CPU a hostile client burns on
+the same machine. The bombs carry the owner's key: they reach the JSON checks, not a 401.
 Owns: the abusers and the section's keys. Does not know: how the runtime starts (live.py),
 how any server bounds itself (the abusers are plain clients).
 """
@@ -23,9 +27,10 @@ import threading
 import time
 from collections.abc import Callable
 from multiprocessing.connection import Connection
+from pathlib import Path
 from typing import Any, Final
 
-from softplc.bench.live import LiveRuntime, run_floor
+from softplc.bench.live import LiveRuntime, cpu_s, run_floor
 from softplc.bench.load import LoadJob, LoadWorker
 from softplc.bench.measure import Progress, ratio
 from softplc.bench.scanbench import SETTLE_S, window_figures
@@ -72,14 +77,14 @@ def _event_streams(port: int, count: int) -> tuple[list[socket.socket], dict[str
     return socks, heads
 
 
-def _bombard(port: int, stop: threading.Event, tally: dict[str, int]) -> None:
+def _bombard(port: int, token: str, stop: threading.Event, tally: dict[str, int]) -> None:
+    headers = {"Content-Type": "application/json", "Authorization": f"Bearer {token}"}
     while not stop.is_set():
         for route in ("symbols", "forces"):
             for bomb in BOMBS:
                 conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
                 try:
-                    conn.request("PUT", f"/api/v1/{route}/hold", bomb,
-                                 {"Content-Type": "application/json"})
+                    conn.request("PUT", f"/api/v1/{route}/hold", bomb, headers)
                     status = str(conn.getresponse().status)
                 except (OSError, http.client.HTTPException):
                     status = "error"
@@ -133,7 +138,8 @@ async def _opcua(kind: str, url: str, size: Any, stop: Callable[[], Any]) -> dic
                 await asyncio.wait_for(client.disconnect(), 5)
 
 
-def abuser_main(kind: str, ports: dict[str, int], quick: bool, conn: Connection) -> None:
+def abuser_main(kind: str, ports: dict[str, int], quick: bool, conn: Connection,
+                token: str = "") -> None:
     """One abuse: set up, send {"ready": ...}, hold until told to stop, send the tally."""
     from softplc.runtime.procs import die_with_parent
 
@@ -163,7 +169,7 @@ def abuser_main(kind: str, ports: dict[str, int], quick: bool, conn: Connection)
             sock.close()
     else:
         halt, tally = threading.Event(), dict[str, int]()
-        thread = threading.Thread(target=_bombard, args=(ports["api"], halt, tally))
+        thread = threading.Thread(target=_bombard, args=(ports["api"], token, halt, tally))
         thread.start()
         conn.send({"ready": True})
         conn.recv()
@@ -178,11 +184,15 @@ def _phase(kind: str | None, runtime: LiveRuntime, worker: LoadWorker, duration_
     progress(f"isolation: {kind or 'no abuse'}, {duration_s:g} s")
     job = LoadJob(runtime.modbus_port, 1, duration_s, runtime.api_url, 0.01, registers=10)
     if kind is None:
-        return {"load": worker.run(job)}
+        before = _cpu(runtime, 0)
+        return {"load": worker.run(job), "cpu_s": _cpu(runtime, 0, before)}
     assert runtime.opcua_port is not None and runtime.api_port is not None
     ports = {"opcua": runtime.opcua_port, "api": runtime.api_port}
     here, there = _CTX.Pipe()
-    proc = _CTX.Process(target=abuser_main, args=(kind, ports, quick, there),
+    token = ""
+    with contextlib.suppress(OSError):  # the owner's key, as opcuabench reads it
+        token = (Path(runtime._state_dir.name) / "api_token").read_text().strip()
+    proc = _CTX.Process(target=abuser_main, args=(kind, ports, quick, there, token),
                         name=f"softplc-bench-{kind}", daemon=True)
     proc.start()
     keep_off_scan_cpu(int(proc.pid or 0), realtime)
@@ -190,14 +200,25 @@ def _phase(kind: str | None, runtime: LiveRuntime, worker: LoadWorker, duration_
         if not here.poll(180):
             raise RuntimeError(f"the {kind} abuser did not get ready")
         ready = here.recv()
+        before = _cpu(runtime, int(proc.pid or 0))
         load = worker.run(job)
+        cpu = _cpu(runtime, int(proc.pid or 0), before)
         here.send("stop")
         report = here.recv() if here.poll(60) else {"error": "no report"}
     finally:
         proc.join(10)
         if proc.is_alive():
             proc.kill()
-    return {"load": load, "abuse": {**report, "ready": ready.get("ready")}}
+    return {"load": load, "cpu_s": cpu, "abuse": {**report, "ready": ready.get("ready")}}
+
+
+def _cpu(runtime: LiveRuntime, abuser: int,
+         before: dict[str, float] | None = None) -> dict[str, float]:
+    """CPU seconds used so far by each service process and the abuser (pid 0: none), or
+    since `before`."""
+    pids = {s.name: int(s.proc.pid) for s in runtime.supervisor.services if s.proc is not None}
+    now = {name: cpu_s(pid) for name, pid in {**pids, "abuser": abuser}.items() if pid}
+    return {k: round(v - (before or {}).get(k, 0.0), 3) for k, v in now.items()}
 
 
 def _figures(phase: dict[str, Any], record: Any) -> dict[str, Any]:
@@ -239,6 +260,8 @@ def run(quick: bool, progress: Progress, *, duration_s: float | None = None,
     assert record is not None
     figures = {name: _figures(phase, record) for name, phase in phases.items()}
     result.update(floor_1ms=floor, phases=figures)
+    result["scan_p99_over_floor_max"] = ratio(
+        max(figures[name]["scan_p99_us"] for name in figures), floor["lateness_us"]["p99"])
     result["scan_p99_ratio_none_over_floor"] = ratio(
         max(figures[f"none_before_{kind}"]["scan_p99_us"] for kind in ABUSES),
         floor["lateness_us"]["p99"])

@@ -261,7 +261,8 @@ class LiveRuntime:
 
     @property
     def comm(self) -> Any:
-        return self.supervisor.comm
+        """The Modbus process (the one the Modbus figures are about)."""
+        return self.supervisor.modbus
 
     def start(self, timeout_s: float = 60.0) -> None:
         """As `softplc run` starts: the scan process, then the communication process."""
@@ -291,8 +292,10 @@ class LiveRuntime:
             return self._record
         self._stopped = True
         record: ScanRecord | None = None
-        self.supervisor.stop_comm.set()
-        _end(self.comm)
+        for service in self.supervisor.services:
+            service.stop.set()
+        for service in self.supervisor.services:
+            _end(service.proc)
         self.supervisor.stop_scan.set()
         if self.scan is not None and self.record and self._receiver.poll(30):
             record = self._receiver.recv()

@@ -22,7 +22,8 @@ SETTLE_S = 1.0
 
 def _rss_mb(runtime: LiveRuntime) -> dict[str, float]:
     scan = rss_kib(runtime.scan.pid) / 1024
-    comm = rss_kib(runtime.comm.pid) / 1024 if runtime.comm is not None else 0.0
+    comm = sum(rss_kib(service.proc.pid) for service in runtime.supervisor.services
+               if service.proc is not None) / 1024  # every service process
     compiler = sum(rss_kib(pid) for pid in children(runtime.scan.pid)) / 1024
     return {"scan": round(scan, 2), "comm": round(comm, 2), "compile": round(compiler, 2),
             "total": round(scan + comm + compiler, 2)}

@@ -1,13 +1,14 @@
-"""The service processes: the Modbus TCP slave and the HTTP API in one, OPC UA in another.
+"""The service processes: the Modbus TCP slave, the HTTP API and OPC UA, each in its own.
 
 Owns: starting the services a CommConfig turns on against the published snapshot (shared
 memory) and the command channel, and stopping them together within STOP_SERVICES_S, then
 ending the process at once (the supervisor stops it after the scan's outputs are safe);
-how the services are grouped into processes (`service_groups`: OPC UA alone, at a lower
-CPU priority, so that its clients cannot delay Modbus or HTTP; docs/design.md section 7);
-a loop that logs what asyncio reports (an accept() out of descriptors, ...) at most once per
-LOOP_LOG_S; which Modbus writes are allowed (`modbus_writes`: open, the running program's
-HMI-writable symbols, or none). A crash here never stops the scan: it is another process.
+how the services are split into processes and at what niceness (`service_groups`: one
+process each, so that no client of one door can delay another beyond the CPU it is given;
+docs/design.md section 7); a loop that logs what asyncio reports (an accept() out of
+descriptors, ...) at most once per LOOP_LOG_S; which Modbus writes are allowed
+(`modbus_writes`: open, the running program's HMI-writable symbols, or none). A crash here
+never stops the scan: it is another process.
 Does not know: the scan loop's internals, Modbus framing, the register map's layout.
 """
 
@@ -48,10 +49,16 @@ MODBUS_WRITES: Final[tuple[str, ...]] = get_args(ModbusWrites)
 RECHECK_S: Final = 0.001  # one program check per write request, not per written address
 # All services stop together, bounded: the supervisor kills what runs 2 s after a signal.
 STOP_SERVICES_S: Final = 1.0
-# The OPC UA process's niceness: under CPU contention the kernel gives the scan and the
-# Modbus/HTTP process about three times its share (CFS weights 1024 vs 335), so a
-# CPU-hungry OPC UA client (asyncua decodes and encodes in Python) slows OPC UA first.
-OPCUA_NICE: Final = 5
+# The niceness of each service process, taken once its service serves. The scheduler's
+# weights (1024 at nice 0, 526 at 3, 110 at 10) decide who runs when the CPUs are busy:
+# Modbus is the HMI's path (polled every cycle, small answers) and yields to the scan only;
+# HTTP needs little CPU for stop, status and the page, so a flood of requests there yields
+# to Modbus (half its share) and still gets about five times OPC UA's; OPC UA costs the
+# most per request (asyncua decodes and encodes in Python) and is served last. Below 0
+# needs CAP_SYS_NICE.
+MODBUS_NICE: Final = 0
+HTTP_NICE: Final = 3
+OPCUA_NICE: Final = 10
 LOOP_LOG_S: Final = 10.0  # one asyncio error report per this, with the count of the others
 
 
@@ -68,7 +75,7 @@ class CommConfig:
     modbus_idle_timeout_s: float = 60.0
     opcua: tuple[str, int] | None = None  # `softplc run` serves 127.0.0.1:4840 unless told off
     opcua_limits: OpcUaLimits | None = None  # None: the defaults of opcua/limits.py
-    nice: int = 0  # added to the process's niceness at its start
+    nice: int = 0  # added to the process's niceness once its services serve
 
     def __post_init__(self) -> None:
         if self.modbus_writes not in MODBUS_WRITES:
@@ -79,14 +86,15 @@ class CommConfig:
 
 
 def service_groups(config: CommConfig) -> dict[str, CommConfig]:
-    """The service processes of `config` by name, each with the services it runs: "comm"
-    (Modbus and HTTP), "opcua" (OPC UA, niced). A group with nothing on is left out.
-    Each process has its own loop, descriptors and memory: a client that fills one (1,000
-    idle OPC UA sockets, a 15 s Read) leaves the others answering."""
-    groups = {"comm": replace(config, opcua=None),
-              "opcua": replace(config, modbus=None, api=None, nice=OPCUA_NICE)}
-    return {name: group for name, group in groups.items()
-            if group.modbus is not None or group.api is not None or group.opcua is not None}
+    """The service processes of `config` by name, each with the one service it runs and its
+    niceness: "modbus", "http", "opcua". A service that is off has no process. Each process
+    has its own loop, descriptors and memory: a client that fills one (1,000 idle OPC UA
+    sockets, a 15 s Read, a flood of JSON bombs) leaves the others answering."""
+    off: dict[str, Any] = {"modbus": None, "api": None, "opcua": None}
+    groups = {"modbus": ("modbus", MODBUS_NICE), "http": ("api", HTTP_NICE),
+              "opcua": ("opcua", OPCUA_NICE)}
+    return {name: replace(config, **{**off, service: getattr(config, service)}, nice=nice)
+            for name, (service, nice) in groups.items() if getattr(config, service) is not None}
 
 
 def modbus_limits(args: Any) -> dict[str, Any]:
@@ -184,6 +192,11 @@ async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name
         services.append(api)
     if config.opcua is not None:
         services.extend(await _start_opcua(config, channel, reader, board))
+    # Only once serving: the start (imports, asyncua's address space) at nice 10 would wait
+    # behind any busy process, as the compile process's imports did (compileproc.py: over
+    # 10 s beside 4 busy loops).
+    if config.nice:
+        os.nice(config.nice)
     ready.set()
     parent = supervisor_pid()
     try:
@@ -242,9 +255,7 @@ def comm_process_main(config: CommConfig, channel: Channel, shm_name: str, board
             exit_now(0)  # the services already serving close with the process
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, once(on_stop))
-    if config.nice:
-        os.nice(config.nice)  # re-entering set() deadlocks (procs.once)
+    signal.signal(signal.SIGTERM, once(on_stop))  # re-entering set() deadlocks (procs.once)
     die_with_parent()
     asyncio.run(_serve(config, channel, shm_name, board_name, serving, stop))
     exit_now(0)  # the services are closed; freeing asyncua's address space took up to 2.4 s

@@ -109,7 +109,7 @@ class StopFlag:
 class ReadySignal:
     """A child says once that it is ready; the parent waits for it with a timeout. The scan
     process says a second word, "safe", once the devices confirmed its safe outputs at a stop:
-    the supervisor stops the communication process only then. A pipe, so that a child killed
+    the supervisor stops the service processes only then. A pipe, so that a child killed
     at any moment leaves nothing locked behind (see StopFlag)."""
 
     READY, SAFE = b"ready", b"safe"

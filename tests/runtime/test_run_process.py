@@ -1,4 +1,4 @@
-"""`softplc run` as real processes: scan process + communication process, Modbus on loopback,
+"""`softplc run` as real processes: scan process + Modbus process, Modbus on loopback,
 HMI writes reaching the program, SIGTERM stopping both with outputs safe."""
 
 from __future__ import annotations
@@ -81,16 +81,16 @@ def test_run_serves_modbus_applies_hmi_writes_and_stops_safely(
     assert "outputs safe" in out
 
 
-def test_crash_of_the_communication_process_does_not_stop_the_scan(
+def test_crash_of_the_modbus_process_does_not_stop_the_scan(
         plc_process: tuple[subprocess.Popen[str], int]) -> None:
     proc, port = plc_process
     client = connect(port)
     before = status_block(client)
     client.close()
     assert proc.stdout is not None
-    line = wait_for(lambda: (text := proc.stdout.readline()) and "communication process pid" in text
+    line = wait_for(lambda: (text := proc.stdout.readline()) and "Modbus process pid" in text
                     and text)
-    comm_pid = int(line.rsplit("pid", 1)[1])
+    comm_pid = int(line.split("Modbus process pid", 1)[1].split(",")[0])
     assert comm_pid in _children(proc.pid)
     os.kill(comm_pid, signal.SIGKILL)
 
