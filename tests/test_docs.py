@@ -15,14 +15,15 @@ _LINK = re.compile(r"(?<!!)\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)|!\[[^\]]*\]
 _FENCE = re.compile(r"^(```|~~~)")
 
 
-def _prose(text: str) -> list[str]:
-    """The lines outside fenced code blocks, with inline code removed."""
+def _prose(text: str, keep_code: bool = False) -> list[str]:
+    """The lines outside fenced code blocks, with inline code removed (kept: a heading's
+    anchor has its code's text, as GitHub makes it)."""
     lines, fenced = [], False
     for line in text.splitlines():
         if _FENCE.match(line.lstrip()):
             fenced = not fenced
             continue
-        lines.append("" if fenced else re.sub(r"`[^`]*`", "", line))
+        lines.append("" if fenced else line if keep_code else re.sub(r"`[^`]*`", "", line))
     return lines
 
 
@@ -38,7 +39,7 @@ def slug(heading: str) -> str:
 def anchors(page: Path) -> set[str]:
     seen: dict[str, int] = {}
     out = set()
-    for line in _prose(page.read_text(encoding="utf-8")):
+    for line in _prose(page.read_text(encoding="utf-8"), keep_code=True):
         match = re.match(r"#{1,6}\s+(.*?)\s*#*\s*$", line)
         if not match:
             continue

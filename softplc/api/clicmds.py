@@ -287,8 +287,12 @@ def format_status(status: dict[str, Any]) -> str:
     digest = status.get("program_hash") or ""
     fault = (f" (fault code {status['fault_code']}, {status.get('fault_name') or '?'})"
              if status.get("fault_code") else "")
+    paused = status.get("paused")
+    pause = (f" PAUSED after scan {paused.get('k')} ({paused.get('reason')}; outputs "
+             f"{paused.get('outputs')}; softplc step / continue)"
+             if isinstance(paused, dict) else "")
     lines = [
-        f"state       {status.get('state', '?')}{fault}",
+        f"state       {status.get('state', '?')}{fault}{pause}",
         *([f"fault       {status['fault_reason']}"] if fault and status.get("fault_reason")
           else []),
         f"program     {program}" + (f"  hash {digest[:12]}" if digest else ""),

@@ -81,9 +81,13 @@ class ApiClient:
         if user is not None:
             pair = base64.b64encode(f"{user}:{password or ''}".encode()).decode("ascii")
             self._authorization: str | None = f"Basic {pair}"
+            self._find: tuple[str | None, Path | str | None, str | None] | None = None
         else:
-            found = auth.client_token(token, state_dir, url if local else None)
-            self._authorization = f"Bearer {found}" if found else None
+            # Found again before a request while nothing is found: a client made before its
+            # server started (which registers its owner's key) still authenticates.
+            self._find = (token, state_dir, url if local else None)
+            self._authorization = None
+            self._credentials()
         handlers: list[urllib.request.BaseHandler] = [urllib.request.ProxyHandler({}),
                                                       _NoRedirect()]
         self.ca: Path | None = None  # what an https server is verified against (None: system)
@@ -91,6 +95,12 @@ class ApiClient:
             self.ca = server_ca(ca, state_dir, url if local else None)
             handlers.append(urllib.request.HTTPSHandler(context=tls.client_context(self.ca)))
         self._opener = urllib.request.build_opener(*handlers)
+
+    def _credentials(self) -> str | None:
+        if self._authorization is None and self._find is not None:
+            found = auth.client_token(*self._find)
+            self._authorization = f"Bearer {found}" if found else None
+        return self._authorization
 
     def __repr__(self) -> str:
         return f"ApiClient({self.url!r}, token={'set' if self._authorization else 'none'})"
@@ -160,6 +170,35 @@ class ApiClient:
 
     def kill(self) -> dict[str, Any]:
         return self.command("kill")
+
+    # -- breakpoints and single scans (docs/debug.md) ---------------------------------------
+
+    def breakpoints(self) -> dict[str, Any]:
+        """{"breakpoints": [...], "paused": {...} or None, "steps_left", "scan_count"}."""
+        return self._json("GET", "/breakpoints")
+
+    def add_breakpoint(self, on: str, target: str, outputs: str = "hold") -> dict[str, Any]:
+        """`on` fire or enabled with a transition's name, or when with a condition."""
+        key = "condition" if on == "when" else "transition"
+        body = json.dumps({"on": on, key: target, "outputs": outputs}).encode()
+        return self._json("POST", "/breakpoints", body, "application/json")
+
+    def remove_breakpoint(self, ident: int | str | None = None) -> dict[str, Any]:
+        """One breakpoint (3 or "b3"), or every one when `ident` is None."""
+        return self._json("DELETE", "/breakpoints" if ident is None
+                          else f"/breakpoints/{_quote(str(ident))}")
+
+    def step(self, scans: int = 1) -> dict[str, Any]:
+        """While paused: exactly `scans` scans, then paused again."""
+        return self._json("POST", "/step", query={"scans": str(scans)})
+
+    def continue_(self) -> dict[str, Any]:
+        """While paused: run on until a breakpoint hits."""
+        return self.command("continue")
+
+    def why(self, transition: str) -> dict[str, Any]:
+        """Why `transition` fires or not in the next round: {"verdict", "reasons", ...}."""
+        return self._json("GET", f"/why/{_quote(transition)}")
 
     # -- status, symbols, events ------------------------------------------------------------
 
@@ -278,8 +317,8 @@ class ApiClient:
                                          headers={"Accept": "application/json", **(headers or {})})
         if content_type:
             request.add_header("Content-Type", content_type)
-        if self._authorization:
-            request.add_header("Authorization", self._authorization)
+        if (credentials := self._credentials()) is not None:
+            request.add_header("Authorization", credentials)
         try:
             return self._opener.open(request, timeout=timeout_s or self.timeout_s)
         except urllib.error.HTTPError as exc:

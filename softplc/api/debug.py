@@ -1,4 +1,7 @@
-"""The debugging routes (issue 32): `GET /api/v1/why/{transition}`, read-only (viewer).
+"""The debugging routes (issue 32): `GET /api/v1/why/{transition}`, read-only (viewer), and
+breakpoints and single scans (engineer; `GET /api/v1/breakpoints` viewer): `POST|DELETE
+/api/v1/breakpoints`, `DELETE /api/v1/breakpoints/{id}`, `POST /api/v1/step`, `/continue`,
+sent as commands to the scan (core/pausing.py applies them at a scan boundary).
 
 Owns: explaining a transition of the running program in this (the communication) process,
 off the scan: the net compiled here once per program hash from the boot program the PLC keeps
@@ -23,12 +26,15 @@ from typing import Any, Final
 from aiohttp import web
 
 from softplc.api.openapi import API_PREFIX
-from softplc.api.problems import ApiProblem
+from softplc.api.problems import ApiProblem, json_body
 from softplc.api.service import ApiService
+from softplc.core.breakpoints import On, Outputs, spec
 from softplc.core.context import ScanContext
 from softplc.core.image import ProcessImage
+from softplc.core.lifecycle import Command
 from softplc.core.net import Busy, CompiledNet, NetState
 from softplc.core.problems import ProgramError
+from softplc.core.snapshot import CommandReply
 from softplc.core.why import explain
 from softplc.program import boot
 from softplc.program import bundle as bundles
@@ -43,6 +49,12 @@ def register(app: web.Application, api: ApiService) -> None:
     """Add the debugging routes to `app` (server.py's build_app calls this once)."""
     routes = _Routes(api)
     app.router.add_get(f"{API_PREFIX}/why/{{transition}}", routes.why)
+    app.router.add_get(f"{API_PREFIX}/breakpoints", routes.breakpoints)
+    app.router.add_post(f"{API_PREFIX}/breakpoints", routes.add_break)
+    app.router.add_delete(f"{API_PREFIX}/breakpoints", routes.remove_break)
+    app.router.add_delete(f"{API_PREFIX}/breakpoints/{{id}}", routes.remove_break)
+    app.router.add_post(f"{API_PREFIX}/step", routes.step)
+    app.router.add_post(f"{API_PREFIX}/continue", routes.resume)
 
 
 def compile_boot(state_dir: Path) -> CompiledNet | None:
@@ -137,3 +149,55 @@ class _Routes:
         if doc.get("state") != "RUNNING":
             body["note"] = f"the PLC is {doc.get('state')}: no round runs until it runs"
         return web.json_response(body)
+
+    # -- breakpoints and single scans (docs/debug.md) -------------------------------------------
+
+    async def breakpoints(self, request: web.Request) -> web.Response:
+        doc = await self._api.board_document()
+        return web.json_response({"breakpoints": doc.get("breakpoints") or [],
+                                  "paused": doc.get("paused"),
+                                  "steps_left": doc.get("steps_left", 0),
+                                  "scan_count": doc.get("scan_count", 0)})
+
+    async def add_break(self, request: web.Request) -> web.Response:
+        body = await json_body(request)
+        if not isinstance(body, dict):
+            raise ApiProblem(400, 'the body must be a JSON object like {"on": "fire", '
+                                  '"transition": "t1"} or {"on": "when", "condition": "..."}')
+        try:
+            on, outputs = On(body.get("on", "fire")), Outputs(body.get("outputs", "hold"))
+        except ValueError:
+            raise ApiProblem(422, "break refused: `on` is fire, enabled or when; `outputs` "
+                                  "is hold or safe") from None
+        target = body.get("condition" if on is On.WHEN else "transition")
+        if not isinstance(target, str) or not target.strip():
+            raise ApiProblem(422, f"break refused: `on: {on.value}` needs "
+                                  + ("a `condition`" if on is On.WHEN else "a `transition`"))
+        return self._reply(await self._api.command(
+            Command.BREAK, symbol=spec(on, target), value=int(outputs is Outputs.SAFE)))
+
+    async def remove_break(self, request: web.Request) -> web.Response:
+        ident = request.match_info.get("id")
+        if ident is not None and not ident.removeprefix("b").isdigit():
+            raise ApiProblem(404, f"no breakpoint {ident[:40]!r}: ids are b1, b2, ... or 1, 2")
+        return self._reply(await self._api.command(Command.UNBREAK, symbol=ident))
+
+    async def step(self, request: web.Request) -> web.Response:
+        text = request.query.get("scans", "1")
+        if not text.isdigit() or not 1 <= int(text) <= 1_000_000:
+            raise ApiProblem(400, f"scans must be a whole number 1..1000000, not {text[:40]!r}")
+        return self._reply(await self._api.command(Command.STEP, value=int(text)))
+
+    async def resume(self, request: web.Request) -> web.Response:
+        return self._reply(await self._api.command(Command.CONTINUE))
+
+    def _reply(self, reply: Any) -> web.Response:
+        """A refused breakpoint (a transition or name the program lacks) is 422, a command
+        the state refuses (step while not paused) 409."""
+        if not isinstance(reply, CommandReply):  # pending: the command contract's 202
+            return self._api.answer(reply)
+        if not reply.ok:
+            status = 422 if " refused: " in reply.message else 409
+            raise ApiProblem(status, reply.message, state=reply.state.name)
+        return web.json_response({"ok": True, "message": reply.message,
+                                  "state": reply.state.name, "id": reply.id})

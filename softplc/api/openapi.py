@@ -10,7 +10,9 @@ import copy
 from typing import Any, Final
 
 from softplc.api.accessdoc import access_paths
+from softplc.api.breakdoc import break_paths
 from softplc.api.debugdoc import debug_paths
+from softplc.api.historydoc import history_paths
 from softplc.api.pagedoc import page_paths
 
 API_PREFIX: Final = "/api/v1"
@@ -304,6 +306,8 @@ def openapi_document() -> dict[str, Any]:
     }
     paths.update(page_paths(API_PREFIX))  # the page, live stream and forcing
     paths.update(debug_paths(API_PREFIX))  # why (docs/debug.md)
+    paths.update(break_paths(API_PREFIX))  # breakpoints, step, continue (docs/debug.md)
+    paths.update(history_paths(API_PREFIX))  # the recent past (docs/debug.md)
     paths.update(access_paths(API_PREFIX))  # login, logout, whoami, audit
     return copy.deepcopy({
         "openapi": "3.1.0",

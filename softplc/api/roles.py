@@ -59,6 +59,8 @@ ROUTE_ROLES: Final[dict[tuple[str, str], Role | None]] = {
     ("GET", f"{_P}/live"): Role.VIEWER,
     ("GET", f"{_P}/forces"): Role.VIEWER,
     ("GET", f"{_P}/why/{{transition}}"): Role.VIEWER,  # docs/debug.md
+    ("GET", f"{_P}/breakpoints"): Role.VIEWER,
+    ("GET", f"{_P}/history"): Role.VIEWER,  # docs/debug.md, the recent past
     ("POST", f"{_P}/start"): Role.OPERATOR,
     ("POST", f"{_P}/stop"): Role.OPERATOR,
     ("POST", f"{_P}/resume"): Role.OPERATOR,
@@ -69,6 +71,12 @@ ROUTE_ROLES: Final[dict[tuple[str, str], Role | None]] = {
     ("PUT", f"{_P}/forces/{{name}}"): Role.ENGINEER,
     ("DELETE", f"{_P}/forces/{{name}}"): Role.ENGINEER,
     ("DELETE", f"{_P}/forces"): Role.ENGINEER,
+    # Breakpoints and single scans (docs/debug.md): they stop a machine's program mid-way.
+    ("POST", f"{_P}/breakpoints"): Role.ENGINEER,
+    ("DELETE", f"{_P}/breakpoints"): Role.ENGINEER,
+    ("DELETE", f"{_P}/breakpoints/{{id}}"): Role.ENGINEER,
+    ("POST", f"{_P}/step"): Role.ENGINEER,
+    ("POST", f"{_P}/continue"): Role.ENGINEER,
     ("GET", f"{_P}/audit"): Role.ADMIN,
 }
 UNLISTED: Final = Role.ADMIN

@@ -27,7 +27,7 @@ from typing import Any, Final
 
 from aiohttp import web
 
-from softplc.api import accessroutes, auth, debug, programs, secopts, symbols, tls
+from softplc.api import accessroutes, auth, debug, history, programs, secopts, symbols, tls
 from softplc.api import web as web_page
 from softplc.api.access import Gate
 from softplc.api.commands import (
@@ -168,6 +168,7 @@ class ApiServer:
         programs.register(app, self, self.signing)  # download and upload
         symbols.register(app, self)
         debug.register(app, self)  # why (docs/debug.md)
+        history.register(app, self, self._board)  # the recent past (docs/debug.md)
         web_page.register(app, self)  # the operator's page, live stream, forcing (docs/web.md)
         return app
 

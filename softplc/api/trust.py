@@ -1,4 +1,5 @@
-"""The trust list of client certificates in STATE_DIR/pki (OPC UA's secure channels).
+"""The trust list of client certificates in STATE_DIR/pki (OPC UA's secure channels) or
+another directory of the state directory (STATE_DIR/modbus-tls: Modbus/TCP Security).
 
 Owns: STATE_DIR/pki/trusted/ and pki/rejected/ (directories 0700, certificates in DER, files
 0600), a certificate's name (its subject's common name and the start of its SHA-1
@@ -88,8 +89,8 @@ def _describe(der: bytes) -> tuple[str, str, str]:
 class TrustList:
     """The trusted and rejected client certificates of one state directory."""
 
-    def __init__(self, state_dir: Path | str) -> None:
-        self.dir = Path(state_dir) / PKI_DIR
+    def __init__(self, state_dir: Path | str, directory: str = PKI_DIR) -> None:
+        self.dir = Path(state_dir) / directory
         self.trusted_dir = self.dir / TRUSTED
         self.rejected_dir = self.dir / REJECTED
         self._seen: tuple[int, tuple[str, ...]] | None = None
@@ -102,6 +103,10 @@ class TrustList:
 
     def is_trusted(self, der: bytes) -> bool:
         return der in self._trusted_set()
+
+    def trusted(self) -> frozenset[bytes]:
+        """The trusted certificates (DER); the same object until trusted/ changes."""
+        return self._trusted_set()
 
     def _trusted_set(self) -> frozenset[bytes]:
         try:  # the names too: two changes within one mtime tick are still seen

@@ -66,6 +66,18 @@ class Command(enum.Enum):
     # is accepted wherever a program is loaded, UNFORCE in every state (core/scan.py).
     FORCE = "force"
     UNFORCE = "unforce"
+    # Debugging (docs/debug.md): not in the table either; the state stays RUNNING. BREAK is
+    # accepted wherever a program is loaded, UNBREAK in every state, STEP and CONTINUE while
+    # paused at a breakpoint (core/pausing.py).
+    BREAK = "break"
+    UNBREAK = "unbreak"
+    STEP = "step"
+    CONTINUE = "continue"
+
+
+# The commands the table below does not decide: they never change the state.
+OUTSIDE_TABLE: Final = frozenset({Command.FORCE, Command.UNFORCE, Command.BREAK,
+                                  Command.UNBREAK, Command.STEP, Command.CONTINUE})
 
 
 class CommandRejected(SoftplcError):
@@ -132,9 +144,11 @@ def refusal(stage: Stage, command: Command) -> str:
 
 def accepting(command: Command) -> str:
     """The states that accept `command`, for a refusal's message (both STOPPED stages: STOPPED)."""
-    if command is Command.UNFORCE:
+    if command is Command.UNFORCE or command is Command.UNBREAK:
         return "every state"
-    if command is Command.FORCE:  # wherever a program is loaded (core/scan.py)
+    if command is Command.STEP or command is Command.CONTINUE:
+        return "RUNNING (paused at a breakpoint)"
+    if command is Command.FORCE or command is Command.BREAK:  # wherever a program is loaded
         return ", ".join(sorted(s.name for s in PlcState if s is not PlcState.EMPTY)) + \
             " (any state with a program loaded)"
     stages = {s for (s, c) in TRANSITIONS if c is command}

@@ -19,6 +19,7 @@ import numpy as np
 
 from softplc.core import events as event_conditions
 from softplc.core import online
+from softplc.core.breakpoints import Breakpoints
 from softplc.core.context import ScanContext
 from softplc.core.datatypes import raw_of
 from softplc.core.engine import Engine
@@ -90,6 +91,7 @@ class Plc:
     _policies_of: CompiledNet | None = None
     _policies: Mapping[str, FaultPolicy] = field(default_factory=dict)
     forces: Forces = field(default_factory=Forces)  # docs/design.md section 10
+    debug: Breakpoints = field(default_factory=Breakpoints)  # breakpoints, pause (debug.md)
     # The device answers judged last with every device OK (core/judge.py: the steady scan), if so.
     steady_answers: Mapping[str, bool] | None = None
     context: ScanContext | None = None  # the guards' view of the image, kept between scans
@@ -137,6 +139,8 @@ class Plc:
             return self._force(cmd)
         target = next_stage(self.stage, cmd.command).state
         self.end_io_wait(now_ns)  # a command ends a wait as it stands; the scan re-decides
+        if target is not PlcState.RUNNING:
+            self.unpause(now_ns)  # stop, kill: the pause ends as a continue would end it
         if cmd.command is Command.DOWNLOAD:
             if cmd.net is None:
                 raise CommandRejected(self.state, cmd.command, "download without a program")
@@ -192,6 +196,7 @@ class Plc:
         self.by_location = {k: tuple(v) for k, v in by_location.items()}
         self.events = event_conditions.EventMemory()
         self.forces.rebind(net.io.symbols)  # forces on symbols the program lacks are dropped
+        self.debug.rebind(net)  # so are breakpoints on what it lacks (with a note)
 
     # -- forcing (docs/design.md section 10) -----------------------------------------------------
 
@@ -224,11 +229,20 @@ class Plc:
         held at a stop otherwise)."""
         if shadow is None:
             return
-        if self.state is PlcState.RUNNING:
+        held = self.held or self.debug.held  # stopped, or paused with safe outputs out
+        if self.state is PlcState.RUNNING and held is None:
             arr = getattr(self.image, entry.area)
             arr[entry.index] = bool(shadow) if entry.area.endswith("x") else shadow
-        elif self.held is not None:
-            self.held.put(entry.area, entry.index, shadow)
+        elif held is not None:
+            held.put(entry.area, entry.index, shadow)
+
+    def unpause(self, now_ns: int | None, steps: int = 0) -> None:
+        """The net runs again after a pause: `steps` scans (0: until a breakpoint hits), or
+        it stops, is killed or faults. Its timers skip the time spent paused (docs/debug.md)."""
+        shift, held = self.debug.leave(now_ns, steps)
+        self._shift_timers(shift)
+        if held is not None:
+            held.restore(self.image)  # the `safe` policy put the program's outputs aside
 
     def _thaw(self, now_ns: int) -> None:
         """Timers were frozen at stop: shift them by the time spent stopped."""
@@ -326,6 +340,7 @@ class Plc:
         can continue where the program was; without it nothing is kept for later."""
         if self.state is PlcState.RUNNING:
             self.end_io_wait(now_ns)
+            self.unpause(now_ns)
             self.stopped_at_ns = now_ns
             self.held = None if now_ns is None else HeldOutputs.of(self.image)
         if self.state in (PlcState.RUNNING, PlcState.STOPPED):

@@ -16,6 +16,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 from softplc.core import events as event_conditions
+from softplc.core import pausing
 from softplc.core.context import ScanContext
 from softplc.core.image import Area, ProcessImage
 from softplc.core.judge import NOTHING_OBSERVED, Observed, judge
@@ -74,7 +75,8 @@ def _apply_commands(plc: Plc, commands: Sequence[ProgramCommand],
     replies = []
     for cmd in commands:
         try:
-            message = plc.apply(cmd, now_ns)
+            message = (pausing.apply(plc, cmd, now_ns) if cmd.command in pausing.DEBUG_COMMANDS
+                       else plc.apply(cmd, now_ns)) + plc.debug.noted()
             replies.append(CommandReply(cmd.id, True, message, plc.state))
         except CommandRejected as exc:
             replies.append(CommandReply(cmd.id, False, exc.reason, plc.state,
@@ -115,7 +117,10 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
             plc.engine.refresh_outputs()  # a program-driven output stays the program's
     plc.image.latch_inputs(inputs)
     plc.forces.apply_inputs(plc.image)  # forcing: a forced input replaces the driver's value
+    if plc.debug.paused and plc.state is PlcState.RUNNING:  # at a breakpoint (docs/debug.md)
+        return pausing.paused_cycle(plc, now_ns, commands, len(hmi), replies)
     occurred: tuple[str, ...] = ()
+    pause = None
     fired: tuple[str, ...] = ()
     completed: tuple[str, ...] = ()
     changes: dict[str, int] = {}
@@ -175,14 +180,19 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
         plc.true_last = now_events
         if emitted:
             occurred = occurred + emitted
+        if plc.debug.armed and (pause := pausing.after_round(plc, ctx, step.fired, now_ns)):
+            occurred = (*occurred, *(f"paused:b{b.id}" for b in pause.hit or ()),
+                        *(() if pause.hit else ("paused:step",)))
     else:
         plc.last_events = plc.true_last = frozenset()
         plc.drive_safe()
-    outputs_changed = bool(commands or hmi or fired or completed
+    outputs_changed = bool(commands or hmi or fired or completed or pause
                            or plc.state is not PlcState.RUNNING
                            or not _same_outputs(plc.image, plc.prev))
     plc.image.copy_into(plc.prev)
     plc.scan_count += 1
+    if pause is not None:
+        pausing.enter(plc, pause)  # after the copy: the next step's edges see its own outputs
     if occurred or fired or completed or changes or replies or outputs_changed:
         return ScanResult(plc.image, occurred, fired, completed, changes, tuple(replies),
                           outputs_changed)

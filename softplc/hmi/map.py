@@ -30,6 +30,7 @@ class ExceptionCode(enum.IntEnum):
     ILLEGAL_DATA_ADDRESS = 0x02
     ILLEGAL_DATA_VALUE = 0x03
     SERVER_DEVICE_FAILURE = 0x04
+    SERVER_DEVICE_BUSY = 0x06  # Modbus/TCP Security: the audit trail cannot keep up (secure.py)
 
 
 class MapError(SoftplcError):

@@ -122,10 +122,14 @@ class _Connection(ModbusProtocol):
     @property
     def buffered_bytes(self) -> int:
         """Requests not yet answered plus replies not yet sent, in bytes."""
-        unsent = 0 if self.transport is None else self._stream.get_write_buffer_size()
+        stream = self._reply_stream()
+        unsent = 0 if stream is None else stream.get_write_buffer_size()
         return len(self._buffer) + unsent
 
     def data_received(self, data: bytes) -> None:
+        self._requests_received(data)
+
+    def _requests_received(self, data: bytes) -> None:
         self._buffer += data
         self._serve_buffer()
 
@@ -151,22 +155,32 @@ class _Connection(ModbusProtocol):
 
     def _can_answer(self) -> bool:
         # A transport that is closing (the client reset) would log every further write.
-        transport = self.transport
-        return transport is not None and not transport.is_closing() and not self._writing_paused
+        stream = self._reply_stream()
+        return stream is not None and not stream.is_closing() and not self._writing_paused
 
     def pause_writing(self) -> None:
+        self._replies_blocked()
+
+    def resume_writing(self) -> None:
+        self._replies_unblocked()
+
+    def _replies_blocked(self) -> None:
         # The client does not read its replies: stop reading its requests until it does.
         self._writing_paused = True
         self._stream.pause_reading()
 
-    def resume_writing(self) -> None:
+    def _replies_unblocked(self) -> None:
         self._writing_paused = False
         self._stream.resume_reading()
         self._serve_buffer()
 
+    def _reply_stream(self) -> asyncio.Transport | None:
+        """Where requests come from and replies go: the socket (a TLS session in secure.py)."""
+        return cast("asyncio.Transport | None", self.transport)
+
     @property
     def _stream(self) -> asyncio.Transport:
-        return cast(asyncio.Transport, self.transport)
+        return cast(asyncio.Transport, self._reply_stream())
 
     def _answer(self, adu: Adu) -> bytes | None:
         try:
@@ -199,19 +213,24 @@ def _placeholder_device() -> SimDevice:
     return SimDevice(id=0, simdata=[SimData(0, values=[0], datatype=DataType.REGISTERS)])
 
 
+ConnectionFactory = Callable[["_Listener"], _Connection]
+
+
 class _Listener(ModbusTcpServer):
     """The pymodbus listener, with our connection class and the admission rule."""
 
-    def __init__(self, responder: Responder, address: tuple[str, int], limits: Limits) -> None:
+    def __init__(self, responder: Responder, address: tuple[str, int], limits: Limits,
+                 make_connection: ConnectionFactory = _Connection) -> None:
         super().__init__(_placeholder_device(), address=address)
         self.responder = responder
         self.errors = _RateLimitedErrors()
         self.limits = limits
         self.stats = ConnectionStats()
+        self._make_connection = make_connection
 
     def callback_new_connection(self) -> _Connection:
         # The peer is not known yet: the connection asks `admit` once it is connected.
-        return _Connection(self)
+        return self._make_connection(self)
 
     def admitted(self) -> list[_Connection]:
         # One C-level copy first: a test thread may ask while the loop thread changes the dict.
@@ -283,13 +302,18 @@ class ModbusSlave:
         """Listen; returns once connections are accepted. Port 0 picks a free port."""
         if self._listener is not None:
             raise RuntimeError("the Modbus slave is already started")
-        listener = _Listener(self._responder, (self.host, self.port), self.limits)
+        listener = _Listener(self._responder, (self.host, self.port), self.limits,
+                             self._connection_factory())
         try:
             await listener.serve_forever(background=True)
         except RuntimeError as exc:
             raise OSError(f"Modbus slave cannot listen on {self.host}:{self.port}") from exc
         self._listener = listener
         self._server = cast(asyncio.Server, listener.transport)
+
+    def _connection_factory(self) -> ConnectionFactory:
+        """The class of a connection (Modbus/TCP Security's in secure.py)."""
+        return _Connection
 
     async def stop(self) -> None:
         """Stop listening and close every HMI connection."""

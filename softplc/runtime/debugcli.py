@@ -1,4 +1,5 @@
-"""The debugging commands of the CLI (issue 32): `softplc why` and `softplc vcd`.
+"""The debugging commands of the CLI (issue 32): `softplc why`, `softplc vcd`, `softplc
+break|step|continue` and simulate's `--break`/`--step` (added to its parser here).
 
 Owns: their arguments, exit codes (0 answered, 1 refused or unusable input, 2 no API
 answering) and what a person reads. `why` asks a running softplc (GET /api/v1/why/NAME) or,
@@ -48,6 +49,8 @@ def add_commands(subparsers: Any) -> None:
     vcd.add_argument("program", help="the program the trace was recorded with")
     vcd.add_argument("-o", "--output", metavar="FILE", required=True, help="the VCD file")
     vcd.set_defaults(func=cmd_vcd)
+    from softplc.runtime.breakcli import add_break_commands
+    add_break_commands(subparsers)
 
 
 def _compile(path: str, what: str) -> CompiledNet | None:

@@ -68,9 +68,7 @@ class ScanLoop:
         self.realtime = "normal scheduling"  # what scan_process_main obtained
         self.clock: Clock = clock or MonotonicClock(busy=config.realtime.busy_wait)
         self.stats = TimingStats()
-        self.stalls = 0
-        self.longest_gap_ns = 0
-        self.internal_errors = 0
+        self.stalls, self.longest_gap_ns, self.internal_errors = 0, 0, 0
         self.summary = self.stats.summary()  # refreshed every board_every scans, not every scan
         self.runner = ScanRunner(Plc.empty(), [],
                                  TraceWriter(config.trace) if config.trace else None)
@@ -97,6 +95,7 @@ class ScanLoop:
         # console chose it. Its findings are in status.
         self.analysis = self.prep.analyse(net, gate=False) if net is not None else None
         warmstart.begin(self, net)
+        self.runner.plc.debug.period_ns = config.period_ns  # a step is one period of net time
         if config.restarts:
             self._event(f"plc_restarted:{config.restarts}", 0)
 
@@ -329,7 +328,8 @@ class ScanLoop:
 
     def _publish(self, now_ns: int) -> None:
         try:
-            refresh = self.runner.plc.scan_count % self.board_every == 0
+            # Counted in cycles, not scans: a paused PLC counts no scans (docs/debug.md).
+            refresh = (self.stats.scans + 1) % self.board_every == 0
             if refresh:  # percentiles cost ~20 µs: not on every scan
                 self.summary = self.stats.summary()
             if self.writer is not None:

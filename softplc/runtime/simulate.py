@@ -2,21 +2,24 @@
 
 Owns: `simulate()` and its report (the `softplc simulate --json` object), the playing of a
 script (timed HMI writes and input overrides, runtime/simscript.py) into the scans, and the
-timeline: the scans in which outputs, memory, marking or events changed.
+timeline: the scans in which outputs, memory, marking or events changed; breakpoints
+(docs/debug.md): the simulation ends at the pause, after `step` more scans if asked.
 Does not know: processes, sockets, the real clock (a virtual clock jumps deadline to deadline).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from softplc.core.image import ProcessImage
+from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
 from softplc.core.present import Shown, shown_number
 from softplc.core.scaling import Scaling
-from softplc.core.scan import ScanResult
+from softplc.core.scan import ProgramCommand, ScanResult
 from softplc.core.snapshot import HmiWrite
 from softplc.core.symbols import Direction, Symbol, scalings
 from softplc.devices.driver import Health
@@ -97,13 +100,21 @@ class Timeline:
 
 def simulate(net: CompiledNet, duration_ns: int, period_ns: int = 10_000_000, seed: int = 0,
              trace_path: str | Path | None = None, plant: str | None = None,
-             script: Script | None = None, timeline: bool = False) -> dict[str, Any]:
+             script: Script | None = None, timeline: bool = False,
+             breaks: Sequence[str] = (), step: int = 0) -> dict[str, Any]:
     """Run `net` on its simulated plant for `duration_ns` of virtual time, playing `script`.
-    With `timeline`, the report has a "timeline" list (see Timeline)."""
+    With `timeline`, the report has a "timeline" list (see Timeline). `breaks` are breakpoints
+    (`fire:T`, `transition:T`, `enabled:T`, `when:EXPR`) set before the first round: the
+    simulation ends when the PLC pauses, or `step` scans after that (report: "paused")."""
     if period_ns <= 0:
         raise ValueError("period must be positive")
     trace = TraceWriter(trace_path)
     runner, commands = boot(net, seed, start=True, trace=trace, plant=plant)
+    runner.plc.debug.period_ns = period_ns
+    commands += [ProgramCommand(Command.BREAK, id=10 + i, symbol=_spec(text), value=0)
+                 for i, text in enumerate(breaks)]
+    pauses: list[dict[str, Any]] = []
+    steps = step
     player = ScriptPlayer(script) if script is not None else None
     if player is not None:
         runner.drivers.append(ScriptInputs(player))
@@ -114,7 +125,17 @@ def simulate(net: CompiledNet, duration_ns: int, period_ns: int = 10_000_000, se
             now = k * period_ns
             before = dict(player.forced_values) if player is not None else {}
             hmi = player.due(now) if player is not None else ()
-            result = runner.step(now, commands if k == 0 else (), hmi)
+            if k and runner.plc.debug.paused:  # at a breakpoint: a step, or the end
+                commands, steps = [ProgramCommand(Command.STEP, id=k, value=steps)], 0
+            result = runner.step(now, commands, hmi)
+            commands = []
+            if refused := [r.message for r in result.replies if not r.ok]:
+                raise ValueError("; ".join(refused))
+            if (pause := runner.plc.debug.pause) is not None:
+                pauses.append({**pause.as_dict(), "t_s": now / 1e9})
+                if not steps:
+                    scans = k + 1
+                    break
             if line is not None:
                 after = dict(player.forced_values) if player is not None else {}
                 forced: dict[str, int | str] = {n: v for n, v in after.items()
@@ -123,7 +144,17 @@ def simulate(net: CompiledNet, duration_ns: int, period_ns: int = 10_000_000, se
                 line.record(k, now, result, runner.plc.image, hmi, forced)
     finally:
         runner.close()
-    return _report(net, runner, scans, period_ns, seed, trace, script, line)
+    report = _report(net, runner, scans, period_ns, seed, trace, script, line)
+    if breaks:
+        report["paused"] = pauses[-1] if pauses and runner.plc.debug.paused else None
+        report["pauses"] = pauses
+    return report
+
+
+def _spec(text: str) -> str:
+    """`transition:T` (a breakpoint on T firing) as the command's `fire:T`."""
+    kind, sep, rest = text.partition(":")
+    return f"fire:{rest}" if sep and kind == "transition" else text
 
 
 def _report(net: CompiledNet, runner: Any, scans: int, period_ns: int, seed: int,

@@ -115,6 +115,8 @@ def document(loop: LoopView) -> dict[str, Any]:
         # Start-up (docs/faults.md): devices whose first input image has not arrived; while
         # any has not, a RUNNING PLC runs no firing round and its outputs stay safe.
         "waiting_for_io": bool(plc.waiting_io), "waiting_for_devices": list(plc.waiting_io),
+        # Breakpoints (docs/debug.md): "breakpoints", "paused" (null: not paused), "steps_left".
+        **plc.debug.as_dict(),
     }
 
 def status(loop: LoopView) -> Status:

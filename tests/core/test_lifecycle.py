@@ -15,6 +15,7 @@ import pytest
 
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import (
+    OUTSIDE_TABLE,
     TRANSITIONS,
     Command,
     CommandRejected,
@@ -112,7 +113,7 @@ def test_the_table_in_the_code_is_the_table_in_the_design() -> None:
     expected = {(s, c): t for s, row in TABLE.items() for c, t in row.items() if t is not None}
     assert expected == TRANSITIONS
     assert set(TABLE) == set(Stage)
-    assert all(set(row) == {c for c in Command if c not in (C.FORCE, C.UNFORCE)}
+    assert all(set(row) == {c for c in Command if c not in OUTSIDE_TABLE}
                for row in TABLE.values())
 
 

@@ -47,7 +47,7 @@ class Run:
             start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
         self.lines: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
-        self.api = ApiClient(f"http://127.0.0.1:{self.api_port}", timeout_s=5)
+        self.api = ApiClient(f"http://127.0.0.1:{self.api_port}", timeout_s=5, state_dir=state)
 
     def _read(self) -> None:
         assert self.proc.stdout is not None

@@ -446,6 +446,20 @@ function updateHeader(frame) {
   const fault = $("#fault");
   fault.classList.toggle("hidden", !frame.fault_reason);
   text(fault, frame.fault_reason ? "FAULT: " + frame.fault_reason : "");
+  showPause(frame.paused);
+}
+
+function showPause(paused) {  // at a breakpoint (docs/debug.md): a banner under the fault's
+  let banner = $("#paused");
+  if (!banner) {
+    banner = document.createElement("div");
+    banner.id = "paused";
+    banner.className = "fault hidden";
+    $("#fault").after(banner);
+  }
+  banner.classList.toggle("hidden", !paused);
+  text(banner, paused ? `PAUSED after scan ${paused.k} (scan count ${paused.scan_count}, outputs `
+                        + `${paused.outputs}): ${paused.reason}; softplc step | continue` : "");
 }
 
 function onFrame(frame) {

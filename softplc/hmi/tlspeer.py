@@ -1,0 +1,138 @@
+"""Who a Modbus/TCP Security client is, and what its requests write: pure functions.
+
+Owns: the role of a client certificate (the spec's "ModbusRole" X.509v3 extension, OID
+1.3.6.1.4.1.50316.802.1, an ASN.1 UTF8String) mapped to softplc's role names and whether it
+may write; the certificate's user (its subject's common name); the client certificate
+offered in a TLS Certificate handshake message (kept when the certificate is refused); and
+the audit description of a write request.
+Does not know: sockets, ssl contexts, the trust list, the audit trail, the register map.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from typing import Any, Final
+
+from cryptography import x509
+from cryptography.x509.oid import NameOID
+
+ROLE_OID: Final = x509.ObjectIdentifier("1.3.6.1.4.1.50316.802.1")
+# softplc's roles (api/roles.py), lowest first; a role may do what those below it may.
+ROLES: Final = ("viewer", "operator", "engineer", "admin")
+WRITER: Final = "operator"  # the least role whose HMI writes are served
+NO_ROLE: Final = "viewer"  # no role extension, or a role softplc does not know: reads only
+# Function codes that write (FC23 reads too, but its write is what matters here).
+WRITE_FUNCTIONS: Final = frozenset({5, 6, 15, 16, 23})
+# ASN.1 string tags accepted for the role: UTF8String (the spec's), PrintableString, IA5String.
+_STRING_TAGS: Final = frozenset({0x0C, 0x13, 0x16})
+_TLS_1_3: Final = 0x0304
+_CERTIFICATE: Final = 11  # the TLS handshake message type
+
+
+@dataclass(frozen=True, slots=True)
+class Identity:
+    """A client as its certificate names it."""
+
+    user: str  # the subject's common name (the whole subject when it has none)
+    role: str  # one of ROLES: what softplc grants
+    certificate_role: str | None  # the extension's text as written; None when absent
+
+    @property
+    def may_write(self) -> bool:
+        return ROLES.index(self.role) >= ROLES.index(WRITER)
+
+    def audit(self) -> dict[str, Any]:
+        return {"user": self.user, "role": self.role, "via": "certificate"}
+
+
+def identity_of(der: bytes) -> Identity:
+    """The identity a DER certificate carries; ValueError if it is no certificate."""
+    cert = x509.load_der_x509_certificate(der)
+    text = role_text(cert)
+    known = (text or "").strip().lower()
+    return Identity(user_of(cert), known if known in ROLES else NO_ROLE, text)
+
+
+def user_of(cert: x509.Certificate) -> str:
+    names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    value = names[0].value if names else cert.subject.rfc4514_string()
+    return value if isinstance(value, str) else value.decode("utf-8", "replace")
+
+
+def role_text(cert: x509.Certificate) -> str | None:
+    """The ModbusRole extension's string, None when the certificate has none or it is not
+    a string (then the client gets no role: reads only)."""
+    try:
+        extension = cert.extensions.get_extension_for_oid(ROLE_OID)
+    except x509.ExtensionNotFound:
+        return None
+    value = extension.value
+    if not isinstance(value, x509.UnrecognizedExtension):
+        return None
+    return der_string(value.value)
+
+
+def der_string(data: bytes) -> str | None:
+    """A DER-encoded ASN.1 string (tag, length, UTF-8 bytes), None when malformed."""
+    if len(data) < 2 or data[0] not in _STRING_TAGS:
+        return None
+    size, start = data[1], 2
+    if size & 0x80:
+        count = size & 0x7F
+        if not 1 <= count <= 2 or len(data) < 2 + count:
+            return None
+        size, start = int.from_bytes(data[2:2 + count], "big"), 2 + count
+    if len(data) != start + size:
+        return None
+    try:
+        return data[start:].decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+
+
+def offered_certificate(version: int, message: bytes) -> bytes | None:
+    """The first (leaf) certificate, DER, of a TLS Certificate handshake message with its
+    4-byte header (RFC 5246 7.4.2; RFC 8446 4.4.2 adds a request context and per-entry
+    extensions after each certificate); None for an empty list or a malformed message."""
+    if len(message) < 7 or message[0] != _CERTIFICATE:
+        return None
+    pos = 4
+    if version >= _TLS_1_3:
+        pos += 1 + message[pos]
+    pos += 3  # the list's length: the first entry is all we need
+    if len(message) < pos + 3:
+        return None
+    size = int.from_bytes(message[pos:pos + 3], "big")
+    der = message[pos + 3:pos + 3 + size]
+    return der if size and len(der) == size else None
+
+
+def describe_write(pdu: bytes) -> dict[str, Any]:
+    """What a write request asks, for the audit trail: function, table, 0-based address and
+    the values (bits 0/1 or registers; the trail keeps the first 32). A malformed request
+    is described by its function code (the slave answers it with an exception)."""
+    function = pdu[0]
+    body = pdu[1:]
+    try:
+        if function in (5, 6):
+            address, value = struct.unpack(">HH", body)
+            values = [int(value == 0xFF00)] if function == 5 else [value]
+        elif function in (15, 16):
+            address, count, size = struct.unpack_from(">HHB", body)
+            values = _values(function, body[5:5 + size], count)
+        elif function == 23:
+            address, count, size = struct.unpack_from(">HHB", body, 4)
+            values = _values(16, body[9:9 + size], count)
+        else:
+            return {"function": function}
+    except struct.error:
+        return {"function": function, "malformed": True}
+    table = "coils" if function in (5, 15) else "holding registers"
+    return {"function": function, "table": table, "address": address, "values": values}
+
+
+def _values(function: int, data: bytes, count: int) -> list[int]:
+    if function == 15:
+        return [(data[i // 8] >> (i % 8)) & 1 for i in range(min(count, 8 * len(data)))]
+    return list(struct.unpack(f">{len(data) // 2}H", data[:len(data) // 2 * 2]))[:count]
