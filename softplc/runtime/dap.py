@@ -96,6 +96,8 @@ class DapSession:
             body, error = None, f"the PLC refused (HTTP {exc.status}): {exc.message}"
         except ApiUnreachable as exc:
             body, error = None, str(exc)
+        except (ValueError, TypeError, AttributeError) as exc:  # arguments of the wrong shape
+            body, error = None, f"{command}: bad arguments ({exc})"
         reply = {"type": "response", "request_seq": message.get("seq"), "command": command,
                  "success": error is None, **({"body": body} if body is not None else {})}
         self._write({**reply, "message": error} if error else reply)
@@ -159,9 +161,9 @@ class DapSession:
         if self._poller is not None and self._poller is not threading.current_thread():
             self._poller.join(5.0)
         self.book.clear()
+        # Asked, not looked up first: status lags the scan by up to 50 ms.
         with contextlib.suppress(ApiError, ApiUnreachable):  # not paused (409), no PLC
-            if self.client.status().get("paused"):
-                self.client.continue_()
+            self.client.continue_()
 
     # -- breakpoints ------------------------------------------------------------------------
 

@@ -34,7 +34,8 @@ webdriver = pytest.importorskip("selenium.webdriver", reason="needs selenium (de
 T = TypeVar("T")
 
 
-def until(probe: Callable[[], T], timeout_s: float = 10.0, what: str = "condition") -> T:
+def until(probe: Callable[[], T], timeout_s: float = 10.0, what: str = "condition",
+          show: Callable[[], object] | None = None) -> T:
     deadline = time.monotonic() + timeout_s
     while True:
         try:
@@ -44,7 +45,8 @@ def until(probe: Callable[[], T], timeout_s: float = 10.0, what: str = "conditio
         if result:
             return result
         if time.monotonic() > deadline:
-            raise AssertionError(f"{what}: not within {timeout_s} s")
+            seen = f" (shown: {show()})" if show is not None else ""
+            raise AssertionError(f"{what}: not within {timeout_s} s{seen}")
         time.sleep(0.1)
 
 
@@ -122,6 +124,16 @@ def open_page(driver: Any, plc: Softplc) -> None:
                              "&& window.softplc.frames > 2"), 15, "the page draws the net")
 
 
+def give_key(driver: Any, key: str) -> None:
+    """Type `key` into the page's key dialog once a refused action has opened it."""
+    until(lambda: js(driver, "return document.getElementById('token-dialog').open"), 15,
+          "the page asks for a key")
+    driver.find_element("id", "token").send_keys(key)
+    driver.find_element("css selector", "#token-form button").click()
+    until(lambda: not js(driver, "return document.getElementById('token-dialog').open"), 5,
+          "the key dialog closes")
+
+
 def counts(driver: Any) -> dict[str, int]:
     result: dict[str, int] = js(driver, "return {places: softplc.cy.nodes('.place').length, "
                                         "transitions: softplc.cy.nodes('.trans').length, "
@@ -175,7 +187,14 @@ def test_transport_page_live_forcing_and_program_handling(
         assert fired(browser, "c1.arrive") == 0 and marking(browser).get("c1.moving") == 1
         row.find_element("css selector", "input.force").send_keys("1")
         row.find_element("css selector", "button.force").click()
-        until(lambda: "forced" in row.get_attribute("class"), 15, "the row is marked forced")
+        # Without credentials the page only reads: the refused force asks for a key, and
+        # the engineer gives the owner's (STATE_DIR/api_token), as a person would.
+        give_key(browser, (tmp_path / "state" / "api_token").read_text().strip())
+        row.find_element("css selector", "input.force").clear()
+        row.find_element("css selector", "input.force").send_keys("1")
+        row.find_element("css selector", "button.force").click()
+        until(lambda: "forced" in row.get_attribute("class"), 15, "the row is marked forced",
+              show=lambda: browser.find_element("id", "message").text)
         assert row.find_element("css selector", "td.value").text.startswith("1")
         until(lambda: browser.find_element("id", "forced-count").text == "2 forced", 15)
         until(lambda: fired(browser, "c1.arrive"), 15, "c1.arrive fires on the force")
@@ -216,7 +235,9 @@ def test_transport_page_live_forcing_and_program_handling(
         texts = [p.text for p in problems]
         assert any("broken.yaml:5: YAML syntax error" in t for t in texts), texts
         assert browser.find_element("id", "state").text == "RUNNING"  # nothing changed
-        assert errors(browser, ("/api/v1/stop - Failed to load resource: the server responded "
+        assert errors(browser, ("/api/v1/forces/s1_o - Failed to load resource: the server "
+                                "responded with a status of 401",  # before the key was given
+                                "/api/v1/stop - Failed to load resource: the server responded "
                                 "with a status of 409", "/api/v1/program?name=broken.yaml - "
                                 "Failed to load resource: the server responded with a status "
                                 "of 422")) == []
