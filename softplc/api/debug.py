@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 import tempfile
 from pathlib import Path
 from typing import Any, Final
@@ -40,6 +41,7 @@ from softplc.program import boot
 from softplc.program import bundle as bundles
 from softplc.program.compiler import compile_file, compile_text
 
+_BREAK_ID: Final = re.compile(r"break: (b\d+): ")
 BASIS: Final = ("the next firing round, on the marking and symbol values of the status board "
                 "of scan {scan} (refreshed about every 50 ms); events and edges of that round "
                 "are not published and read as none")
@@ -173,8 +175,12 @@ class _Routes:
         if not isinstance(target, str) or not target.strip():
             raise ApiProblem(422, f"break refused: `on: {on.value}` needs "
                                   + ("a `condition`" if on is On.WHEN else "a `transition`"))
-        return self._reply(await self._api.command(
-            Command.BREAK, symbol=spec(on, target), value=int(outputs is Outputs.SAFE)))
+        reply = await self._api.command(
+            Command.BREAK, symbol=spec(on, target), value=int(outputs is Outputs.SAFE))
+        # The breakpoint's id (b1, b2, ...) as the scan named it ("break: b3: t fires ..."),
+        # beside the command's: what a client removes it by.
+        named = _BREAK_ID.match(reply.message) if isinstance(reply, CommandReply) else None
+        return self._reply(reply, {"breakpoint": named.group(1)} if named else {})
 
     async def remove_break(self, request: web.Request) -> web.Response:
         ident = request.match_info.get("id")
@@ -191,7 +197,7 @@ class _Routes:
     async def resume(self, request: web.Request) -> web.Response:
         return self._reply(await self._api.command(Command.CONTINUE))
 
-    def _reply(self, reply: Any) -> web.Response:
+    def _reply(self, reply: Any, extra: dict[str, Any] | None = None) -> web.Response:
         """A refused breakpoint (a transition or name the program lacks) is 422, a command
         the state refuses (step while not paused) 409."""
         if not isinstance(reply, CommandReply):  # pending: the command contract's 202
@@ -200,4 +206,4 @@ class _Routes:
             status = 422 if " refused: " in reply.message else 409
             raise ApiProblem(status, reply.message, state=reply.state.name)
         return web.json_response({"ok": True, "message": reply.message,
-                                  "state": reply.state.name, "id": reply.id})
+                                  "state": reply.state.name, "id": reply.id, **(extra or {})})

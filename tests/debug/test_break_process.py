@@ -85,6 +85,10 @@ def test_break_on_handed_over_step_and_continue(server: tuple[str, str]) -> None
     assert eventually(lambda: status(url)["scan_count"] > count + 20, 10, "running on")
     assert cli("break", "clear", *owner)[0] == 0
     assert eventually(lambda: not status(url).get("breakpoints"), 5, "no breakpoints")
+    # The API's answer names the breakpoint it made (what a client removes it by)
+    added = ApiClient(url, state_dir=state).add_breakpoint("enabled", "hand_over")
+    assert added["breakpoint"] == "b2" and added["message"].startswith("break: b2: ")
+    assert ApiClient(url, state_dir=state).remove_breakpoint("b2")["ok"]
     assert cli("step", *owner)[0] == 1  # not paused: refused, naming what works
 
 
