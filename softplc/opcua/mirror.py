@@ -33,7 +33,8 @@ from softplc.opcua.space import PartState, Space, SymbolNode, part10_state
 _STATUS_TYPES: Final = {"State": ua.VariantType.String, "ProgramHash": ua.VariantType.String,
                         "Program": ua.VariantType.String, "FaultReason": ua.VariantType.String,
                         "ScanCount": ua.VariantType.UInt64, "FaultCode": ua.VariantType.UInt16,
-                        "WaitingForIo": ua.VariantType.Boolean}
+                        "WaitingForIo": ua.VariantType.Boolean, "Paused": ua.VariantType.Boolean,
+                        "PauseReason": ua.VariantType.String}
 
 
 class Mirror:
@@ -142,6 +143,11 @@ class Mirror:
         await self.set(nodes["FaultReason"].nodeid,
                        _status_variant("FaultReason", document.get("fault_reason") or ""),
                        fed=True)
+        paused = document.get("paused")  # breakpoints (docs/debug.md): a sub-state of RUNNING
+        reason = paused.get("reason") if isinstance(paused, dict) else ""
+        await self.set(nodes["Paused"].nodeid, _status_variant("Paused", bool(paused)), fed=True)
+        await self.set(nodes["PauseReason"].nodeid,
+                       _status_variant("PauseReason", reason or ""), fed=True)
         restarts = document.get("restarts")
         if isinstance(restarts, int):
             await self.set(nodes["Restarts"].nodeid, _status_variant("Restarts", restarts),

@@ -103,6 +103,8 @@ STATUS_VARIABLES: Final[Mapping[str, tuple[ua.VariantType, Any]]] = {
     "Restarts": (ua.VariantType.UInt32, 0),
     "LastEventSeq": (ua.VariantType.UInt32, 0),
     "WaitingForIo": (ua.VariantType.Boolean, False),  # docs/faults.md, start-up
+    "Paused": (ua.VariantType.Boolean, False),  # docs/debug.md, breakpoints: still RUNNING
+    "PauseReason": (ua.VariantType.String, ""),  # the breakpoint that hit, or a step's end
 }
 
 
