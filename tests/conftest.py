@@ -1,6 +1,10 @@
-"""Session-wide: pytest exits as soon as it has printed its summary.
+"""Session-wide: pytest exits as soon as it has printed its summary, and no test or import
+changes how the process takes a closed pipe.
 
-Owns: the end of the session. What a test left running (a non-daemon thread, a thread-pool
+Owns: SIGPIPE stays ignored (Python's setting): a test or a library import that sets its
+default action (vcdvcd's import did) made the next write to a closed socket, in any later
+test, kill pytest with no report; the test after which it changed fails, naming it. And the
+end of the session. What a test left running (a non-daemon thread, a thread-pool
 worker blocked in a call, a multiprocessing child) may not keep the interpreter alive after
 the summary: children are terminated, threads get GRACE_S to end, then the process exits
 with pytest's own status, naming on stderr what it left behind so that the test that
@@ -12,6 +16,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import sys
 import threading
 import time
@@ -21,6 +26,20 @@ import pytest
 
 GRACE_S: Final = 2.0
 _exit_status: list[int] = [0]
+
+
+@pytest.fixture(autouse=True)
+def _sigpipe_stays_ignored() -> object:
+    """Checked before each test (an import while collecting) and after it."""
+    for when in ("before", "after"):
+        found = signal.getsignal(signal.SIGPIPE)
+        if found != signal.SIG_IGN:
+            signal.signal(signal.SIGPIPE, signal.SIG_IGN)  # the next tests run as they should
+            pytest.fail(f"SIGPIPE's handler is {found!r} {when} this test (set by it, or by an "
+                        "import while collecting), not ignored: a write to a closed socket "
+                        "would kill pytest")
+        if when == "before":
+            yield
 
 
 @pytest.hookimpl(trylast=True)

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Final
 
 from softplc.api.client import ApiClient, ApiError, ApiUnreachable
+from softplc.core.errors import SoftplcError
 from softplc.core.net import CompiledNet
 from softplc.core.problems import ProgramError
 from softplc.program.compiler import compile_file
@@ -55,7 +56,7 @@ NO_PAUSE: Final = ("pause is not supported: the PLC pauses only where a breakpoi
                    "transition's line, or a function breakpoint when:EXPR)")
 
 
-class Refused(Exception):
+class Refused(SoftplcError):
     """A request answered with success: false and this message."""
 
 

@@ -11,11 +11,13 @@ from __future__ import annotations
 import json
 from typing import IO, Any, Final
 
+from softplc.core.errors import SoftplcError
+
 MAX_BODY: Final = 16 * 1024 * 1024  # a message no editor sends; a broken peer is cut off
 MAX_HEADER: Final = 4096
 
 
-class WireError(ValueError):
+class WireError(SoftplcError, ValueError):
     """The peer sent something that is not a DAP message."""
 
 

@@ -7,11 +7,11 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import signal
 from pathlib import Path
 from typing import Any
 
 import pytest
-from vcdvcd import VCDVCD
 
 from softplc.cli import main
 from softplc.core.why import FIRES, run_round, why
@@ -23,6 +23,18 @@ from softplc.runtime.tracewalk import walk
 ROOT = Path(__file__).resolve().parents[2]
 PROGRAM = ROOT / "programs/transport.yaml"
 PERIOD_NS = 10_000_000
+
+
+def read_vcd(path: Path) -> Any:
+    """The file parsed by vcdvcd. Its import sets SIGPIPE to the default action (die) for the
+    whole process, so that a later write to a closed socket in any test killed pytest: the
+    handler is put back at once."""
+    before = signal.getsignal(signal.SIGPIPE)
+    try:
+        from vcdvcd import VCDVCD
+    finally:
+        signal.signal(signal.SIGPIPE, before)
+    return VCDVCD(str(path))
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +114,7 @@ def test_the_vcd_holds_the_traces_own_values(trace: Path, tmp_path: Path) -> Non
     assert (code, err) == (0, "")
     records = list(read_trace(trace))
     assert said.strip() == f"vcd: {len(records)} scans of transport written to {out}"
-    vcd = VCDVCD(str(out))
+    vcd = read_vcd(out)
     assert vcd.timescale["unit"] == "ns"
     net = compile_file(PROGRAM)
     by_location = {(s.address.attr, s.address.index): s.name for s in net.io.symbols.values()}
