@@ -232,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="OPC UA server HOST:PORT, or off (default: 127.0.0.1:4840; "
                      "docs/opcua.md)")
     run.add_argument("--plant", help="plant model for sim drivers whose io image names none "
-                     "(transport, drilling, tank); an io image that names its plant keeps it, and a "
+                     "(transport, drilling, tank); an io image naming its plant keeps it, and a "
                      "contradicting --plant is refused (default: the io image's)")
     run.add_argument("--start", action="store_true",
                      help="start the program at once: warm from a valid snapshot of the same "

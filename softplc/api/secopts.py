@@ -50,9 +50,22 @@ def add_run_options(run: argparse.ArgumentParser) -> None:
     run.add_argument("--tls-cert", metavar="FILE", help="the API's certificate (PEM, with its "
                      "chain), with --tls-key (default: STATE_DIR/tls/cert.pem, made when missing)")
     run.add_argument("--tls-key", metavar="FILE", help="the key of --tls-cert (PEM)")
+    run.add_argument("--modbus-tls", type=_modbus_tls, default=None, metavar="HOST:PORT|off",
+                     help="Modbus/TCP Security: TLS with client certificates whose role decides "
+                     "writes, on HOST:PORT (802 is its port; below 1024 needs root or "
+                     "CAP_NET_BIND_SERVICE), or off (default: off; docs/modbus.md)")
     run.add_argument("--trusted-keys", metavar="DIR", help="downloads must be signed by one of "
                      "the Ed25519 public keys DIR/*.pub (softplc keys, softplc sign); none there: "
                      f"unsigned downloads are taken (default: STATE_DIR/{TRUSTED_DIR})")
+
+
+def _modbus_tls(text: str) -> tuple[str, int] | None:
+    if text in ("off", "none"):
+        return None
+    host, _, port = text.rpartition(":")
+    if not port.isdigit() or not 0 < int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT or off, got {text!r}")
+    return (host or "127.0.0.1", int(port))
 
 
 def prepare(args: argparse.Namespace) -> str | None:

@@ -1,8 +1,9 @@
-"""The CLI's trust list: `softplc trust list|accept NAME|remove NAME` (issue 31).
+"""The CLI's trust lists: `softplc trust list|accept NAME|remove NAME [--modbus]` (issue 31).
 
 Owns: their arguments, what a person reads, exit codes (0 done, 1 refused), and the audit
-records of changes made here. They act on STATE_DIR/pki directly, as the account that owns
-it; a running OPC UA server sees a change at the next secure channel it opens.
+records of changes made here. They act on STATE_DIR/pki (OPC UA's clients) or, with
+--modbus, STATE_DIR/modbus-tls (Modbus/TCP Security's) directly, as the account that owns
+it; a running server sees a change at the next connection it accepts.
 Does not know: OPC UA, the PLC, how a certificate is checked (trust.py).
 """
 
@@ -19,6 +20,8 @@ from softplc.api.roles import Role
 from softplc.api.trust import Certificate, TrustError, TrustList
 from softplc.api.users import OWNER
 
+MODBUS_TLS_DIR: Final = "modbus-tls"  # hmi/secure.py's, which this room may not import
+
 EXIT_OK: Final = 0
 EXIT_REFUSED: Final = 1
 _STATE_HELP: Final = "the PLC's state directory, as given to softplc run (default: %(default)s)"
@@ -26,8 +29,8 @@ _STATE_HELP: Final = "the PLC's state directory, as given to softplc run (defaul
 
 def add_trust_commands(subparsers: Any) -> None:
     trust = subparsers.add_parser(
-        "trust", help="client certificates the OPC UA server trusts (STATE_DIR/pki): a refused "
-        "one waits in rejected/ until accepted")
+        "trust", help="client certificates the OPC UA server (STATE_DIR/pki) or, with --modbus, "
+        "the Modbus/TCP Security port trusts: a refused one waits in rejected/ until accepted")
     verbs = trust.add_subparsers(dest="verb", required=True, metavar="VERB",
                                  help="list, accept or remove")
     verbs.add_parser("list", help="trusted and rejected certificates")
@@ -39,11 +42,14 @@ def add_trust_commands(subparsers: Any) -> None:
     remove.add_argument("name", help="a name from `softplc trust list` (or a unique start)")
     for parser in (verbs.choices["list"], accept, remove):
         parser.add_argument("--state-dir", metavar="DIR", default="state", help=_STATE_HELP)
+        parser.add_argument("--modbus", action="store_true", help="the Modbus/TCP Security "
+                            f"port's clients (STATE_DIR/{MODBUS_TLS_DIR}), not OPC UA's")
     trust.set_defaults(func=cmd_trust)
 
 
 def cmd_trust(args: argparse.Namespace) -> int:
-    trust = TrustList(args.state_dir)
+    trust = (TrustList(args.state_dir, MODBUS_TLS_DIR) if getattr(args, "modbus", False)
+             else TrustList(args.state_dir))
     try:
         if args.verb == "list":
             print(_table(trust.certificates()))

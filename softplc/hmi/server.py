@@ -4,7 +4,8 @@ Owns: listening, applying the connection rule of admission.py (evict the idle-lo
 refuse), the idle timeout, flow control, and moving bytes between sockets and the pure
 Responder (frames.py).
 Does not know: the register map (map.py), Modbus semantics (frames.py), the admission rule
-itself, how snapshots are published or journaled writes applied.
+itself, how snapshots are published or journaled writes applied, TLS (secure.py subclasses
+the connection: `_connection_factory`, `_reply_stream`).
 
 pymodbus gives the listener and the connection registry that `shutdown()` closes. Every
 byte a client sends is handled by `_Connection.data_received`; pymodbus' framer, decoder,

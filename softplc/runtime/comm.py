@@ -36,6 +36,7 @@ from softplc.runtime.procs import supervisor_pid
 from softplc.runtime.shm import SnapshotReader
 
 if TYPE_CHECKING:
+    from softplc.hmi.secure import SecureModbusSlave
     from softplc.hmi.server import ModbusSlave
     from softplc.opcua.limits import OpcUaLimits
 
@@ -75,6 +76,7 @@ class CommConfig:
     modbus_idle_timeout_s: float = 60.0
     opcua: tuple[str, int] | None = None  # `softplc run` serves 127.0.0.1:4840 unless told off
     opcua_limits: OpcUaLimits | None = None  # None: the defaults of opcua/limits.py
+    modbus_tls: tuple[str, int] | None = None  # Modbus/TCP Security (hmi/secure.py); off
     nice: int = 0  # added to the process's niceness once its services serve
 
     def __post_init__(self) -> None:
@@ -87,12 +89,14 @@ class CommConfig:
 
 def service_groups(config: CommConfig) -> dict[str, CommConfig]:
     """The service processes of `config` by name, each with the one service it runs and its
-    niceness: "modbus", "http", "opcua". A service that is off has no process. Each process
-    has its own loop, descriptors and memory: a client that fills one (1,000 idle OPC UA
-    sockets, a 15 s Read, a flood of JSON bombs) leaves the others answering."""
-    off: dict[str, Any] = {"modbus": None, "api": None, "opcua": None}
-    groups = {"modbus": ("modbus", MODBUS_NICE), "http": ("api", HTTP_NICE),
-              "opcua": ("opcua", OPCUA_NICE)}
+    niceness: "modbus", "modbus-tls", "http", "opcua". A service that is off has no process.
+    Each process has its own loop, descriptors and memory: a client that fills one (1,000
+    idle OPC UA sockets, a 15 s Read, a flood of JSON bombs) leaves the others answering."""
+    off: dict[str, Any] = {"modbus": None, "api": None, "opcua": None, "modbus_tls": None}
+    # Modbus/TCP Security in a process of its own: a stranger's TLS handshakes cost CPU that
+    # the plain port's HMIs should not share.
+    groups = {"modbus": ("modbus", MODBUS_NICE), "modbus-tls": ("modbus_tls", MODBUS_NICE),
+              "http": ("api", HTTP_NICE), "opcua": ("opcua", OPCUA_NICE)}
     return {name: replace(config, **{**off, service: getattr(config, service)}, nice=nice)
             for name, (service, nice) in groups.items() if getattr(config, service) is not None}
 
@@ -171,6 +175,31 @@ def modbus_slave(config: CommConfig, source: SnapshotSource, sink: Callable[[Hmi
                        idle_timeout_s=config.modbus_idle_timeout_s)
 
 
+def secure_modbus_slave(config: CommConfig, source: SnapshotSource,
+                        sink: Callable[[HmiWrite], None],
+                        read_board: Callable[[], dict[str, Any]]) -> SecureModbusSlave:
+    """The Modbus/TCP Security slave of `config` (not started): its certificate made at the
+    first start in STATE_DIR/modbus-tls/tls/, client certificates trusted in
+    STATE_DIR/modbus-tls/trusted/ (docs/modbus.md, Modbus/TCP Security)."""
+    from softplc.api.audit import AuditTrail
+    from softplc.api.tls import TlsSettings, certificate
+    from softplc.api.trust import TrustList
+    from softplc.hmi.secure import MODBUS_TLS_DIR, SecureModbusSlave, TlsConfig
+
+    assert config.modbus_tls is not None
+    host, port = config.modbus_tls
+    state = Path(config.state_dir)
+    cert, key, _ = certificate(TlsSettings(), state / MODBUS_TLS_DIR, host)
+    tls = TlsConfig(cert, key, TrustList(state, MODBUS_TLS_DIR), AuditTrail(state))
+    writable = (ProgramWritable(read_board, source) if config.modbus_writes == "symbols"
+                else None)
+    return SecureModbusSlave(source, sink, tls=tls, sizes=config.sizes, host=host, port=port,
+                             writable=writable, read_only=config.modbus_writes == "none",
+                             max_connections=config.modbus_max_connections,
+                             max_per_peer=config.modbus_max_per_peer,
+                             idle_timeout_s=config.modbus_idle_timeout_s)
+
+
 async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name: str,
                  ready: Event, stop: Event) -> None:
     asyncio.get_running_loop().set_exception_handler(_LoopErrors())
@@ -182,6 +211,10 @@ async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name
         slave = modbus_slave(config, reader, channel.send_hmi_write, board.read)
         await slave.start()
         services.append(slave)
+    if config.modbus_tls is not None:
+        secure = secure_modbus_slave(config, reader, channel.send_hmi_write, board.read)
+        await secure.start()
+        services.append(secure)
     if config.api is not None:
         from softplc.api.server import ApiServer
 

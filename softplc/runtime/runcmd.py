@@ -183,6 +183,8 @@ def _supervise(supervisor: Supervisor, args: argparse.Namespace,
     try:
         while not stopping():
             time.sleep(0.05)
+            if stopping():  # a signal during the sleep: the children may be ending already
+                break  # (a group's SIGTERM reaches them too), which is no death to heal
             try:
                 said = supervisor.watch()
             except GaveUp as exc:

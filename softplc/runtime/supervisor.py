@@ -58,6 +58,7 @@ class GaveUp(SoftplcError, RuntimeError):
 
 # What each service process is called in process lists and in what the supervisor says.
 _TITLES: Final = {"modbus": ("softplc-modbus", "Modbus process"),
+                  "modbus-tls": ("softplc-modbustls", "Modbus/TCP Security process"),
                   "http": ("softplc-http", "HTTP process"),
                   "opcua": ("softplc-opcua", "OPC UA process")}
 
@@ -158,7 +159,9 @@ class Supervisor:
                               getattr(args, "busy_wait", False)))
         comm_config = CommConfig(modbus=args.modbus, api=args.api, state_dir=args.state_dir,
                                  sizes=sizes, modbus_writes=getattr(args, "modbus_writes", "open"),
-                                 opcua=getattr(args, "opcua", None), **modbus_limits(args))
+                                 opcua=getattr(args, "opcua", None),
+                                 modbus_tls=getattr(args, "modbus_tls", None),
+                                 **modbus_limits(args))
         return cls(loop_config, comm_config)
 
     def start(self, timeout_s: float = 30.0,
@@ -232,7 +235,9 @@ class Supervisor:
     def watch(self) -> list[str]:
         """Heal what died; return what happened (for the console). Raises GaveUp when the scan
         process died more than SCAN_RESTARTS times within RESTART_WINDOW_S."""
-        said = []
+        said: list[str] = []
+        if self._stopping():  # told to stop: a child ending now was told so too (a group's
+            return said  # SIGTERM, systemd's KillMode=control-group), it is not restarted
         if self.scan is not None and not self.scan.is_alive() and not self.stop_scan.is_set():
             said += self._scan_died()
         if self._restart_due is not None and self.clock() >= self._restart_due:
