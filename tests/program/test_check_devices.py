@@ -79,7 +79,8 @@ def test_the_plant_given_with_plant_is_checked(
     assert "is not an actuator of plant 'drilling'" in capsys.readouterr().err
     assert main(["check", str(tmp_path / "p.yaml")]) == 0  # the plant of a later --plant
     assert main(["simulate", str(tmp_path / "p.yaml")]) == 1
-    assert "a sim driver needs plant: NAME (one of drilling, tank, transport)" in capsys.readouterr().err
+    assert ("a sim driver needs plant: NAME (one of drilling, tank, transport)"
+            in capsys.readouterr().err)
     assert main(["simulate", str(tmp_path / "p.yaml"), "--plant", "transport",
                  "--duration", "1s"]) == 0
 
