@@ -1,7 +1,8 @@
 """Session-wide: pytest exits as soon as it has printed its summary, and no test or import
 changes how the process takes a closed pipe.
 
-Owns: SIGPIPE stays ignored (Python's setting): a test or a library import that sets its
+Owns: the test process's open descriptors stay well below select()'s 1024; SIGPIPE stays
+ignored (Python's setting): a test or a library import that sets its
 default action (vcdvcd's import did) made the next write to a closed socket, in any later
 test, kill pytest with no report; the test after which it changed fails, naming it. And the
 end of the session. What a test left running (a non-daemon thread, a thread-pool
@@ -26,6 +27,22 @@ import pytest
 
 GRACE_S: Final = 2.0
 _exit_status: list[int] = [0]
+
+
+# select() (pymodbus's sync client uses it) fails on a descriptor >= 1024: the test process
+# must never hold that many. Leaks (a Channel's 12 pipe ends per API test, never closed) once
+# took it there two thirds of the way through the suite.
+MAX_OPEN_FDS: Final = 768
+
+
+@pytest.fixture(autouse=True)
+def _descriptors_do_not_leak() -> object:
+    yield
+    count = len(os.listdir("/proc/self/fd")) if os.path.isdir("/proc/self/fd") else 0
+    if count > MAX_OPEN_FDS:
+        pytest.fail(f"the test process holds {count} open descriptors (at most "
+                    f"{MAX_OPEN_FDS}): a test before this one leaks them (select() fails "
+                    "at 1024)")
 
 
 @pytest.fixture(autouse=True)

@@ -141,14 +141,16 @@ def client_token(token: str | None = None, state_dir: Path | str | None = None,
 # the state directory, readable by its owner only. An entry whose process is gone, or
 # belongs to another account, is ignored.
 
-def index_dir() -> Path | None:
-    """This account's index directory, made 0700; None when it cannot be trusted (not a
-    directory of ours, open to others)."""
+def index_dir(create: bool = False) -> Path | None:
+    """This account's index directory (made 0700 when `create`: a server registering; a
+    client's look-up leaves nothing behind); None when there is none or it cannot be
+    trusted (not a directory of ours, open to others)."""
     base = os.environ.get(INDEX_ENV) or os.environ.get("XDG_RUNTIME_DIR") \
         or tempfile.gettempdir()
     path = Path(base) / f"softplc-{os.geteuid()}"
-    with contextlib.suppress(FileExistsError, OSError):
-        path.mkdir(mode=0o700, parents=True)
+    if create:
+        with contextlib.suppress(FileExistsError, OSError):
+            path.mkdir(mode=0o700, parents=True)
     try:
         info = path.lstat()
     except OSError:
@@ -161,7 +163,7 @@ def index_dir() -> Path | None:
 
 def register_server(port: int, state_dir: Path) -> Path | None:
     """Say that this process serves loopback `port` from `state_dir`; the entry's path."""
-    directory = index_dir()
+    directory = index_dir(create=True)
     if directory is None:
         return None
     entry = directory / f"api-{port}.json"
@@ -179,6 +181,7 @@ def unregister_server(entry: Path | None) -> None:
     with contextlib.suppress(OSError, ValueError):
         if json.loads(entry.read_text(encoding="utf-8")).get("pid") == os.getpid():
             entry.unlink()
+            entry.parent.rmdir()  # the last server of this account: nothing left in /tmp
 
 
 def indexed_state_dir(url: str) -> Path | None:

@@ -111,6 +111,15 @@ class Channel:
             os.set_blocking(writer.fileno(), False)  # shared by every process holding it
         self._init_local()
 
+    def close(self) -> None:
+        """Close this process's ends of every pipe (the owner, when nobody sends any more):
+        a channel holds 2 + lanes pipes, and one left to the garbage collector keeps them
+        open for as long as anything refers to it."""
+        for reader, writer in (self._commands, self._hmi, *self._lanes):
+            reader.close()
+            writer.close()
+        self._ready.clear()
+
     def _init_local(self) -> None:
         self._client: _Client | None = None
         self._partial: dict[tuple[int, int], list[bytes]] = {}

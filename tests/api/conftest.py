@@ -80,6 +80,7 @@ def plc_parts() -> Iterator[Plc]:
     try:
         yield Plc(channel, reader, board, writer)
     finally:
+        channel.close()
         reader.close()
         writer.close()
         writer.unlink()
