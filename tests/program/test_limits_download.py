@@ -218,10 +218,11 @@ def _toggles_program(n: int = 12) -> str:
 def test_a_compile_over_the_cpu_budget_is_refused_and_the_process_lives_on() -> None:
     compiler = CompileProcess(LoopConfig(root=str(ROOT)), cpu_s=0.5)
     try:  # the budget leaves 0.5 to 1.5 s of CPU (RLIMIT_CPU counts whole seconds)
-        began = time.monotonic()
+        # The refusal names the CPU budget: it came from RLIMIT_CPU, not from the compile
+        # deadline (which says "took longer than"); how long that takes in wall time depends
+        # on how busy the machine is (nice 10: seconds beside busy loops).
         with pytest.raises(CompilerFailed, match=r"CPU budget of 0\.5 s"):
             compiler.build(_download(_toggles_program()))
-        assert time.monotonic() - began < 15
         pid = compiler.pid
         assert wire.loads(compiler.build(_download(ring_program(10, 0))).net).transitions
         assert (compiler.pid, compiler.started) == (pid, 1)

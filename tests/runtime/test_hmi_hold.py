@@ -19,7 +19,7 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 from tests.runtime.test_run_process import ROOT, connect, wait_for
-from tests.support import free_port
+from tests.support import eventually_reachable, free_port
 
 HOLD_COIL = 800  # %MX0.0: coils from `bits` (800) are %MX (docs/modbus.md)
 S1_I_INPUT = 0  # %IX0.0, discrete input 0: a part waits at conveyor 1's input
@@ -65,6 +65,9 @@ def test_hold_stops_the_feed_and_clearing_it_resumes(
         plc: tuple[subprocess.Popen[str], int, int]) -> None:
     proc, modbus, api = plc
     client = connect(modbus)
+    # Each service has a process of its own and serves once it is ready: the Modbus slave
+    # answering says nothing of the HTTP API (refusing connections while it starts).
+    eventually_reachable(lambda: status(api), 60, "the HTTP API answers")
     try:
         assert not client.write_coil(HOLD_COIL, True, device_id=1).isError()
         wait_for(lambda: client.read_coils(HOLD_COIL, count=1, device_id=1).bits[0])
