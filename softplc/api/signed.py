@@ -16,11 +16,10 @@ import contextlib
 import hashlib
 import json
 import logging
-import os
-import tempfile
 from pathlib import Path
 from typing import Any, Final
 
+from softplc.api.files import write_private
 from softplc.api.problems import ApiProblem
 from softplc.core.snapshot import Refusal
 from softplc.program import boot
@@ -74,16 +73,7 @@ class DownloadSigning:
         signers = {k: v for k, v in self._signers().items() if k != digest}
         signers[digest] = signer
         data = json.dumps(dict(list(signers.items())[-KEEP:]), indent=0).encode()
-        fd, tmp = tempfile.mkstemp(dir=self.state_dir, prefix=f".{SIGNERS_FILE}.")
-        try:
-            with os.fdopen(fd, "wb") as out:
-                out.write(data)
-                out.flush()
-                os.fsync(out.fileno())
-            os.replace(tmp, self.state_dir / SIGNERS_FILE)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        write_private(self.state_dir / SIGNERS_FILE, data)
 
     def _signers(self) -> dict[str, str]:
         with contextlib.suppress(OSError, ValueError):

@@ -14,15 +14,14 @@ from __future__ import annotations
 import contextlib
 import datetime
 import hashlib
-import os
 import socket
 import ssl
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Final, Literal
 
 from softplc.api.auth import is_loopback
+from softplc.api.files import write_private
 from softplc.core.errors import SoftplcError
 
 TLS_DIR: Final = "tls"
@@ -66,8 +65,8 @@ def certificate(settings: TlsSettings, state_dir: Path, host: str) -> tuple[Path
         return cert, key, False
     cert.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
     cert_pem, key_pem = _self_signed(host)
-    _write(key, key_pem)
-    _write(cert, cert_pem)
+    write_private(key, key_pem)
+    write_private(cert, cert_pem)
     cert.chmod(0o644)  # public: what clients are given to verify the PLC
     return cert, key, True
 
@@ -139,16 +138,3 @@ def _self_signed(host: str) -> tuple[bytes, bytes]:
     return cert.public_bytes(serialization.Encoding.PEM), key_pem
 
 
-def _write(path: Path, data: bytes) -> None:
-    """Written aside (0600) and renamed: a reader sees the old file or the whole new one."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise

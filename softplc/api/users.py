@@ -19,13 +19,13 @@ import json
 import os
 import re
 import secrets
-import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
+from softplc.api.files import write_private
 from softplc.api.roles import Role
 from softplc.core.errors import SoftplcError
 
@@ -222,22 +222,7 @@ class UserStore:
     def _write(self, users: dict[str, User]) -> None:
         text = json.dumps({"format": 1, "users": {n: u.as_json() for n, u in
                                                   sorted(users.items())}}, indent=1)
-        fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=".users.", suffix=".tmp")
-        try:  # mkstemp makes it 0600
-            with os.fdopen(fd, "w", encoding="utf-8") as handle:
-                handle.write(text + "\n")
-                handle.flush()
-                os.fsync(handle.fileno())
-            os.replace(tmp, self.path)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-            raise
-        directory = os.open(self.path.parent, os.O_RDONLY)
-        try:
-            os.fsync(directory)
-        finally:
-            os.close(directory)
+        write_private(self.path, (text + "\n").encode("utf-8"), sync_directory=True)
         self._seen = None
 
 

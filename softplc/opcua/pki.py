@@ -10,11 +10,8 @@ Does not know: asyncua's server, the trust list of clients (api/trust.py), sessi
 
 from __future__ import annotations
 
-import contextlib
 import datetime
 import logging
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Final
@@ -25,6 +22,7 @@ from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from softplc.api.certnames import alt_names, subject
+from softplc.api.files import write_private
 from softplc.api.trust import PKI_DIR, TrustList, thumbprint
 
 log = logging.getLogger(__name__)
@@ -61,7 +59,7 @@ def server_identity(state_dir: Path, application_uri: str, hosts: list[str]) -> 
         log.warning("the OPC UA certificate names another ApplicationUri: a new one is made for "
                     "%s (clients that trusted the old one must trust this one)", application_uri)
     der = _self_signed(key, application_uri, hosts)
-    _write(cert_path, der)
+    write_private(cert_path, der)
     log.info("OPC UA server certificate made: %s (SHA-1 %s)", cert_path, thumbprint(der))
     return ServerIdentity(cert_path, key_path, thumbprint(der), made=True)
 
@@ -75,7 +73,7 @@ def _load_or_make_key(path: Path) -> rsa.RSAPrivateKey:
             return key
         raise ValueError(f"{path} is not an RSA key; remove it to get a new one")
     key = rsa.generate_private_key(public_exponent=65537, key_size=KEY_BITS)
-    _write(path, key.private_bytes(serialization.Encoding.PEM,
+    write_private(path, key.private_bytes(serialization.Encoding.PEM,
                                    serialization.PrivateFormat.PKCS8,
                                    serialization.NoEncryption()))
     return key
@@ -113,15 +111,3 @@ def _self_signed(key: rsa.RSAPrivateKey, uri: str, hosts: list[str]) -> bytes:
     return builder.sign(key, hashes.SHA256()).public_bytes(serialization.Encoding.DER)
 
 
-def _write(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")  # 0600
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
