@@ -9,15 +9,15 @@ import contextlib
 import io
 import time
 from collections.abc import Iterator
-from typing import Any
 
 import pytest
 
-from softplc.api.client import ApiClient, ApiError
+from softplc.api.client import ApiClient
 from softplc.api.web import live_frame
 from softplc.cli import main
 from tests.api.helpers import call
-from tests.support import eventually, free_port, softplc_run
+from tests.debug.live import status, transport_plc
+from tests.support import eventually
 
 
 def cli(*args: str) -> tuple[int, str, str]:
@@ -29,24 +29,8 @@ def cli(*args: str) -> tuple[int, str, str]:
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]]:
-    state = tmp_path_factory.mktemp("state")
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
-    with softplc_run(["programs/transport.yaml", "--plant", "transport", "--start", "--api",
-                      f"127.0.0.1:{port}", "--modbus", f"127.0.0.1:{free_port()}", "--opcua",
-                      "off", "--state-dir", str(state), "--quiet"], lambda: running(url)):
-        yield url, str(state)
-
-
-def running(url: str) -> bool:
-    try:
-        return ApiClient(url, timeout_s=2).status().get("board_scan_count", 0) > 0
-    except (ApiError, OSError):
-        return False
-
-
-def status(url: str) -> dict[str, Any]:
-    return ApiClient(url, timeout_s=5).status()
+    with transport_plc(tmp_path_factory) as plc:
+        yield plc
 
 
 def test_break_on_handed_over_step_and_continue(server: tuple[str, str]) -> None:

@@ -16,8 +16,9 @@ from typing import Any
 
 import pytest
 
-from softplc.api.client import ApiClient, ApiError
-from tests.support import ROOT, eventually, free_port, softplc_run, stop_process
+from softplc.api.client import ApiClient
+from tests.debug.live import status, transport_plc
+from tests.support import ROOT, eventually, free_port, stop_process
 
 PROGRAM = ROOT / "programs" / "transport.yaml"
 HANDED_OVER_LINE = 25  # `  handed_over:` in programs/transport.yaml
@@ -72,24 +73,8 @@ class Dap:
 
 @pytest.fixture(scope="module")
 def plc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]]:
-    state = tmp_path_factory.mktemp("state")
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
-    with softplc_run(["programs/transport.yaml", "--plant", "transport", "--start", "--api",
-                      f"127.0.0.1:{port}", "--modbus", f"127.0.0.1:{free_port()}", "--opcua",
-                      "off", "--state-dir", str(state), "--quiet"], lambda: running(url)):
-        yield url, str(state)
-
-
-def running(url: str) -> bool:
-    try:
-        return ApiClient(url, timeout_s=2).status().get("board_scan_count", 0) > 0
-    except (ApiError, OSError):
-        return False
-
-
-def status(url: str) -> dict[str, Any]:
-    return ApiClient(url, timeout_s=5).status()
+    with transport_plc(tmp_path_factory) as running_plc:
+        yield running_plc
 
 
 @pytest.fixture

@@ -13,9 +13,10 @@ from typing import Any
 
 import pytest
 
-from softplc.api.client import ApiClient, ApiError
+from softplc.api.client import ApiClient
 from softplc.cli import main
-from tests.support import eventually, free_port, softplc_run
+from tests.debug.live import transport_plc
+from tests.support import eventually
 
 ROOT = Path(__file__).resolve().parents[2]
 PROGRAM = """program: gate
@@ -41,20 +42,8 @@ def cli(*args: str) -> tuple[int, str, str]:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """`softplc run programs/transport.yaml --plant transport --start` (make run's PLC)."""
-    state = tmp_path_factory.mktemp("state")
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
-    with softplc_run(["programs/transport.yaml", "--plant", "transport", "--start", "--api",
-                      f"127.0.0.1:{port}", "--modbus", f"127.0.0.1:{free_port()}", "--opcua",
-                      "off", "--state-dir", str(state), "--quiet"], lambda: running(url)):
+    with transport_plc(tmp_path_factory) as (url, _):
         yield url
-
-
-def running(url: str) -> bool:
-    try:
-        return ApiClient(url, timeout_s=2).status().get("board_scan_count", 0) > 0
-    except (ApiError, OSError):
-        return False
 
 
 def why(url: str, name: str) -> dict[str, Any]:
