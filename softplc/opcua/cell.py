@@ -194,7 +194,8 @@ class Watcher:
 
     def __init__(self, run: CellRun) -> None:
         self.run = run
-        self.clients = {name: Client(run.url(name), timeout=5) for name in STATES}
+        self.clients = {name: Client(run.url(name), timeout=5, watchdog_intervall=5)
+                        for name in STATES}
         # The cell's HMI bit end_feed is written, which needs a user token.
         self.clients["cell"].set_user("watcher")
         self.clients["cell"].set_password(load_or_create_token(run.state_dir("cell")))

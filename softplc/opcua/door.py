@@ -48,6 +48,10 @@ log = logging.getLogger(__name__)
 
 SUMMARY_S: Final = 10.0  # at most one summary line of refusals per this
 FD_RESERVE: Final = 64  # descriptors kept for the listener, the channel, shm, logs
+# Requests a connection may make before its session is activated: a client needs Hello,
+# OpenSecureChannel, GetEndpoints, CreateSession and ActivateSession, and a few retries. A
+# connection that keeps asking without activating is closed however quickly it asks.
+MAX_UNACTIVATED_REQUESTS: Final = 16
 _HEADER: Final = struct.Struct("<3scI")  # message type, chunk type, message size
 _CREATE_SESSION: Final = numeric_id(ua.ObjectIds.CreateSessionRequest_Encoding_DefaultBinary)
 # (peer, SecurityPolicyUri, the sender's certificate) -> a refusal's status code, or None
@@ -264,6 +268,11 @@ class Connection(OPCUAProtocol):
         self.peer = "?"
         self.key = str(id(self))
         self.connected_s = time.monotonic()
+        # The activation timeout counts the client's time only: since when the server has
+        # been waiting for this client (None while a request of its is queued or served:
+        # the server's own time, which a busy host stretches, never closes a connection).
+        self.waiting_since_s: float | None = self.connected_s
+        self.requests = 0
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         peername = transport.get_extra_info("peername")
@@ -278,6 +287,19 @@ class Connection(OPCUAProtocol):
                 self.door.check_request, self.peer, processor, processor._process_message)
 
     async def _process_one_msg(self, header: Any, buf: Buffer) -> bool:
+        self.waiting_since_s = None
+        self.requests += 1
+        if self.requests > MAX_UNACTIVATED_REQUESTS and not self.activated():
+            self.door.count("not_activated")
+            self.close()
+            return False
+        try:
+            return await self._process_checked(header, buf)
+        finally:
+            if self.messages.empty():
+                self.waiting_since_s = time.monotonic()
+
+    async def _process_checked(self, header: Any, buf: Buffer) -> bool:
         refusal = self._channel_refusal(header, buf)
         if refusal is None:
             return await super()._process_one_msg(header, buf)
@@ -329,10 +351,26 @@ class Connection(OPCUAProtocol):
             self.close()
             return
         super().data_received(data)
+        if not self.messages.empty():  # a whole request arrived: the server's turn
+            self.waiting_since_s = None
+
+    def activated(self) -> bool:
+        session = self.processor.session if self.processor is not None else None
+        return session is not None and session.is_activated()
 
     async def _activation_watchdog(self) -> None:
-        await asyncio.sleep(self.door.door_limits.activation_timeout_s)
-        session = self.processor.session if self.processor is not None else None
-        if (session is None or not session.is_activated()) and self.is_open():
-            self.door.count("not_activated")
-            self.close()
+        """Close a connection without an activated session once the server has waited
+        `activation_timeout_s` for its client in one stretch. The time the server spends on
+        the client's requests does not count: beside busy processes, at niceness 10, a
+        user's scrypt check alone took longer than the timeout, and the client was cut off
+        before its answer (asyncio delivers data that arrived while the process waited for
+        a CPU before it runs this timer, so a starved server still sees the request first)."""
+        timeout_s = self.door.door_limits.activation_timeout_s
+        while self.is_open() and not self.activated():
+            since = self.waiting_since_s
+            left_s = timeout_s if since is None else since + timeout_s - time.monotonic()
+            if left_s <= 0:
+                self.door.count("not_activated")
+                self.close()
+                return
+            await asyncio.sleep(left_s)

@@ -205,7 +205,10 @@ class OpcUaIoDriver:
         self._wake = asyncio.Event()
         timeout_s = float(self.params.get("timeout_s", 2.0))
         while True:
-            client = Client(str(self.params["url"]), timeout=timeout_s)
+            # asyncua probes the server every second and drops the connection when one
+            # probe takes longer than that: a remote is lost after timeout_s, as for reads.
+            client = Client(str(self.params["url"]), timeout=timeout_s,
+                            watchdog_intervall=timeout_s)
             if self.params.get("user"):
                 client.set_user(str(self.params["user"]))
                 client.set_password(os.environ.get(str(self.params.get("password_env", "")), ""))

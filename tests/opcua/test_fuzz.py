@@ -12,9 +12,9 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from asyncua import Client, ua
+from asyncua import ua
 
-from tests.opcua.conftest import Plc, start_plc, stop_plc
+from tests.opcua.conftest import Plc, patient_client, start_plc, stop_plc
 
 CASES = 150 * int(os.environ.get("SOFTPLC_FUZZ_SCALE", "1"))
 
@@ -58,7 +58,7 @@ def _send(port: int, data: bytes) -> None:
 
 
 async def _status(plc: Plc) -> tuple[int, str, int]:
-    async with Client(plc.url, timeout=10) as client:
+    async with patient_client(plc.url) as client:
         ns = await client.get_namespace_index("urn:softplc")
         node = lambda name: client.get_node(ua.NodeId(f"PLC.Status.{name}", ns))  # noqa: E731
         return (int(await node("ScanCount").read_value()), await node("State").read_value(),

@@ -10,7 +10,7 @@ from pathlib import Path
 from asyncua import Client, ua
 
 from softplc.api.client import ApiClient
-from tests.opcua.conftest import start_plc, stop_plc
+from tests.opcua.conftest import patient_client, start_plc, stop_plc
 from tests.support import free_port
 
 TIMEOUT_S = 60.0
@@ -40,7 +40,7 @@ def test_opc_ua_shows_the_pause_of_a_breakpoint_and_its_end(tmp_path: Path) -> N
     api = ApiClient(f"http://127.0.0.1:{api_port}", state_dir=tmp_path, timeout_s=10)
 
     async def scenario() -> list[Seen]:
-        async with Client(plc.url, timeout=10) as client:
+        async with patient_client(plc.url) as client:
             ns = await client.get_namespace_index("urn:softplc")
             seen = [await _status(client, ns)]
             assert api.add_breakpoint("enabled", "c1.start")["breakpoint"] == "b1"

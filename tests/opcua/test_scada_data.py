@@ -18,7 +18,7 @@ from asyncua import Client, ua
 
 import softplc
 from softplc.opcua.ids import string_id
-from tests.opcua.conftest import Plc, start_plc, stop_plc
+from tests.opcua.conftest import Plc, patient_client, start_plc, stop_plc
 from tests.opcua.pids import api_status
 from tests.support import free_port
 
@@ -36,7 +36,7 @@ def plc_with_api(tmp_path: Path) -> Iterator[tuple[Plc, int]]:
 
 
 def _client(plc: Plc, token: str | None = None) -> Client:
-    client = Client(plc.url, timeout=10)
+    client = patient_client(plc.url)
     if token is not None:
         client.set_user("operator")
         client.set_password(token)

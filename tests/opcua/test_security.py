@@ -24,7 +24,7 @@ from softplc.api.roles import Role
 from softplc.api.users import UserStore
 from softplc.opcua.ids import string_id
 from tests.opcua.certs import client_certificate
-from tests.opcua.conftest import ROOT, Plc
+from tests.opcua.conftest import ROOT, Plc, patient_client
 
 NS_URI = "urn:softplc"
 CLIENT_URI = "urn:softplc-test:client"
@@ -42,7 +42,7 @@ async def _secure(plc: Plc, cert: Path, key: Path, user: str | None = None,
                   policy: type = SecurityPolicyBasic256Sha256,
                   mode: ua.MessageSecurityMode = ua.MessageSecurityMode.SignAndEncrypt,
                   password: str | None = None) -> Client:
-    client = Client(plc.url, timeout=15)
+    client = patient_client(plc.url)
     client.application_uri = CLIENT_URI
     await client.set_security(policy, str(cert), str(key), mode=mode)
     if user is not None:
@@ -124,7 +124,7 @@ def test_untrusted_refused_then_accepted_roles_and_audit(transport_plc: Plc,
                 pass
         assert wrong.value.code == ua.StatusCodes.BadUserAccessDenied
 
-        async with Client(plc.url, timeout=15) as anonymous:  # security None: loopback
+        async with patient_client(plc.url) as anonymous:  # security None: loopback
             ns, _ = await _program(anonymous)
             hold = anonymous.get_node(string_id("PLC.Symbols.hold", ns))
             level = await hold.read_attribute(ua.AttributeIds.UserAccessLevel)

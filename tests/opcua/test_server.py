@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 from asyncua import Client, Node, ua
 
-from tests.opcua.conftest import ROOT, Plc
+from tests.opcua.conftest import ROOT, Plc, patient_client
 
 NS_URI = "urn:softplc"
 TIMEOUT_S = 30.0
@@ -34,7 +34,7 @@ def _client(plc: Plc, token: str | None = None) -> Client:
     # beside 4 busy loops, rebuilding the address space for a downloaded program took the
     # server longer than 10 s, and asyncua's watchdog dropped the session. The client waits
     # as an operator's would; what is checked is the answers.
-    client = Client(plc.url, timeout=30)
+    client = patient_client(plc.url)
     if token is not None:
         client.set_user("operator")
         client.set_password(token)

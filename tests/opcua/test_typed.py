@@ -25,7 +25,7 @@ from softplc.opcua.driver import OpcUaIoDriver
 from softplc.opcua.ids import numeric_id, string_id
 from softplc.opcua.typed import remote_raw, remote_variant
 from softplc.program.io_image import parse_io_image
-from tests.opcua.conftest import Plc, start_plc, stop_plc
+from tests.opcua.conftest import Plc, patient_client, start_plc, stop_plc
 from tests.support import free_port
 
 IO = """\
@@ -98,7 +98,7 @@ def typed_plc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TypedPlc]:
 
 
 def _client(plc: Plc) -> Client:
-    client = Client(plc.url, timeout=10)
+    client = patient_client(plc.url)
     client.set_user("owner")
     client.set_password(plc.token)  # the owner's key: may write
     return client

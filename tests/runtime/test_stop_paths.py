@@ -33,10 +33,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-from asyncua import Client, ua
+from asyncua import ua
 from asyncua.client.ua_client import UASocketState
 
 from softplc.cli import main as cli_main
+from tests.opcua.conftest import patient_client
 from tests.support import eventually, free_port
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -229,7 +230,7 @@ def attach_opcua(clients: Clients, port: int) -> None:
             pass
 
     async def session() -> None:
-        client = Client(f"opc.tcp://127.0.0.1:{port}", timeout=10)
+        client = patient_client(f"opc.tcp://127.0.0.1:{port}", 10)
         await client.connect()
         try:
             subscription = await client.create_subscription(50, Quiet())

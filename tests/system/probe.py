@@ -18,7 +18,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from asyncua import Client, ua
+from asyncua import ua
 from pymodbus.client import ModbusTcpClient
 
 from softplc.api.client import ApiError, ApiUnreachable
@@ -31,6 +31,7 @@ from softplc.hmi.map import (
     STATUS_STATE,
     STATUS_WORDS,
 )
+from tests.opcua.conftest import patient_client
 from tests.system.programs import COILS, Module
 from tests.system.rig import ROOT, Run
 
@@ -120,7 +121,7 @@ def coils(module: Module) -> list[bool]:
 def opcua_state(run: Run) -> tuple[str, str]:
     """(PLC.Status.State, PLC.Program.CurrentState's text)."""
     async def read() -> tuple[str, str]:
-        async with Client(run.opcua_url, timeout=8) as client:
+        async with patient_client(run.opcua_url, 8) as client:
             ns = await client.get_namespace_index(NS_URI)
             state = await client.get_node(ua.NodeId("PLC.Status.State", ns)).read_value()
             current = await client.get_node(
@@ -131,7 +132,7 @@ def opcua_state(run: Run) -> tuple[str, str]:
 
 def _opcua_call(run: Run, method: str, *args: Any) -> Outcome:
     async def call() -> Outcome:
-        client = Client(run.opcua_url, timeout=70)
+        client = patient_client(run.opcua_url, 70)
         client.set_user("operator")
         client.set_password(run.token)
         async with client:
