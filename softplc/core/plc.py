@@ -18,15 +18,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from softplc.core import events as event_conditions
-from softplc.core import online
+from softplc.core import memory, online
 from softplc.core.breakpoints import Breakpoints
 from softplc.core.context import ScanContext
-from softplc.core.datatypes import raw_of
 from softplc.core.engine import Engine
 from softplc.core.faults import DeviceMonitor
 from softplc.core.forcing import Force, ForceRefused, Forces
 from softplc.core.held import HeldOutputs, IoWait, awaited_devices, drive_safe
-from softplc.core.image import AREAS, Area, ProcessImage
+from softplc.core.image import Area, ProcessImage
 from softplc.core.lifecycle import (
     Command,
     CommandRejected,
@@ -42,7 +41,7 @@ from softplc.core.present import shown_number
 from softplc.core.problems import FaultCode
 from softplc.core.result import ScanResult
 from softplc.core.snapshot import HmiWrite
-from softplc.core.symbols import DriverSpec, FaultPolicy, SymType, unretained_memory
+from softplc.core.symbols import DriverSpec, FaultPolicy, SymType
 
 # Kept for readers of older code and tests: the codes are FaultCode's.
 FAULT_NONE, FAULT_WATCHDOG, FAULT_DEVICE = FaultCode.NONE, FaultCode.WATCHDOG, FaultCode.DEVICE
@@ -146,10 +145,10 @@ class Plc:
                 raise CommandRejected(self.state, cmd.command, "download without a program")
             if self.state is PlcState.RUNNING:
                 return self._online_change(cmd)
-            self._load(cmd.net, self._fresh(cmd.net, clear=True), cmd.engine)
+            self._load(cmd.net, self._fresh(cmd.net), cmd.engine, clear=True)
         elif cmd.command is Command.START or cmd.command is Command.RESET:
             assert self.net is not None
-            self._load(self.net, self._fresh(self.net, clear=cmd.command is Command.RESET))
+            self._load(self.net, self._fresh(self.net), clear=cmd.command is Command.RESET)
             if cmd.command is Command.RESET:  # a start keeps what was forced while READY
                 self.forces.release(None)  # a reset drops every force (docs/design.md 10)
         elif cmd.command is Command.RESUME:
@@ -169,17 +168,21 @@ class Plc:
             self.fault_code, self.fault_reason = FAULT_NONE, ""
         return f"{cmd.command.value}: now {target.name}"
 
-    def _fresh(self, net: CompiledNet, clear: bool) -> NetState:
-        """`net`'s initial state, persistent places kept from a program of the same name; with
-        `clear` (download, reset) its non-retained memory symbols to 0 (docs/retain.md)."""
-        if clear and net.io.sizes == self.image.sizes:  # else _load makes a new image
-            for sym in unretained_memory(net.io):
-                self.image.set(sym.address, 0)
+    def _fresh(self, net: CompiledNet) -> NetState:
+        """`net`'s initial state, persistent places kept from a program of the same name."""
         return NetState.fresh(net, self.net, self.engine.state if self.engine else None)
 
-    def _load(self, net: CompiledNet, state: NetState, engine: Engine | None = None) -> None:
+    def _load(self, net: CompiledNet, state: NetState, engine: Engine | None = None,
+              clear: bool = False) -> None:
+        """`net` with `state` in; memory symbols new to the image take their `init:`, and with
+        `clear` (download, reset) the non-retained ones too (core/memory.py)."""
+        before = self.net.io if self.net is not None else None
         if net.io.sizes != self.image.sizes:
             self.image, self.prev = ProcessImage(net.io.sizes), ProcessImage(net.io.sizes)
+            before = None  # a new image holds no symbol's value
+        memory.initialized(self.image, net.io, before)
+        if clear:
+            memory.unretained(self.image, net.io)
         if engine is not None and engine.net is net and engine is not self.engine:
             engine.state = state  # tables built off the scan; only the state is new
             engine.invalidate()
@@ -374,26 +377,3 @@ class Plc:
 
     def drive_safe(self) -> None:
         drive_safe(self.image, self.net.io.symbols.values() if self.net else ())
-
-    def _changed(self) -> set[str]:
-        changed: set[str] = set()
-        image, prev = self.image, self.prev
-        if (image.buf is not None and prev.buf is not None
-                and image.buf.tobytes() == prev.buf.tobytes()):
-            return changed  # the common scan: one comparison of the whole image
-        for area in AREAS:
-            now, before = getattr(self.image, area), getattr(self.prev, area)
-            if now.tobytes() == before.tobytes():
-                continue
-            for index in np.flatnonzero(now != before).tolist():
-                changed.update(self.by_location.get((area, index), ()))
-        return changed
-
-    def _write(self, writes: Iterable[tuple[str, int | float]]) -> None:
-        """Values already checked against their symbol's type (core/engine/outputs.py)."""
-        for symbol, value in writes:
-            area, index = self.locations[symbol]
-            arr, typed = getattr(self.image, area), self.typed.get(symbol)
-            arr[index] = (bool(value) if area.endswith("x") else int(value) & 0xFFFF
-                          if typed is None else raw_of(typed, value))
-

@@ -37,6 +37,9 @@ class Scaling:
     unit: str = ""
     clamp: bool = False
     whole: bool = True  # the raw type is an integer type: to_raw rounds
+    # What the Modbus slave serves (docs/modbus.md, scaled symbols): "raw", the image's
+    # value, or "eng", the engineering value in the symbol's type. A display choice, as `unit`.
+    modbus: str = "raw"
 
     def __post_init__(self) -> None:
         if self.raw[0] == self.raw[1] or self.eng[0] == self.eng[1]:
@@ -67,6 +70,8 @@ class Scaling:
         return round(raw) if self.whole else raw
 
     def as_dict(self) -> dict[str, Any]:
-        """For the status board and displays: `{raw: [..], eng: [..], unit, clamp}`."""
-        return {"raw": list(self.raw), "eng": list(self.eng), "unit": self.unit,
-                "clamp": self.clamp}
+        """For the status board and displays: `{raw: [..], eng: [..], unit, clamp}`, and
+        `modbus: eng` when the Modbus slave serves the engineering value."""
+        shown = {"raw": list(self.raw), "eng": list(self.eng), "unit": self.unit,
+                 "clamp": self.clamp}
+        return shown if self.modbus == "raw" else {**shown, "modbus": self.modbus}

@@ -13,12 +13,15 @@ importable from here.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
+
+import numpy as np
 
 from softplc.core import events as event_conditions
 from softplc.core import pausing
 from softplc.core.context import ScanContext
-from softplc.core.image import Area, ProcessImage
+from softplc.core.datatypes import raw_of
+from softplc.core.image import AREAS, Area, ProcessImage
 from softplc.core.judge import NOTHING_OBSERVED, Observed, judge
 from softplc.core.lifecycle import Command, CommandRejected, PlcState
 from softplc.core.plc import (
@@ -153,7 +156,7 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
         ctx.events = now_events  # one context per image and program, not one per scan
         # Symbols the program wrote last scan count as changed too: the end-of-scan image
         # already holds them, so the image difference alone would miss them.
-        changed = plc._changed()
+        changed = _changed(plc)
         for more in (now_events, plc.true_last, plc.written_last):
             if more:
                 changed |= more
@@ -161,7 +164,7 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
         plc.engine.scan = plc.scan_count  # diagnostics name the scan
         step = plc.engine.fire_round(ctx, now_ns, changed)
         if step.writes:
-            plc._write(step.writes)
+            _write(plc, step.writes)
             plc.written_last = {symbol for symbol, _ in step.writes}
         elif plc.written_last:
             plc.written_last = set()
@@ -200,6 +203,32 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
     if quiet is None or quiet.outputs is not plc.image:
         quiet = plc.quiet_result = ScanResult(plc.image, (), (), (), {}, (), False)
     return quiet
+
+
+def _changed(plc: Plc) -> set[str]:
+    """The symbols whose location differs from the previous scan's image."""
+    changed: set[str] = set()
+    image, prev = plc.image, plc.prev
+    if (image.buf is not None and prev.buf is not None
+            and image.buf.tobytes() == prev.buf.tobytes()):
+        return changed  # the common scan: one comparison of the whole image
+    for area in AREAS:
+        now, before = getattr(image, area), getattr(prev, area)
+        if now.tobytes() == before.tobytes():
+            continue
+        for index in np.flatnonzero(now != before).tolist():
+            changed.update(plc.by_location.get((area, index), ()))
+    return changed
+
+
+def _write(plc: Plc, writes: Iterable[tuple[str, int | float]]) -> None:
+    """The firing round's writes into the image; values already checked against their
+    symbol's type (core/engine/outputs.py)."""
+    for symbol, value in writes:
+        area, index = plc.locations[symbol]
+        arr, typed = getattr(plc.image, area), plc.typed.get(symbol)
+        arr[index] = (bool(value) if area.endswith("x") else int(value) & 0xFFFF
+                      if typed is None else raw_of(typed, value))
 
 
 def _same_outputs(a: ProcessImage, b: ProcessImage) -> bool:

@@ -63,6 +63,9 @@ class Symbol:
     # Raw (this type, what drivers, the image and the Modbus slave move) <-> engineering
     # units (a float, what the program's expressions, events and writes use).
     scaling: Scaling | None = None
+    # Memory only: the raw bits `init:` puts at the address (given in engineering units on a
+    # scaled symbol, checked and converted once, when parsed); None: no `init:` (core/memory.py).
+    init_raw: int | None = None
 
     @property
     def safe_raw(self) -> int:

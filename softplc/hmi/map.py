@@ -1,7 +1,8 @@
 """The Modbus register map for HMIs: Modbus tables and 0-based addresses <-> IEC areas.
 
 Owns: the four tables and their segments (OpenPLC-compatible, docs/design.md section 6), the
-status block layout, read range checks, and turning an HMI write into journal entries.
+status block layout, read range checks, and turning an HMI write into journal entries; the
+registers of symbols served in engineering units go through eng.py both ways.
 Does not know: sockets, frames, function codes, pymodbus, when writes are applied.
 """
 
@@ -13,7 +14,9 @@ from dataclasses import dataclass
 
 from softplc.core.errors import SoftplcError
 from softplc.core.image import WORD_MAX, Address, Area, ImageSizes, Width, split_registers
+from softplc.core.present import ValueRefused
 from softplc.core.snapshot import HmiWrite, Snapshot, Status
+from softplc.hmi.eng import EngTable, Presentation, join_registers
 
 
 class Table(enum.Enum):
@@ -179,11 +182,13 @@ class RegisterMap:
     snapshot to answer from, writes return the journal entries and change nothing."""
 
     def __init__(
-        self, sizes: ImageSizes, *, writable: Writable | None = None, read_only: bool = False
+        self, sizes: ImageSizes, *, writable: Writable | None = None, read_only: bool = False,
+        presentation: Presentation | None = None,
     ) -> None:
         self.sizes = sizes
         self.read_only = read_only
         self._writable = writable
+        self._presentation = presentation  # None: every register is raw
         self._segments = _segments(sizes)
 
     def size(self, table: Table) -> int:
@@ -197,9 +202,14 @@ class RegisterMap:
                 ExceptionCode.SERVER_DEVICE_FAILURE,
                 f"snapshot image {snapshot.image.sizes} does not match the map {self.sizes}",
             )
+        pieces = list(self._pieces(table, address, count))
+        eng = None
+        if self._presentation is not None and table is not Table.COILS \
+                and table is not Table.DISCRETE_INPUTS:
+            eng = self._presentation(snapshot.status.program_hash)  # the snapshot's program
         values: list[int] = []
-        for piece in self._pieces(table, address, count):
-            values += _read_piece(snapshot, piece)
+        for piece in pieces:
+            values += _read_piece(snapshot, piece, eng)
         return values
 
     def plan_write(self, table: Table, address: int, values: Sequence[int]) -> list[HmiWrite]:
@@ -214,7 +224,13 @@ class RegisterMap:
         writes = [_journal_entry(piece, values) for piece in pieces]
         for write in writes:
             self._check_writable(write)
-        return writes
+        if self._presentation is None or table is Table.COILS:
+            return writes
+        eng = self._presentation(None)  # the program the latest snapshot runs
+        if eng.stale:  # its registers' presentation is not known yet: never store a guess
+            raise MapError(ExceptionCode.SERVER_DEVICE_BUSY, "a new program is being loaded "
+                           "and how it presents its registers is not known yet: retry")
+        return [_raw_write(write, eng) for write in writes]
 
     def _check_writable(self, write: HmiWrite) -> None:
         if self._writable is None:
@@ -248,16 +264,22 @@ def _overlaps(segments: Sequence[_Segment], address: int, end: int) -> Iterator[
             yield _Piece(seg, lo - seg.start, lo - address, hi - lo)
 
 
-def _read_piece(snapshot: Snapshot, piece: _Piece) -> list[int]:
+def _read_piece(snapshot: Snapshot, piece: _Piece, eng: EngTable | None) -> list[int]:
     seg, lo, hi = piece.segment, piece.offset, piece.offset + piece.count
     if seg.area is None:
         return status_registers(snapshot.status)[lo:hi]
     area = snapshot.image.area(seg.area, seg.width)
     per = seg.per
+    first_index = lo // per
+    raws = [int(v) for v in area[first_index : -(-hi // per)].tolist()]
+    shown = eng.area(seg.area, seg.width) if eng is not None else None
+    for index, sym in (shown or {}).items():  # scaled symbols served in engineering units
+        if first_index <= index < first_index + len(raws):
+            raws[index - first_index] = sym.register(raws[index - first_index])
     if per == 1:
-        return [int(v) for v in area[lo:hi].tolist()]
+        return raws
     registers: list[int] = []
-    for raw in area[lo // per : -(-hi // per)].tolist():
+    for raw in raws:
         registers += split_registers(raw, seg.width)
     first = lo // per * per
     return registers[lo - first : hi - first]
@@ -275,6 +297,27 @@ def _journal_entry(piece: _Piece, values: Sequence[int]) -> HmiWrite:
                        f"{name} is written whole: its {per} registers in one request")
     chunk = tuple(int(v) for v in values[piece.first : piece.first + piece.count])
     return HmiWrite(Address(seg.area, seg.width, piece.offset // per), chunk)
+
+
+def _raw_write(write: HmiWrite, eng: EngTable) -> HmiWrite:
+    """`write` with the registers of symbols served in engineering units converted back to
+    the raw bits they store (eng.py); 03 for a value the symbol cannot take."""
+    shown = eng.area(write.address.area, write.address.width)
+    if not shown:
+        return write
+    per, first = _REGISTERS[write.address.width], write.address
+    values = list(write.values)
+    for i in range(len(values) // per):
+        sym = shown.get(first.index + i)
+        if sym is None:
+            continue
+        where = Address(first.area, first.width, first.index + i)
+        try:
+            raw = sym.raw(join_registers(tuple(values[i * per : (i + 1) * per])))
+        except ValueRefused as exc:
+            raise MapError(ExceptionCode.ILLEGAL_DATA_VALUE, f"{where}: {exc}") from None
+        values[i * per : (i + 1) * per] = split_registers(raw, first.width)
+    return HmiWrite(first, tuple(values))
 
 
 def _check_values(table: Table, values: Sequence[int]) -> None:

@@ -39,6 +39,7 @@ from softplc.hmi.admission import (
     Verdict,
     decide,
 )
+from softplc.hmi.eng import Presentation
 from softplc.hmi.frames import (
     Adu,
     FramingError,
@@ -285,6 +286,7 @@ class ModbusSlave:
         max_per_peer: int | None = None,
         idle_timeout_s: float = DEFAULT_IDLE_TIMEOUT_S,
         live_window_s: float = DEFAULT_LIVE_WINDOW_S,
+        presentation: Presentation | None = None,
     ) -> None:
         per_peer = (
             min(DEFAULT_MAX_PER_PEER, max_connections) if max_per_peer is None else max_per_peer
@@ -292,7 +294,8 @@ class ModbusSlave:
         self.limits = Limits(
             max_connections, per_peer, idle_timeout_s, min(live_window_s, idle_timeout_s)
         )
-        self.map = RegisterMap(sizes, writable=writable, read_only=read_only)
+        self.map = RegisterMap(sizes, writable=writable, read_only=read_only,
+                               presentation=presentation)  # scaled symbols (eng.py)
         self._responder = Responder(self.map, source, sink)
         self.host = host
         self.port = port

@@ -32,7 +32,7 @@ from softplc.core.problems import Problem, ProgramError
 from softplc.core.symbols import FIRST_SCAN, RETAIN_WORDS, Direction, IoImage, Retain, SymType
 from softplc.core.values import MAX_FIELDS, field_name_problem
 from softplc.program import fields as token_fields
-from softplc.program.io_image import load_io_image
+from softplc.program.io_image import hashed_text, load_io_image
 from softplc.program.spec import parse_program, resolve
 from softplc.program.specvalues import ArcSpec, ProgramSpec, TransitionSpec, Where
 from softplc.program.suggest import did_you_mean
@@ -285,7 +285,7 @@ def _build(spec: ProgramSpec, io: IoImage, c: _Compiler) -> CompiledNet:
         i: tuple(p.records or ()) for i, p in enumerate(spec.places) if p.coloured
     }
     digest = hashlib.sha256()
-    for text in [*spec.texts, _io_text(io)]:
+    for text in [*spec.texts, hashed_text(io)]:
         digest.update(text.encode())
     # Highest priority first; the sort is stable, so declaration order breaks ties.
     order = tuple(sorted(range(len(transitions)),
@@ -327,12 +327,6 @@ def _initial_limits(spec: ProgramSpec, c: _Compiler) -> None:
 
 def _frozen(d: dict[str, list[tuple[int, int]]] | dict[str, set[int]]) -> MappingProxyType:  # type: ignore[type-arg]
     return MappingProxyType({k: tuple(sorted(v)) for k, v in d.items()})
-
-
-def _io_text(io: IoImage) -> str:
-    return repr(sorted((s.name, str(s.address), s.type.value, s.safe)
-                       + ((s.scaling.raw, s.scaling.eng, s.scaling.clamp) if s.scaling else ())
-                       for s in io.symbols.values()))
 
 
 def _at_reference(problem: Problem, ref: str, where: Where) -> Problem:

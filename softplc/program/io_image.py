@@ -1,7 +1,7 @@
 """Load an `io_images/*.yaml` symbols file into an IoImage, collecting every problem.
 
-Owns: the symbols file format (image sizes, drivers with their fault policy, symbols with
-their scaling, event conditions).
+Owns: the symbols file format (image sizes, drivers with their fault policy, symbols, event
+conditions); the values a symbol declares (scale, safe, init) are program/symvalues.py's.
 Does not know: programs, drivers' internals.
 """
 
@@ -12,7 +12,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from softplc.core.datatypes import INFO, NATURAL, TYPE_NAMES, fits, stored, types_for
+from softplc.core.datatypes import INFO, NATURAL, TYPE_NAMES, fits, types_for
 from softplc.core.image import (
     Address,
     AddressError,
@@ -22,7 +22,6 @@ from softplc.core.image import (
     parse_address,
 )
 from softplc.core.problems import Problem, ProgramError
-from softplc.core.scaling import Scaling
 from softplc.core.symbols import (
     DIRECTION_OF_AREA,
     Direction,
@@ -36,15 +35,14 @@ from softplc.core.symbols import (
     Symbol,
     SymType,
 )
+from softplc.program import symvalues
 from softplc.program.suggest import did_you_mean, did_you_mean_key
 from softplc.program.yamlload import YMap, line_of, load_yaml, trap_hint
 
 DRIVER_KINDS = ("sim", "modbus", "modbus_rtu", "opcua")
 POLICY_KEYS = ("on_failure", "hold_scans", "auto_recover", "startup_s")  # any kind of driver
 SYMBOL_KEYS = {"address", "type", "dir", "safe", "driver", "channel", "description", "hmi_writable",
-               "retain", "scale"}
-SCALE_KEYS = ("raw", "eng", "unit", "clamp")
-SCALE_FORM = "{raw: [0, 27648], eng: [0.0, 100.0], unit: '%', clamp: true}"
+               "retain", "scale", "init"}
 
 
 class _Reader:
@@ -156,64 +154,13 @@ class _Reader:
         if driver is not None and driver not in drivers:
             self.problem(line_of(spec, "driver"), f"{path}.driver",
                          f"unknown driver {driver!r}{did_you_mean(driver, [*drivers, 'none'])}")
-        scaling = self._scale(spec, path, sym_type)
-        safe = self._safe(spec, path, sym_type, scaling)
+        scaling = symvalues.scale(spec, path, sym_type, self.problem)
+        safe = symvalues.safe(spec, path, sym_type, scaling, self.problem)
+        init = symvalues.init(spec, name, path, sym_type, direction, scaling, self.problem)
         return Symbol(name, address, sym_type, direction, safe, str(spec.get("description", "")),
                       driver, str(spec.get("channel", name)),
                       spec.get("hmi_writable", True) is True, line,
-                      self._retain(spec, path, direction), scaling)
-
-    def _scale(self, spec: dict[Any, Any], path: str, sym_type: SymType) -> Scaling | None:
-        """`scale:` (core/scaling.py); None when absent or bad (each problem reported)."""
-        if "scale" not in spec:
-            return None
-        value, line, path = spec["scale"], line_of(spec, "scale"), f"{path}.scale"
-        if sym_type is SymType.BOOL:
-            self.problem(line, path, "a bool cannot be scaled: scale applies to int, word, "
-                                     "dint, udint, real and lreal symbols")
-            return None
-        if not isinstance(value, dict) or "raw" not in value or "eng" not in value:
-            self.problem(line, path, f"expected {SCALE_FORM} (raw and eng required)")
-            return None
-        bad = len(self.problems)
-        for key in sorted(set(value) - set(SCALE_KEYS), key=str):
-            self.problem(line_of(value, key), f"{path}.{key}", f"unknown key {key!r}"
-                         f"{did_you_mean_key(str(key), SCALE_KEYS)}; expected one of "
-                         f"{', '.join(SCALE_KEYS)}")
-        raw = self._span(value, "raw", path, sym_type)
-        eng = self._span(value, "eng", path, None)
-        unit, clamp = value.get("unit", ""), value.get("clamp", False)
-        if not isinstance(unit, str):
-            self.problem(line_of(value, "unit"), f"{path}.unit",
-                         f"unit must be text (e.g. '%' or 'degC'), got {unit!r}")
-        if not isinstance(clamp, bool):
-            self.problem(line_of(value, "clamp"), f"{path}.clamp",
-                         f"clamp must be true or false{trap_hint(clamp)}")
-        if raw is None or eng is None or len(self.problems) > bad:
-            return None
-        return Scaling(raw, (float(eng[0]), float(eng[1])), str(unit), bool(clamp),
-                       whole=not INFO[sym_type].is_float)
-
-    def _span(self, scale: dict[Any, Any], key: str, path: str,
-              sym_type: SymType | None) -> tuple[int | float, int | float] | None:
-        """`raw: [low, high]` in `sym_type`'s range (None: `eng`, any finite numbers), the two
-        ends different: a span of zero has no inverse."""
-        value, line, path = scale.get(key), line_of(scale, key), f"{path}.{key}"
-        if (not isinstance(value, list) or len(value) != 2
-                or not all(_is_number(v) and math.isfinite(v) for v in value)):
-            self.problem(line, path, f"{key} must be two numbers [from, to], got {value!r}")
-            return None
-        if sym_type is not None and not all(INFO[sym_type].low <= v <= INFO[sym_type].high
-                                            for v in value):
-            info = INFO[sym_type]
-            self.problem(line, path, f"raw {value} is out of range of {sym_type.value} "
-                                     f"({info.low}..{info.high})")
-            return None
-        if value[0] == value[1]:
-            self.problem(line, path, f"{key} span is zero ({value[0]} to {value[1]}): a scale "
-                                     "needs two different ends")
-            return None
-        return value[0], value[1]
+                      self._retain(spec, path, direction), scaling, init)
 
     def _retain(self, spec: dict[Any, Any], path: str, direction: Direction) -> Retain:
         """Memory only: inputs are read anew every scan, outputs are the program's."""
@@ -243,39 +190,10 @@ class _Reader:
                          f"type {declared} does not fit address {address} (a "
                          f"{_WIDTH_WORDS[address.width]} address holds "
                          f"{' or '.join(types_for(address.width.value))}; "
-                         f"{_article(declared)} needs "
+                         f"{symvalues.article(declared)} needs "
                          f"{_address_for(sym_type, address)})")
             return natural
         return sym_type
-
-    def _safe(self, spec: dict[Any, Any], path: str, sym_type: SymType,
-              scaling: Scaling | None) -> int | float:
-        value = spec.get("safe", 0)
-        line = line_of(spec, "safe")
-        if scaling is not None and sym_type is not SymType.BOOL:
-            try:  # in engineering units, kept as the raw value it stores
-                return stored(sym_type, scaling.to_raw(value))
-            except (TypeError, ArithmeticError) as exc:
-                self.problem(line, f"{path}.safe", "safe value of a scaled symbol must be a "
-                             f"number in engineering units that scales to a raw "
-                             f"{sym_type.value} ({exc}){trap_hint(value)}")
-                return 0
-        if sym_type is SymType.BOOL:
-            if isinstance(value, bool) or value in (0, 1):
-                return int(value)
-            self.problem(line, f"{path}.safe",
-                         f"safe value of a bool must be true or false{trap_hint(value)}")
-            return 0
-        info = INFO[sym_type]
-        if not isinstance(value, bool) and isinstance(value, int | float):
-            try:
-                return stored(sym_type, value)
-            except (TypeError, ArithmeticError):
-                pass
-        what = "a number" if info.is_float else f"a whole number {info.low}..{info.high}"
-        self.problem(line, f"{path}.safe",
-                     f"safe value of {_article(sym_type.value)} must be {what}{trap_hint(value)}")
-        return 0
 
     def events(self, data: YMap, symbols: dict[str, Symbol]) -> dict[str, EventSpec]:
         out: dict[str, EventSpec] = {}
@@ -313,10 +231,6 @@ class _Reader:
         return out
 
 
-def _article(word: str) -> str:
-    return f"{'an' if word[0] in 'aeiou' else 'a'} {word}"
-
-
 _WIDTH_WORDS = {Width.BIT: "bit", Width.WORD: "16-bit word", Width.DWORD: "32-bit double word",
                 Width.LWORD: "64-bit long word"}
 
@@ -329,10 +243,6 @@ def _address_for(sym_type: SymType, address: Address) -> str:
 
 def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def parse_io_image(text: str, filename: str) -> IoImage:
@@ -367,6 +277,18 @@ def parse_io_image(text: str, filename: str) -> IoImage:
         raise ProgramError(sorted(reader.problems))
     return IoImage(filename, sizes, MappingProxyType(symbols), MappingProxyType(drivers),
                    MappingProxyType(events))
+
+
+def hashed_text(io: IoImage) -> str:
+    """The symbol table as the program hash covers it (program/compiler.py): what changes the
+    PLC's behaviour. `init:` and `modbus: eng` only where declared, so the hashes of io images
+    without them (and the golden traces that record them) stay as they were; `retain:`,
+    `hmi_writable:` and descriptions not at all (a change of them alone keeps a warm start)."""
+    return repr(sorted((s.name, str(s.address), s.type.value, s.safe)
+                       + ((s.scaling.raw, s.scaling.eng, s.scaling.clamp) if s.scaling else ())
+                       + (("init", s.init_raw) if s.init_raw is not None else ())
+                       + (("modbus", "eng") if s.scaling and s.scaling.modbus != "raw" else ())
+                       for s in io.symbols.values()))
 
 
 def load_io_image(path: str | Path) -> IoImage:

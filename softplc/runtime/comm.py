@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any, Final, Literal, Protocol, get_args
 from softplc.core.image import Address, AddressError, ImageSizes, parse_address
 from softplc.core.snapshot import HmiWrite, SnapshotSource
 from softplc.hmi.admission import Limits
+from softplc.hmi.eng import EngSource
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.fresh import FreshSource
@@ -172,7 +173,8 @@ def modbus_slave(config: CommConfig, source: SnapshotSource, sink: Callable[[Hmi
                        writable=writable, read_only=config.modbus_writes == "none",
                        max_connections=config.modbus_max_connections,
                        max_per_peer=config.modbus_max_per_peer,
-                       idle_timeout_s=config.modbus_idle_timeout_s)
+                       idle_timeout_s=config.modbus_idle_timeout_s,
+                       presentation=EngSource(read_board, source))
 
 
 def secure_modbus_slave(config: CommConfig, source: SnapshotSource,
@@ -197,7 +199,8 @@ def secure_modbus_slave(config: CommConfig, source: SnapshotSource,
                              writable=writable, read_only=config.modbus_writes == "none",
                              max_connections=config.modbus_max_connections,
                              max_per_peer=config.modbus_max_per_peer,
-                             idle_timeout_s=config.modbus_idle_timeout_s)
+                             idle_timeout_s=config.modbus_idle_timeout_s,
+                             presentation=EngSource(read_board, source))
 
 
 async def _serve(config: CommConfig, channel: Channel, shm_name: str, board_name: str,

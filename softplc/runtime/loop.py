@@ -16,11 +16,9 @@ from __future__ import annotations
 
 import sys
 import time
-from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from softplc.core.engine import Engine
 from softplc.core.judge import CycleWatchdog
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.problems import FaultCode
@@ -35,6 +33,7 @@ from softplc.runtime.clock import Clock, MonotonicClock, Schedule
 from softplc.runtime.compileproc import CompileProcess
 from softplc.runtime.config import LoopConfig as LoopConfig  # importable from here too
 from softplc.runtime.download import Downloads, refusal_of
+from softplc.runtime.eventlog import EventLog
 from softplc.runtime.prepare import Prepared, Preparer, answering, boundary
 from softplc.runtime.procs import Flag as Event
 from softplc.runtime.retain import RetainWriter, capture
@@ -55,14 +54,15 @@ class ScanLoop:
         self.writer = writer
         self.board = board
         self.board_every = max(1, 50_000_000 // config.period_ns)  # about every 50 ms
+        self._board_program: str | None = None  # the program hash the board was published with
         self.budget_ns = int(config.period_ns * config.watchdog)
         self.watchdog = CycleWatchdog(
             self.budget_ns, config.watchdog_sensitivity, config.watchdog_hard_ns,
             config.stall_fault_ns if config.on_stall == "fault" else 0)
         self.hang = HangWatch(self.watchdog.hard_ns, self._hung,  # started on a real clock
                               lambda: self.clock.now_ns())  # the loop's, warm start included
-        self.events: deque[dict[str, Any]] = deque(maxlen=256)
-        self.event_seq = 0
+        self.log = EventLog()
+        self.events = self.log.events  # what the board shows (statusdoc.py)
         self.start_mode = "cold"
         self.start_reason = "retain off (no state directory)"
         self.realtime = "normal scheduling"  # what scan_process_main obtained
@@ -87,8 +87,6 @@ class ScanLoop:
         self.retained_ns = 0
         self._prepared: dict[int, Prepared] = {}  # downloads handed to the scan, by request id
         self._retired: list[Any] = []  # a replaced net and its engine (scan_once)
-        self._diag_engine: Engine | None = None  # diagnostics put on the event stream
-        self._diag_seen = 0
         self.boot = BootKeeper(config, self.prep)
         net, _ = self.boot.program()
         # The program the PLC starts with is analysed too, never refused: the person at the
@@ -234,21 +232,8 @@ class ScanLoop:
             self._after(commands, result.replies)
         for name in result.events:
             self._event(name, now_ns)
-        self._diagnostic_events(now_ns)
+        self.log.diagnostics(self.runner.plc.engine, self.runner.plc.scan_count, now_ns)
         return bool(commands)
-
-    def _diagnostic_events(self, now_ns: int) -> None:
-        """New run-time diagnostics on the event stream (a few per scan: a guard failing
-        every scan must not flood it; status counts them all)."""
-        engine = self.runner.plc.engine
-        if engine is None:
-            return
-        if engine is not self._diag_engine:
-            self._diag_engine, self._diag_seen = engine, 0
-        if engine.diagnostic_count > self._diag_seen:
-            for message in engine.diagnostics[self._diag_seen:self._diag_seen + 3]:
-                self._event(f"diagnostic:{message}", now_ns)
-            self._diag_seen = engine.diagnostic_count
 
     def _confirm_safe(self, now_ns: int, timeout_s: float = 0.2) -> None:
         """Safe outputs confirmed by the devices before the state is reported (stop, kill, a
@@ -257,9 +242,7 @@ class ScanLoop:
             self._event("safe_unconfirmed:" + ",".join(failed), now_ns)
 
     def _event(self, name: str, now_ns: int) -> None:
-        self.event_seq += 1
-        self.events.append({"seq": self.event_seq, "scan": self.runner.plc.scan_count,
-                            "t_ns": now_ns, "name": name})
+        self.log.add(name, self.runner.plc.scan_count, now_ns)
 
     def document(self) -> dict[str, Any]:
         """The status board: what `softplc status` and the HTTP API show."""
@@ -332,6 +315,13 @@ class ScanLoop:
             refresh = (self.stats.scans + 1) % self.board_every == 0
             if refresh:  # percentiles cost ~20 µs: not on every scan
                 self.summary = self.stats.summary()
+            # A new program is on the board before its hash is in the snapshot: a service that
+            # sees the hash finds the program's symbols (hmi/eng.py: what Modbus presents).
+            net = self.runner.plc.net
+            program = net.program_hash if net is not None else None
+            if self.board is not None and program != self._board_program:
+                self._board_program, refresh = program, False
+                self.board.publish(self.document())
             if self.writer is not None:
                 self.writer.publish(self.runner.plc.image, self.status())
             interval = self.config.retain_interval_ns

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from softplc.core import memory
 from softplc.core.errors import SoftplcError
 from softplc.core.events import EventMemory
 from softplc.core.held import KEPT_AREAS, HeldOutputs
@@ -35,7 +36,7 @@ from softplc.core.net import (
 )
 from softplc.core.problems import FaultCode
 from softplc.core.scan import Plc
-from softplc.core.symbols import Retain, persistent_memory, unretained_memory
+from softplc.core.symbols import Retain, Symbol, persistent_memory
 from softplc.core.values import record_problems, value_problem
 from softplc.runtime.retain_store import SnapshotInvalid
 
@@ -101,7 +102,16 @@ def encode(cap: Capture, seq: int, wall_ns: int) -> dict[str, Any]:
         "field_simulation_only": {name: base64.b64encode(blob).decode()
                                   for name, blob in cap.field.items()},
         "forces": [list(f) for f in cap.forces],  # kept across a warm restart
+        # Which locations hold persistent variables: a cold start of another version takes
+        # these back, and leaves a symbol the snapshot's program did not keep at its `init:`.
+        "persistent_memory": [_variable(s) for s in persistent_memory(net.io)],
     }
+
+
+def _variable(sym: Symbol) -> list[Any]:
+    scale = sym.scaling
+    return [str(sym.address), sym.type.value,
+            None if scale is None else [list(scale.raw), list(scale.eng)]]
 
 
 def _record(place: str, index: int, token: Any) -> dict[str, Any]:
@@ -183,7 +193,8 @@ def _held(packed: list[str] | None, image: ProcessImage) -> HeldOutputs | None:
 
 def _initial_unretained(plc: Plc) -> None:
     """What is declared `retain: none` starts anew at a warm start: its place with the
-    initial marking, its memory symbol at 0 (docs/retain.md, retain per variable)."""
+    initial marking, its memory symbol at its `init:` or 0 (docs/retain.md, retain per
+    variable)."""
     net, engine = plc.net, plc.engine
     assert net is not None and engine is not None
     state = engine.state
@@ -191,15 +202,15 @@ def _initial_unretained(plc: Plc) -> None:
         state.marking[p] = net.initial[p]
         if net.coloured[p]:
             state.tokens[p] = list(net.initial_tokens.get(p, ()))
-    for sym in unretained_memory(net.io):
-        plc.image.set(sym.address, 0)
+    memory.unretained(plc.image, net.io)
     engine.invalidate()
 
 
 def restore_persistent(plc: Plc, payload: dict[str, Any]) -> list[str]:
     """At a cold start: put in the persistent places and memory symbols of a snapshot of a
     program of the same name (`plc` holds the downloaded program, READY); returns their names.
-    Places by name, memory symbols at their address in this program's io image."""
+    Places by name, memory symbols at their address in this program's io image, when the
+    snapshot's program kept the same variable there (address, type, scale)."""
     net, engine = plc.net, plc.engine
     assert net is not None and engine is not None and net.name == payload["program"]
     kept = []
@@ -214,9 +225,11 @@ def restore_persistent(plc: Plc, payload: dict[str, Any]) -> list[str]:
             engine.state.tokens[p] = _tokens(name, payload["tokens"][name])
         kept.append(name)
     areas = {}
+    kept_there = payload.get("persistent_memory")  # absent from files before `init:`
     for sym in persistent_memory(net.io):
         area, index = sym.address.attr, sym.address.index
-        if area not in payload["image"]:
+        if area not in payload["image"] or (kept_there is not None
+                                            and _variable(sym) not in kept_there):
             continue
         if area not in areas:
             areas[area] = _unpack(payload["image"][area], getattr(plc.image, area))

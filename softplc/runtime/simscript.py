@@ -21,7 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from softplc.core.image import ProcessImage
+from softplc.core.image import ProcessImage, Width, split_registers
+from softplc.core.present import ValueRefused, accepted
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.snapshot import HmiWrite
 from softplc.core.symbols import Direction, IoImage, Symbol, SymType
@@ -75,7 +76,9 @@ class _Reader:
         release, release_all = self.release(item, path)
         if at_ns is None:
             return None
-        hmi = tuple(HmiWrite(sym.address, (value,)) for sym, value in writes)
+        hmi = tuple(HmiWrite(sym.address, (value,) if sym.address.is_bit else
+                             tuple(split_registers(value, sym.address.width)))
+                    for sym, value in writes)  # a 32/64-bit value whole, as Modbus writes it
         return Step(at_ns, hmi, tuple(force), release, release_all, line)
 
     def at(self, item: YMap, path: str, line: int) -> int | None:
@@ -122,12 +125,19 @@ class _Reader:
         return sym
 
     def value(self, sym: Symbol, value: Any, line: int, path: str) -> int | None:
+        """The raw bits a write or force of `value` stores in `sym`, or None (a problem)."""
         if sym.type is SymType.BOOL:
             if isinstance(value, bool) or value in (0, 1):
                 return int(value)
             self.problem(line, path, f"{sym.name} is a bool: expected true or false, got "
                                      f"{value!r}{trap_hint(value)}")
             return None
+        if sym.address.width in (Width.DWORD, Width.LWORD):
+            try:  # a value of its type, raw (as a 16-bit register's is): the bits it stores
+                return accepted(sym.type.value, value, sym.name)
+            except ValueRefused as exc:
+                self.problem(line, path, f"{exc}{trap_hint(value)}")
+                return None
         if isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 0xFFFF:
             return value
         self.problem(line, path, f"{sym.name} is a word: expected 0..65535, got {value!r}")
