@@ -102,9 +102,12 @@ class Gate:
                 stamps.append((path.name, info.st_ino, info.st_size, info.st_ctime_ns))
         return (tuple(stamps), self.anchor)
 
-    @staticmethod
-    def has_credentials(request: web.Request) -> bool:
-        return "Authorization" in request.headers or COOKIE in request.cookies
+    def has_credentials(self, request: web.Request) -> bool:
+        """An Authorization header (a wrong one is a 401 later), or the cookie of a live
+        session. A cookie that names none is no credential: a page of another site, rebound
+        to this address (DNS rebinding), sends whatever cookie it set under that name."""
+        return "Authorization" in request.headers or \
+            self._session(request.cookies.get(COOKIE)) is not None
 
     async def identify(self, request: web.Request) -> Principal:
         """The request's principal; raises 401 for wrong credentials, 429 while backing off."""

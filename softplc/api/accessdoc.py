@@ -1,5 +1,5 @@
-"""The routes of access in the API's description (login, logout, whoami, audit), for
-openapi.py.
+"""The routes of access in the API's description (login, logout, whoami, audit and its
+stream), for openapi.py.
 
 Owns: their OpenAPI paths. Does not know: how they are served (accessroutes.py).
 """
@@ -51,4 +51,16 @@ def access_paths(prefix: str) -> dict[str, Any]:
             "responses": {**ok("Records and verdict.", {
                 "records": {"type": "array", "items": {"type": "object"}},
                 "chain": {"type": "object"}}), **err(400, 401, 403, 429)}}},
+        f"{prefix}/audit/events": {"get": {
+            "operationId": "auditEvents", "tags": ["access"],
+            "summary": "The audit trail as server-sent events (admin): one `data:` record per "
+                       "line with `id:` = its seq, from now (or after Last-Event-ID); "
+                       "`event: overflow` counts records skipped, `event: end` says why the "
+                       "stream ends (the credentials no longer give admin).",
+            "parameters": [
+                {"name": "Last-Event-ID", "in": "header", "schema": {"type": "integer"},
+                 "description": "Resume: the records after this seq still kept."}],
+            "responses": {"200": {"description": "Record stream.", "content": {
+                "text/event-stream": {"schema": {"type": "string"}}}},
+                **err(400, 401, 403, 429, 503)}}},
     }

@@ -5,7 +5,7 @@ Owns: `admit` (the role a route needs, from roles.py, against the request's prin
 have changed something), `audited` (a state-changing request's record: who, what, the
 program hash or the value written, the outcome), and the routes `POST /api/v1/login`,
 `POST /api/v1/logout` (the page's session cookie), `GET /api/v1/whoami`, `GET
-/api/v1/audit` (admin).
+/api/v1/audit` and its stream `GET /api/v1/audit/events` (admin; auditstream.py).
 Does not know: how credentials are checked (access.py), the trail's files (audit.py).
 """
 
@@ -23,6 +23,7 @@ from aiohttp import web
 
 from softplc.api.access import COOKIE, SESSION_S, Gate, Principal
 from softplc.api.audit import parse_since
+from softplc.api.auditstream import AuditStreams
 from softplc.api.openapi import API_PREFIX
 from softplc.api.problems import ApiProblem, json_body
 from softplc.api.roles import changes_state, required_role
@@ -116,13 +117,16 @@ def _what(request: web.Request, body: bytes) -> dict[str, Any]:
 
 # -- the routes of access -------------------------------------------------------------------
 
-def register(app: web.Application, gate: Gate) -> None:
+def register(app: web.Application, gate: Gate, heartbeat_s: float) -> None:
     routes = _Routes(gate)
+    streams = AuditStreams(gate, heartbeat_s)
     p = API_PREFIX
     app.router.add_post(f"{p}/login", routes.login)
     app.router.add_post(f"{p}/logout", routes.logout)
     app.router.add_get(f"{p}/whoami", routes.whoami)
     app.router.add_get(f"{p}/audit", routes.audit)
+    app.router.add_get(f"{p}/audit/events", streams.serve)
+    app.on_shutdown.append(streams.close)
 
 
 class _Routes:

@@ -5,7 +5,8 @@ across files, `time` UTC, `prev` = the previous record's `hash`, `hash` = SHA-25
 record without it), appending from several processes (flock on STATE_DIR/audit.lock around
 read-last-hash + append + fsync), rotation bounded in size (audit.jsonl -> audit.1.jsonl ->
 ... -> audit.KEEP.jsonl, then dropped; the chain and `seq` go on across files), reading and
-verifying (any changed byte breaks its record's hash or the next record's `prev`).
+verifying (any changed byte breaks its record's hash or the next record's `prev`), and
+following it as records come (`Follower`: for the admin's event stream).
 Does not know: HTTP, users, who calls it. Every call is blocking file I/O.
 """
 
@@ -197,6 +198,91 @@ class AuditTrail:
             return Verdict(False, count, seq, last, self.path.name, f"record {anchor[0]} "
                            "(written while this server ran) is gone: the trail was cut", first)
         return Verdict(True, count, seq, last, first_seq=first)
+
+
+class Follower:
+    """The records appended to a trail after seq `after` (None: its newest), as they come,
+    by whichever process: the newest file's inode and how far it was read are kept, so a
+    poll that finds nothing new costs one stat; after a rotation (another inode) the files
+    are searched again from `after`. Blocking file I/O, like the rest of this module."""
+
+    def __init__(self, trail: AuditTrail, after: int | None = None) -> None:
+        self.trail = trail
+        self.after = trail._last()[0] if after is None else after
+        self._inode: int | None = None
+        self._offset = 0
+
+    def poll(self, limit: int) -> tuple[list[dict[str, Any]], int]:
+        """The new records, the newest `limit` of them, and how many were skipped (beyond
+        `limit`, or gone with files rotated away before they were read)."""
+        try:
+            info = self.trail.path.stat()
+        except FileNotFoundError:  # none yet, or between a rotation and the next record
+            return [], 0
+        if info.st_ino == self._inode and info.st_size == self._offset:
+            return [], 0
+        raws = self._grown() if info.st_ino == self._inode and info.st_size > self._offset \
+            else None
+        found = [r for r in map(_record, self._search() if raws is None else raws)
+                 if r is not None and r["seq"] > self.after]
+        skipped = found[0]["seq"] - self.after - 1 if found else 0
+        if len(found) > limit:
+            skipped, found = skipped + len(found) - limit, found[-limit:]
+        if found:
+            self.after = found[-1]["seq"]
+        return found, max(0, skipped)
+
+    def _grown(self) -> list[bytes] | None:
+        """The lines appended to the file read last; None when the path is another file."""
+        with self.trail.path.open("rb") as handle:
+            if os.fstat(handle.fileno()).st_ino != self._inode:
+                return None
+            handle.seek(self._offset)
+            return self._whole_lines(handle.read())
+
+    def _whole_lines(self, data: bytes) -> list[bytes]:
+        # A line being appended (no newline yet) is read at the next poll.
+        end = data.rfind(b"\n") + 1
+        self._offset += end
+        return data[:end].splitlines()
+
+    def _search(self) -> list[bytes]:
+        """The lines of every file from the newest one that starts at or before `after`+1;
+        the newest file is remembered to be read on from where it ends."""
+        files = self.trail.files()
+        start = 0
+        for index in range(len(files) - 1, -1, -1):
+            first = _first_seq(files[index])
+            if first is not None and first <= self.after + 1:
+                start = index
+                break
+        lines: list[bytes] = []
+        for path in files[start:]:
+            with contextlib.suppress(FileNotFoundError), path.open("rb") as handle:
+                if path == self.trail.path:
+                    self._inode, self._offset = os.fstat(handle.fileno()).st_ino, 0
+                    lines += self._whole_lines(handle.read())
+                else:
+                    lines += handle.read().splitlines()
+        newest = next((r["seq"] for r in map(_record, reversed(lines)) if r is not None), 0)
+        if newest < self.after:  # the trail was cut or replaced: follow the one there is
+            self.after = 0
+        return lines
+
+
+def _record(raw: bytes) -> dict[str, Any] | None:
+    with contextlib.suppress(ValueError):
+        record = json.loads(raw)
+        if isinstance(record, dict) and isinstance(record.get("seq"), int):
+            return record
+    return None
+
+
+def _first_seq(path: Path) -> int | None:
+    with contextlib.suppress(OSError), path.open("rb") as handle:
+        record = _record(handle.readline())
+        return None if record is None else int(record["seq"])
+    return None
 
 
 def _check(raw: bytes, seq: int, last: str, after_dropped: bool) -> str | None:

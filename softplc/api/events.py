@@ -140,8 +140,9 @@ async def _stream(sub: Subscriber, response: web.StreamResponse, heartbeat_s: fl
             reported = sub.dropped
             await response.write(f"event: overflow\ndata: {json.dumps({'dropped': reported})}"
                                  "\n\n".encode())
-        await response.write(_sse(event))
+        await response.write(sse(event))
 
 
-def _sse(event: dict[str, Any]) -> bytes:
+def sse(event: dict[str, Any]) -> bytes:
+    """One event (or audit record: auditstream.py) with `id:` = its seq."""
     return f"id: {event['seq']}\ndata: {json.dumps(event, separators=(',', ':'))}\n\n".encode()

@@ -78,6 +78,7 @@ ROUTE_ROLES: Final[dict[tuple[str, str], Role | None]] = {
     ("POST", f"{_P}/step"): Role.ENGINEER,
     ("POST", f"{_P}/continue"): Role.ENGINEER,
     ("GET", f"{_P}/audit"): Role.ADMIN,
+    ("GET", f"{_P}/audit/events"): Role.ADMIN,  # the trail as it grows (auditstream.py)
 }
 UNLISTED: Final = Role.ADMIN
 

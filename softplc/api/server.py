@@ -64,8 +64,10 @@ DEFAULT_PORT: Final = 8080
 MAX_BODY_BYTES: Final = 1 << 20
 COMMAND_TIMEOUT_S: Final = 5.0  # a lifecycle command's deadline; below the client's 10 s
 HEARTBEAT_S: Final = 15.0
-# Endless responses, each with a pool of its own (api/limits.py): events do not starve pages.
-STREAM_POOLS: Final = {f"{API_PREFIX}/events": "events", f"{API_PREFIX}/live": "live"}
+# Endless responses, pooled (api/limits.py): events do not starve pages. The admin's audit
+# stream shares the events' pool.
+STREAM_POOLS: Final = {f"{API_PREFIX}/events": "events", f"{API_PREFIX}/live": "live",
+                       f"{API_PREFIX}/audit/events": "events"}
 # Always served, whatever streams and other requests hold: the operator's way in and out.
 PRIORITY_PATHS: Final = frozenset({"/healthz", "/", "/index.html", f"{API_PREFIX}/status",
                                    f"{API_PREFIX}/stop", f"{API_PREFIX}/kill"})
@@ -107,7 +109,7 @@ class ApiServer:
         self._hub = EventHub(self.board_document)
         self._runner: web.AppRunner | None = None
         # Connection cap, request classes, header and body timeouts.
-        self.bounds = HttpBounds(limits, request_class, pools=len(STREAM_POOLS))
+        self.bounds = HttpBounds(limits, request_class, pools=len(set(STREAM_POOLS.values())))
         # None: what `softplc run` asked for (none: plain HTTP, STATE_DIR/trusted_keys).
         self.security = security or secopts.load(self.state_dir)
         self.signing = DownloadSigning(self.state_dir, self.security.trusted_dir(self.state_dir))
@@ -164,7 +166,7 @@ class ApiServer:
         app.router.add_get(f"{p}/commands/{{id}}", self._command_outcome)
         app.router.add_get(f"{p}/events", self._events)
         app.router.add_get(f"{p}/openapi.json", self._openapi)
-        accessroutes.register(app, self.gate)  # login, logout, whoami, audit
+        accessroutes.register(app, self.gate, self.heartbeat_s)  # login, whoami, audit
         programs.register(app, self, self.signing)  # download and upload
         symbols.register(app, self)
         debug.register(app, self)  # why (docs/debug.md)

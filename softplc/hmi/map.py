@@ -232,6 +232,15 @@ class RegisterMap:
                            "and how it presents its registers is not known yet: retry")
         return [_raw_write(write, eng) for write in writes]
 
+    def where(self, table: Table, address: int) -> str | None:
+        """The IEC address at a Modbus address (`%MW4` for holding register 1028 by
+        default; a double or long word by its first register), None outside the areas."""
+        for piece in _overlaps(self._segments[table], address, address + 1):
+            seg = piece.segment
+            if seg.area is not None:
+                return str(Address(seg.area, seg.width, piece.offset // seg.per))
+        return None
+
     def _check_writable(self, write: HmiWrite) -> None:
         if self._writable is None:
             return

@@ -30,8 +30,9 @@ from softplc.core.snapshot import HmiWrite, SnapshotSource
 from softplc.hmi.frames import Adu, encode_adu, exception_pdu
 from softplc.hmi.map import ExceptionCode
 from softplc.hmi.server import ConnectionFactory, ModbusSlave, _Connection, _Listener
-from softplc.hmi.tlsaudit import REFUSAL_INTERVAL_S, AuditRecorder, AuditSink, TrustStore
+from softplc.hmi.tlsaudit import REFUSAL_INTERVAL_S, AuditRecorder, TrustStore
 from softplc.hmi.tlspeer import WRITE_FUNCTIONS, Identity, identity_of, offered_certificate
+from softplc.hmi.writeaudit import AuditSink
 
 log = logging.getLogger(__name__)
 
@@ -264,13 +265,13 @@ class _TlsConnection(_Connection):
     def _answer(self, adu: Adu) -> bytes | None:
         identity = self.identity
         if identity is None or adu.protocol_id != 0 or adu.pdu[0] not in WRITE_FUNCTIONS:
-            return super()._answer(adu)
+            return self._respond(adu)
         recorder = self._guard.recorder
         if not recorder.has_room():  # the trail lags: no write goes unrecorded
             log.warning("Modbus/TCP Security write of %s refused: the audit trail lags",
                         identity.user)
             return _refusal(adu, ExceptionCode.SERVER_DEVICE_BUSY)
-        reply = (super()._answer(adu) if identity.may_write
+        reply = (self._respond(adu) if identity.may_write
                  else _refusal(adu, ExceptionCode.ILLEGAL_FUNCTION))
         if reply is not None:
             recorder.write(identity, self.peer, adu.unit_id, adu.pdu, reply[7:])

@@ -1,11 +1,13 @@
 """The HMI Modbus TCP slave: a pymodbus 3.16 ModbusTcpServer whose connections we own.
 
 Owns: listening, applying the connection rule of admission.py (evict the idle-longest or
-refuse), the idle timeout, flow control, and moving bytes between sockets and the pure
-Responder (frames.py).
+refuse), the idle timeout, flow control, moving bytes between sockets and the pure
+Responder (frames.py), and handing every write and its answer to the audit of the plain
+port (writeaudit.py, when given).
 Does not know: the register map (map.py), Modbus semantics (frames.py), the admission rule
-itself, how snapshots are published or journaled writes applied, TLS (secure.py subclasses
-the connection: `_connection_factory`, `_reply_stream`).
+itself, how snapshots are published or journaled writes applied, how writes are audited,
+TLS (secure.py subclasses the connection: `_connection_factory`, `_reply_stream`, and
+audits its own writes).
 
 pymodbus gives the listener and the connection registry that `shutdown()` closes. Every
 byte a client sends is handled by `_Connection.data_received`; pymodbus' framer, decoder,
@@ -39,6 +41,7 @@ from softplc.hmi.admission import (
     Verdict,
     decide,
 )
+from softplc.hmi.coalesce import WRITE_FUNCTIONS
 from softplc.hmi.eng import Presentation
 from softplc.hmi.frames import (
     Adu,
@@ -48,7 +51,8 @@ from softplc.hmi.frames import (
     exception_pdu,
     split_adu,
 )
-from softplc.hmi.map import ExceptionCode, RegisterMap, Writable
+from softplc.hmi.map import ExceptionCode, RegisterMap, Table, Writable
+from softplc.hmi.writeaudit import WriteAudit, WritesAudited
 
 log = logging.getLogger(__name__)
 
@@ -185,6 +189,16 @@ class _Connection(ModbusProtocol):
         return cast(asyncio.Transport, self._reply_stream())
 
     def _answer(self, adu: Adu) -> bytes | None:
+        reply = self._respond(adu)
+        audit = self._owner.audit
+        if audit is not None and reply is not None and adu.pdu[0] in WRITE_FUNCTIONS:
+            try:
+                audit.write(self.peer, adu.unit_id, adu.pdu, reply[7:], self.loop.time())
+            except Exception:  # the write is answered; its record must not break the reply
+                self._errors.report("HMI write audit failed")
+        return reply
+
+    def _respond(self, adu: Adu) -> bytes | None:
         try:
             return self._responder.answer(adu)
         except Exception:
@@ -228,6 +242,7 @@ class _Listener(ModbusTcpServer):
         self.errors = _RateLimitedErrors()
         self.limits = limits
         self.stats = ConnectionStats()
+        self.audit: WriteAudit | None = None
         self._make_connection = make_connection
 
     def callback_new_connection(self) -> _Connection:
@@ -270,7 +285,9 @@ class _Listener(ModbusTcpServer):
 class ModbusSlave:
     """Modbus TCP slave for HMIs. Reads answer from `source.latest()`; writes are passed to
     `sink` as HmiWrite journal entries and show up only in a later published snapshot.
-    Runs on the asyncio loop that calls `start()`; `source` and `sink` are called there."""
+    Runs on the asyncio loop that calls `start()`; `source` and `sink` are called there.
+    `audit`: every write (function 5, 6, 15, 16, 23) and its outcome go to the audit trail,
+    coalesced (docs/security.md, "Audit of plain Modbus writes")."""
 
     def __init__(
         self,
@@ -286,6 +303,7 @@ class ModbusSlave:
         max_per_peer: int | None = None,
         idle_timeout_s: float = DEFAULT_IDLE_TIMEOUT_S,
         live_window_s: float = DEFAULT_LIVE_WINDOW_S,
+        audit: WritesAudited | None = None,
         presentation: Presentation | None = None,
     ) -> None:
         per_peer = (
@@ -299,6 +317,7 @@ class ModbusSlave:
         self._responder = Responder(self.map, source, sink)
         self.host = host
         self.port = port
+        self.audit = audit
         self._listener: _Listener | None = None
         self._server: asyncio.Server | None = None
 
@@ -308,6 +327,8 @@ class ModbusSlave:
             raise RuntimeError("the Modbus slave is already started")
         listener = _Listener(self._responder, (self.host, self.port), self.limits,
                              self._connection_factory())
+        if self.audit is not None:
+            listener.audit = WriteAudit(self.audit, lambda t, a: self.map.where(Table(t), a))
         try:
             await listener.serve_forever(background=True)
         except RuntimeError as exc:
@@ -320,13 +341,15 @@ class ModbusSlave:
         return _Connection
 
     async def stop(self) -> None:
-        """Stop listening and close every HMI connection."""
+        """Stop listening, close every HMI connection, write the audit's open counts."""
         listener, server = self._listener, self._server
         self._listener = self._server = None
         if listener is None or server is None:
             return
         await listener.shutdown()  # type: ignore[no-untyped-call]
         await server.wait_closed()
+        if listener.audit is not None:
+            await listener.audit.close()
 
     @property
     def bound_port(self) -> int:

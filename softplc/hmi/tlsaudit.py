@@ -2,37 +2,29 @@
 
 Owns: the record of a write (who by the certificate, what by describe_write, the outcome by
 the reply's exception code) and of a refused TLS client (why; its certificate kept in the
-trust list's rejected/ when it was offered and is not trusted), written in one thread in the
-order they happen, so that the loop never waits for the trail's fsync; the bound on records
-not yet written (a write beyond it is answered busy by secure.py, not left unrecorded); at
-most one record of refused clients per peer and interval, with the count of those not
-recorded, so that a client retrying in a loop cannot rotate the trail's history away.
+trust list's rejected/ when it was offered and is not trusted), written in the order they
+happen by writeaudit.py's AuditWriter (one thread: the loop never waits for the trail's
+fsync); the bound on records not yet written (a write beyond it is answered busy by
+secure.py, not left unrecorded); at most one record of refused clients per peer and
+interval, with the count of those not recorded, so that a client retrying in a loop cannot
+rotate the trail's history away.
 Does not know: the trail's format and files (api/audit.py) or the trust list's (api/trust.py):
 both are handed in as the small protocols below; sockets; TLS.
 """
 
 from __future__ import annotations
 
-import asyncio
 import logging
 from collections import OrderedDict
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Final, Protocol
 
 from softplc.hmi.tlspeer import Identity, describe_write, identity_of
+from softplc.hmi.writeaudit import MAX_PENDING, AuditSink, AuditWriter
 
 log = logging.getLogger(__name__)
 
-MAX_PENDING: Final = 256  # records handed to the thread and not written yet
 REFUSAL_INTERVAL_S: Final = 1.0  # per peer
 _PEERS_KEPT: Final = 1024  # peers whose last refusal record is remembered
-
-
-class AuditSink(Protocol):
-    """api/audit.py's AuditTrail: appends one record (blocking, it fsyncs)."""
-
-    def append(self, entry: dict[str, Any]) -> object: ...
 
 
 class TrustStore(Protocol):
@@ -50,16 +42,13 @@ class AuditRecorder:
     def __init__(self, sink: AuditSink, trust: TrustStore,
                  refusal_interval_s: float = REFUSAL_INTERVAL_S,
                  max_pending: int = MAX_PENDING) -> None:
-        self._sink = sink
+        self._writer = AuditWriter(sink, max_pending, "Modbus/TCP Security")
         self._trust = trust
         self._refusal_interval_s = refusal_interval_s
-        self._max_pending = max_pending
-        self._pending = 0
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="modbus-audit")
         self._last_refusal: OrderedDict[str, tuple[float, int]] = OrderedDict()
 
     def has_room(self) -> bool:
-        return self._pending < self._max_pending
+        return self._writer.has_room()
 
     def write(self, identity: Identity, peer: str, unit: int, request: bytes,
               reply: bytes) -> None:
@@ -70,7 +59,7 @@ class AuditRecorder:
                   "certificate_role": identity.certificate_role}
         entry = {**identity.audit(), "peer": peer, "iface": "modbus", "action": "write",
                  "outcome": outcome, "status": code, "detail": detail}
-        self._submit(lambda: self._append(entry))
+        self._writer.record(entry)
 
     def refused(self, peer: str, status: str, error: str, offered: bytes | None,
                 now_s: float) -> None:
@@ -80,7 +69,7 @@ class AuditRecorder:
         unrecorded = self._count_refusal(peer, now_s)
         if unrecorded is None:
             if kept and offered is not None and self.has_room():
-                self._submit(lambda: self._reject(offered))
+                self._writer.submit(lambda: self._reject(offered))
             return
         user = None
         if offered is not None:
@@ -96,13 +85,13 @@ class AuditRecorder:
         def job() -> None:
             if kept and offered is not None:
                 entry["detail"]["kept_as"] = self._reject(offered)
-            self._append(entry)
+            self._writer.append(entry)
 
-        self._submit(job)
+        self._writer.submit(job)
 
     async def close(self) -> None:
         """Wait for the records handed over so far to be written."""
-        await asyncio.to_thread(self._executor.shutdown, True)
+        await self._writer.close()
 
     def _count_refusal(self, peer: str, now_s: float) -> int | None:
         """How many refusals of `peer` went unrecorded before this one, or None when this
@@ -115,23 +104,6 @@ class AuditRecorder:
         while len(self._last_refusal) > _PEERS_KEPT:
             self._last_refusal.popitem(last=False)
         return unrecorded
-
-    def _submit(self, job: Callable[[], object]) -> None:
-        self._pending += 1
-        future = asyncio.get_running_loop().run_in_executor(self._executor, job)
-        future.add_done_callback(self._done)
-
-    def _done(self, future: asyncio.Future[object]) -> None:
-        self._pending -= 1
-        if not future.cancelled() and future.exception() is not None:
-            log.error("Modbus/TCP Security audit record failed", exc_info=future.exception())
-
-    def _append(self, entry: dict[str, Any]) -> None:
-        try:
-            self._sink.append(entry)
-        except OSError as exc:  # the write stands (it was answered); the loss is loud
-            log.error("audit record of a Modbus/TCP Security %s not written: %s",
-                      entry["action"], exc)
 
     def _reject(self, der: bytes) -> str | None:
         try:

@@ -3,27 +3,28 @@
 Owns: the role of a client certificate (the spec's "ModbusRole" X.509v3 extension, OID
 1.3.6.1.4.1.50316.802.1, an ASN.1 UTF8String) mapped to softplc's role names and whether it
 may write; the certificate's user (its subject's common name); the client certificate
-offered in a TLS Certificate handshake message (kept when the certificate is refused); and
-the audit description of a write request.
+offered in a TLS Certificate handshake message (kept when the certificate is refused). The
+audit description of a write request is coalesce.py's (re-exported here).
 Does not know: sockets, ssl contexts, the trust list, the audit trail, the register map.
 """
 
 from __future__ import annotations
 
-import struct
 from dataclasses import dataclass
 from typing import Any, Final
 
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 
+# The description of a write lives with the plain port's audit (coalesce.py, no cryptography).
+from softplc.hmi.coalesce import WRITE_FUNCTIONS as WRITE_FUNCTIONS
+from softplc.hmi.coalesce import describe_write as describe_write
+
 ROLE_OID: Final = x509.ObjectIdentifier("1.3.6.1.4.1.50316.802.1")
 # softplc's roles (api/roles.py), lowest first; a role may do what those below it may.
 ROLES: Final = ("viewer", "operator", "engineer", "admin")
 WRITER: Final = "operator"  # the least role whose HMI writes are served
 NO_ROLE: Final = "viewer"  # no role extension, or a role softplc does not know: reads only
-# Function codes that write (FC23 reads too, but its write is what matters here).
-WRITE_FUNCTIONS: Final = frozenset({5, 6, 15, 16, 23})
 # ASN.1 string tags accepted for the role: UTF8String (the spec's), PrintableString, IA5String.
 _STRING_TAGS: Final = frozenset({0x0C, 0x13, 0x16})
 _TLS_1_3: Final = 0x0304
@@ -106,33 +107,3 @@ def offered_certificate(version: int, message: bytes) -> bytes | None:
     size = int.from_bytes(message[pos:pos + 3], "big")
     der = message[pos + 3:pos + 3 + size]
     return der if size and len(der) == size else None
-
-
-def describe_write(pdu: bytes) -> dict[str, Any]:
-    """What a write request asks, for the audit trail: function, table, 0-based address and
-    the values (bits 0/1 or registers; the trail keeps the first 32). A malformed request
-    is described by its function code (the slave answers it with an exception)."""
-    function = pdu[0]
-    body = pdu[1:]
-    try:
-        if function in (5, 6):
-            address, value = struct.unpack(">HH", body)
-            values = [int(value == 0xFF00)] if function == 5 else [value]
-        elif function in (15, 16):
-            address, count, size = struct.unpack_from(">HHB", body)
-            values = _values(function, body[5:5 + size], count)
-        elif function == 23:
-            address, count, size = struct.unpack_from(">HHB", body, 4)
-            values = _values(16, body[9:9 + size], count)
-        else:
-            return {"function": function}
-    except struct.error:
-        return {"function": function, "malformed": True}
-    table = "coils" if function in (5, 15) else "holding registers"
-    return {"function": function, "table": table, "address": address, "values": values}
-
-
-def _values(function: int, data: bytes, count: int) -> list[int]:
-    if function == 15:
-        return [(data[i // 8] >> (i % 8)) & 1 for i in range(min(count, 8 * len(data)))]
-    return list(struct.unpack(f">{len(data) // 2}H", data[:len(data) // 2 * 2]))[:count]

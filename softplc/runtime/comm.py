@@ -161,19 +161,23 @@ class _Service(Protocol):
 
 def modbus_slave(config: CommConfig, source: SnapshotSource, sink: Callable[[HmiWrite], None],
                  read_board: Callable[[], dict[str, Any]]) -> ModbusSlave:
-    """The HMI slave of `config` (not started), with its write policy."""
+    """The HMI slave of `config` (not started), with its write policy; its writes audited
+    in STATE_DIR's trail (docs/security.md, "Audit of plain Modbus writes")."""
+    from softplc.api.audit import AuditTrail
     from softplc.hmi.server import ModbusSlave
+    from softplc.hmi.writeaudit import WritesAudited
 
     if config.modbus is None:
         raise ValueError("Modbus is off in this configuration")
     host, port = config.modbus
     writable = (ProgramWritable(read_board, source) if config.modbus_writes == "symbols"
                 else None)
+    audit = WritesAudited(AuditTrail(Path(config.state_dir)), config.modbus_writes)
     return ModbusSlave(source, sink, sizes=config.sizes, host=host, port=port,
                        writable=writable, read_only=config.modbus_writes == "none",
                        max_connections=config.modbus_max_connections,
                        max_per_peer=config.modbus_max_per_peer,
-                       idle_timeout_s=config.modbus_idle_timeout_s,
+                       idle_timeout_s=config.modbus_idle_timeout_s, audit=audit,
                        presentation=EngSource(read_board, source))
 
 

@@ -26,7 +26,8 @@ from tests.fuzz.live import LivePlc
 from tests.fuzz.mutate import mutant
 
 ROOT = Path(__file__).resolve().parents[2]
-ENDLESS = {"events", "live"}  # server-sent event streams never end: tests/api, tests/web
+# Server-sent event streams never end: tests/api, tests/web, tests/security/test_audit_stream.py
+ENDLESS = {"events", "live", "auditEvents"}
 SCHEMA = schemathesis.openapi.from_dict(openapi_document())
 OPERATIONS = [op for op in (r.ok() for r in SCHEMA.get_all_operations())
               if op.definition.raw.get("operationId") not in ENDLESS]

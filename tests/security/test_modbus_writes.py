@@ -51,7 +51,9 @@ def plc(tmp_path: Path) -> Iterator[LivePlc]:
 
 
 def _slave(plc: LivePlc, mode: ModbusWrites) -> SlaveThread:
-    config = CommConfig(modbus=("127.0.0.1", 0), modbus_writes=mode)
+    # The slave audits its writes into the state directory: the test's, not the checkout's.
+    config = CommConfig(modbus=("127.0.0.1", 0), modbus_writes=mode,
+                        state_dir=f"{plc.loop.config.root}/state")
     return run_in_thread(modbus_slave(config, plc.reader, plc.channel.send_hmi_write,
                                       plc.board.read))
 

@@ -1,7 +1,9 @@
 /* softplc operator page: the net live (Cytoscape.js + dagre), the process image with writes
    and forcing, program handling, scan timing (uPlot) and events. Everything comes from the
-   same origin's HTTP API; the token (needed off loopback) lives in sessionStorage and goes
-   only in the Authorization header, never in a URL. */
+   same origin's HTTP API. Who acts: a session from the login form (an HttpOnly cookie the
+   page never reads; every request sends it, same-origin, with the browser's Origin header
+   the API checks), or an API key (sessionStorage, only ever in the Authorization header,
+   never in a URL; it is taken before the cookie). */
 "use strict";
 
 const API = "/api/v1";
@@ -21,30 +23,20 @@ function headers(extra) {
   return h;
 }
 
-function askToken() {
-  const dialog = $("#token-dialog");
-  if (!dialog.open) dialog.showModal();
-}
-
-$("#token-form").addEventListener("submit", () => {
-  sessionStorage.setItem("softplc-token", $("#token").value.trim());
-  $("#token").value = "";
-  startStream();
-});
-
 async function api(method, path, body, contentType) {
   const init = { method, headers: headers(contentType ? { "Content-Type": contentType } : {}) };
   if (body !== undefined) init.body = body;
   const response = await fetch(API + path, init);
   let data = {};
   try { data = await response.json(); } catch (e) { data = {}; }
-  if (response.status === 401) askToken();
+  if (response.status === 401) askToken(data.error);
   return { ok: response.ok, status: response.status, data };
 }
 
 /* -- program handling -------------------------------------------------------------------- */
 
 function say(message, ok, problems) {
+  $("#offer-login").classList.add("hidden");
   const el = $("#message");
   el.textContent = message;
   el.className = "message " + (ok ? "ok" : "refused");
@@ -61,8 +53,10 @@ for (const button of document.querySelectorAll("button[data-command]")) {
     const command = button.dataset.command;
     const answer = await api("POST", "/" + command);
     if (answer.ok) say(`${command}: ${answer.data.message}`, true);
-    else say(`${command} refused: ${answer.data.error || answer.status}`, false,
-             answer.data.problems);
+    else if (!denied(command, answer)) {
+      say(`${command} refused: ${answer.data.error || answer.status}`, false,
+          answer.data.problems);
+    }
   });
 }
 
@@ -74,13 +68,17 @@ $("#download").addEventListener("click", async () => {
                 ($("#online").checked ? "&online=true" : "");
   const answer = await api("POST", "/program" + query, body, "application/yaml");
   if (answer.ok) say(`download: ${answer.data.message}`, true);
-  else say(answer.data.error || `download refused (${answer.status})`, false,
-           answer.data.problems);
+  else if (!denied("download", answer)) {
+    say(answer.data.error || `download refused (${answer.status})`, false,
+        answer.data.problems);
+  }
 });
 
 $("#release-all").addEventListener("click", async () => {
   const answer = await api("DELETE", "/forces");
-  say(answer.ok ? answer.data.message : `unforce refused: ${answer.data.error}`, answer.ok);
+  if (!denied("unforce", answer)) {
+    say(answer.ok ? answer.data.message : `unforce refused: ${answer.data.error}`, answer.ok);
+  }
 });
 
 /* -- the net ----------------------------------------------------------------------------- */
@@ -345,6 +343,7 @@ function buildImage() {
       if (v === null) { say(`write ${sym.name}: not a ${sym.type} value`, false); return; }
       const answer = await api("PUT", "/symbols/" + encodeURIComponent(sym.name),
                                JSON.stringify({ value: v }), "application/json");
+      if (denied(`write ${sym.name}`, answer)) return;
       say(answer.ok ? `write ${sym.name} = ${v} queued` : answer.data.error, answer.ok);
     }) : "");
     const force = valueInput(sym, "force", async (raw) => {
@@ -352,6 +351,7 @@ function buildImage() {
       if (v === null) { say(`force ${sym.name}: not a ${sym.type} value`, false); return; }
       const answer = await api("PUT", "/forces/" + encodeURIComponent(sym.name),
                                JSON.stringify({ value: v }), "application/json");
+      if (denied(`force ${sym.name}`, answer)) return;
       say(answer.ok ? answer.data.message : answer.data.error, answer.ok);
     });
     const release = document.createElement("button");
@@ -359,6 +359,7 @@ function buildImage() {
     release.textContent = "release";
     release.addEventListener("click", async () => {
       const answer = await api("DELETE", "/forces/" + encodeURIComponent(sym.name));
+      if (denied(`release ${sym.name}`, answer)) return;
       say(answer.ok ? answer.data.message : answer.data.error, answer.ok);
     });
     force.appendChild(release);
@@ -483,7 +484,11 @@ async function startStream() {
   const link = $("#link");
   try {
     const response = await fetch(API + "/live", { headers: headers(), signal: streamAbort.signal });
-    if (response.status === 401) { link.textContent = "token needed"; askToken(); return; }
+    if (response.status === 401) {
+      link.textContent = "log in needed";
+      askToken("This PLC shows nothing without credentials: log in, or give a key.");
+      return;
+    }
     if (!response.ok) throw new Error("HTTP " + response.status);
     link.textContent = "live";
     link.classList.remove("down");
@@ -513,4 +518,4 @@ async function startStream() {
 }
 
 makePlot();
-startStream();
+startStream();  // account.js, loaded after this file, asks who is logged in
