@@ -46,7 +46,8 @@ def plc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[ApiClient, i
     client = ApiClient(f"http://127.0.0.1:{port}", timeout_s=10)
     os.environ["SOFTPLC_HISTORY_SCANS"] = str(KEPT)  # inherited by softplc run's processes
     try:
-        with softplc_run([str(folder / "typed.yaml"), "--start", "--modbus", "off", "--api",
+        with softplc_run([str(folder / "typed.yaml"), "--start", "--modbus", "off",
+                          "--opcua", "off", "--api",
                           f"127.0.0.1:{port}", "--state-dir", str(folder / "state"), "--quiet",
                           "--period", "10ms"],
                          lambda: client.status()["state"] == "RUNNING") as proc:

@@ -267,7 +267,7 @@ def test_softplc_run_drives_the_coil_and_leaves_it_0_after_sigterm(line: RtuLine
     (tmp_path / "lamp.yaml").write_text(PROGRAM, encoding="utf-8")
     proc = subprocess.Popen(
         [sys.executable, "-m", "softplc.cli", "run", str(tmp_path / "lamp.yaml"), "--start",
-         "--modbus", "off", "--api", f"127.0.0.1:{free_port()}", "--quiet",
+         "--modbus", "off", "--opcua", "off", "--api", f"127.0.0.1:{free_port()}", "--quiet",
          "--state-dir", str(tmp_path / "state"), "--period", "10ms"],
         cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:

@@ -42,7 +42,8 @@ def plc_port(tmp_path: Path) -> Iterator[int]:
     with log.open("w") as stderr:  # a file, not a pipe: a log flood must not block the PLC
         proc = subprocess.Popen(
             [sys.executable, "-m", "softplc.cli", "run", "programs/transport.yaml", "--start",
-             "--modbus", f"127.0.0.1:{port}", "--api", "off", "--state-dir", str(tmp_path),
+             "--modbus", f"127.0.0.1:{port}",
+             "--opcua", "off", "--api", "off", "--state-dir", str(tmp_path),
              "--quiet", "--period", "10ms"],
             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=stderr, text=True)
     try:

@@ -35,7 +35,8 @@ def plc(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], int, int]]:
     modbus, api = free_port(), free_port()
     proc = subprocess.Popen(
         [sys.executable, "-m", "softplc.cli", "run", "programs/transport.yaml", "--start",
-         "--seed", str(SEED), "--modbus", f"127.0.0.1:{modbus}", "--api", f"127.0.0.1:{api}",
+         "--seed", str(SEED), "--modbus", f"127.0.0.1:{modbus}",
+         "--opcua", "off", "--api", f"127.0.0.1:{api}",
          "--state-dir", str(tmp_path), "--quiet", "--period", "10ms"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -305,7 +305,7 @@ def test_the_field_state_loader_refuses_anything_but_plant_models() -> None:
 def softplc_run(state: Path, *extra: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "softplc.cli", "run", "programs/transport.yaml", "--start",
-         "--modbus", "off", "--api", "off", "--state-dir", str(state), "--quiet",
+         "--modbus", "off", "--opcua", "off", "--api", "off", "--state-dir", str(state), "--quiet",
          "--period", "5ms", "--retain-interval", "100ms", *extra],
         cwd=ROOT, capture_output=True, text=True, timeout=120)
 

@@ -33,7 +33,8 @@ def plc_process(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], int]]:
     port = free_port()
     proc = subprocess.Popen(
         [sys.executable, "-m", "softplc.cli", "run", "programs/transport.yaml", "--start",
-         "--modbus", f"127.0.0.1:{port}", "--api", "off", "--state-dir", str(tmp_path),
+         "--modbus", f"127.0.0.1:{port}",
+         "--opcua", "off", "--api", "off", "--state-dir", str(tmp_path),
          "--quiet", "--period", "10ms"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -154,7 +155,8 @@ def test_run_with_modbus_writes_none_refuses_every_write(tmp_path: Path) -> None
     port = free_port()
     proc = subprocess.Popen(
         [sys.executable, "-m", "softplc.cli", "run", "programs/transport.yaml", "--start",
-         "--modbus", f"127.0.0.1:{port}", "--api", "off", "--state-dir", str(tmp_path),
+         "--modbus", f"127.0.0.1:{port}",
+         "--opcua", "off", "--api", "off", "--state-dir", str(tmp_path),
          "--quiet", "--modbus-writes", "none"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
