@@ -7,9 +7,12 @@ with monitored items, 300 HTTP event streams, JSON bombs to the symbol and force
 Keys, per abuse A: `modbus_p99_ratio_A`, `http_p99_ratio_A`, `scan_p99_ratio_A` (p99 under
 the abuse / the same figure without abuse just before it, same run), the worst (`*_max`),
 `scan_p99_over_floor_max` (the worst scan p99 of any phase / the empty loop's); per phase,
-the CPU seconds each service process and the abuser used: the abusers run at normal
-priority on the services' CPUs, so a ratio also holds the CPU a hostile client burns on
-the same machine. The bombs carry the owner's key: they reach the JSON checks, not a 401.
+the CPU seconds each service process and the abuser used and where the clients ran. The
+clients stand for other machines (placement.py): pollers and abusers on the scan's CPU,
+the abusers at SCHED_IDLE, so the services' CPU holds only what the servers do; the Read
+and the bombs are run again with every client on the services' CPU (`A_local`, `*_max_local`:
+a process on the PLC's machine competes for its CPU as any does). The bombs carry the
+owner's key: they reach the JSON checks, not a 401.
 Owns: the abusers and the section's keys. Does not know: how the runtime starts (live.py),
 how any server bounds itself (the abusers are plain clients).
 """
@@ -30,15 +33,24 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Final
 
+from softplc.bench import placement
 from softplc.bench.live import LiveRuntime, cpu_s, run_floor
 from softplc.bench.load import LoadJob, LoadWorker
 from softplc.bench.measure import Progress, ratio
+from softplc.bench.placement import Placement, place
 from softplc.bench.scanbench import SETTLE_S, window_figures
-from softplc.runtime.realtime import Realtime, keep_off_scan_cpu, recommended
+from softplc.runtime.realtime import Realtime, recommended
 
 _CTX = mp.get_context("spawn")
 ABUSES: Final = ("opcua_idle", "opcua_huge_read", "opcua_sessions", "event_streams",
                  "json_bombs")
+# Measured again with every client on the services' CPU (keys `..._local`, as before issue
+# 28's placement): what a process on the PLC's own machine that burns CPU costs them, the
+# pollers' own wake-ups included. Reported beside the others, not in the `*_max`.
+LOCAL: Final = ("opcua_huge_read", "json_bombs")
+# (phase name, abuse, clients remote): the order the phases run in.
+RUNS: Final = (*((kind, kind, True) for kind in ABUSES),
+               *((f"{kind}_local", kind, False) for kind in LOCAL))
 # (quick, full) sizes of each abuse.
 SIZES: Final = {"opcua_idle": (200, 900), "opcua_huge_read": (50_000, 200_000),
                 "opcua_sessions": ((40, 20), (200, 50)), "event_streams": (300, 300),
@@ -139,13 +151,15 @@ async def _opcua(kind: str, url: str, size: Any, stop: Callable[[], Any]) -> dic
 
 
 def abuser_main(kind: str, ports: dict[str, int], quick: bool, conn: Connection,
-                token: str = "") -> None:
-    """One abuse: set up, send {"ready": ...}, hold until told to stop, send the tally."""
+                token: str = "", where: Placement | None = None) -> None:
+    """One abuse: placed first (its threads inherit it), set up, send {"ready": ...}, hold
+    until told to stop, send the tally."""
     from softplc.runtime.procs import die_with_parent
 
     die_with_parent()
+    placed = place(where or Placement(None))
     size: Any = SIZES[kind][0 if quick else 1]
-    report: dict[str, Any] = {"kind": kind, "size": size}
+    report: dict[str, Any] = {"kind": kind, "size": size, "placed": placed.words()}
     if kind.startswith("opcua"):
         url = f"opc.tcp://127.0.0.1:{ports['opcua']}"
         if kind == "opcua_idle":
@@ -180,22 +194,27 @@ def abuser_main(kind: str, ports: dict[str, int], quick: bool, conn: Connection,
 
 
 def _phase(kind: str | None, runtime: LiveRuntime, worker: LoadWorker, duration_s: float,
-           quick: bool, realtime: Realtime, progress: Progress) -> dict[str, Any]:
-    progress(f"isolation: {kind or 'no abuse'}, {duration_s:g} s")
+           quick: bool, realtime: Realtime, progress: Progress,
+           remote: bool = True) -> dict[str, Any]:
+    """One phase: the pollers (and the abuse `kind`, None: none) for `duration_s`; every
+    client on the scan's CPU (`remote`) or on the services' (placement.py)."""
+    where = "clients remote" if remote else "clients on the services' CPU"
+    progress(f"isolation: {kind or 'no abuse'} ({where}), {duration_s:g} s")
     job = LoadJob(runtime.modbus_port, 1, duration_s, runtime.api_url, 0.01, registers=10)
+    pollers = place(placement.clients(realtime, remote), worker.pid).words()
     if kind is None:
         before = _cpu(runtime, 0)
-        return {"load": worker.run(job), "cpu_s": _cpu(runtime, 0, before)}
+        return {"load": worker.run(job), "cpu_s": _cpu(runtime, 0, before), "pollers": pollers}
     assert runtime.opcua_port is not None and runtime.api_port is not None
     ports = {"opcua": runtime.opcua_port, "api": runtime.api_port}
     here, there = _CTX.Pipe()
     token = ""
     with contextlib.suppress(OSError):  # the owner's key, as opcuabench reads it
         token = (Path(runtime._state_dir.name) / "api_token").read_text().strip()
-    proc = _CTX.Process(target=abuser_main, args=(kind, ports, quick, there, token),
-                        name=f"softplc-bench-{kind}", daemon=True)
+    proc = _CTX.Process(target=abuser_main, name=f"softplc-bench-{kind}", daemon=True,
+                        args=(kind, ports, quick, there, token,
+                              placement.abuser(realtime, remote)))
     proc.start()
-    keep_off_scan_cpu(int(proc.pid or 0), realtime)
     try:
         if not here.poll(180):
             raise RuntimeError(f"the {kind} abuser did not get ready")
@@ -209,7 +228,8 @@ def _phase(kind: str | None, runtime: LiveRuntime, worker: LoadWorker, duration_
         proc.join(10)
         if proc.is_alive():
             proc.kill()
-    return {"load": load, "cpu_s": cpu, "abuse": {**report, "ready": ready.get("ready")}}
+    return {"load": load, "cpu_s": cpu, "pollers": pollers,
+            "abuse": {**report, "ready": ready.get("ready")}}
 
 
 def _cpu(runtime: LiveRuntime, abuser: int,
@@ -241,19 +261,18 @@ def run(quick: bool, progress: Progress, *, duration_s: float | None = None,
     progress(f"isolation: floor (empty loop) at 1 ms, {duration:g} s")
     floor = window_figures(run_floor(1_000_000, duration, realtime))
     phases: dict[str, dict[str, Any]] = {}
-    runtime = LiveRuntime(period_ns=1_000_000, capacity_s=len(ABUSES) * (duration + 90) + 120,
+    runtime = LiveRuntime(period_ns=1_000_000, capacity_s=len(RUNS) * (duration + 90) + 120,
                           realtime=realtime, opcua=True)
     try:
         runtime.start()
         runtime.wait_for_state("RUNNING")
         time.sleep(SETTLE_S)
         with LoadWorker() as worker:
-            keep_off_scan_cpu(worker.pid, realtime)
-            for kind in ABUSES:  # a baseline just before each abuse: the machine drifts
-                phases[f"none_before_{kind}"] = _phase(None, runtime, worker, duration, quick,
-                                                       realtime, progress)
-                phases[kind] = _phase(kind, runtime, worker, duration, quick, realtime,
-                                      progress)
+            for name, kind, remote in RUNS:  # a baseline just before each: the machine drifts
+                phases[f"none_before_{name}"] = _phase(None, runtime, worker, duration, quick,
+                                                       realtime, progress, remote)
+                phases[name] = _phase(kind, runtime, worker, duration, quick, realtime,
+                                      progress, remote)
         record = runtime.stop()
     finally:
         runtime.stop()
@@ -263,15 +282,16 @@ def run(quick: bool, progress: Progress, *, duration_s: float | None = None,
     result["scan_p99_over_floor_max"] = ratio(
         max(figures[name]["scan_p99_us"] for name in figures), floor["lateness_us"]["p99"])
     result["scan_p99_ratio_none_over_floor"] = ratio(
-        max(figures[f"none_before_{kind}"]["scan_p99_us"] for kind in ABUSES),
+        max(figures[f"none_before_{name}"]["scan_p99_us"] for name, _, _ in RUNS),
         floor["lateness_us"]["p99"])
     for what in ("modbus", "http", "scan"):
-        ratios = {kind: ratio(figures[kind][f"{what}_p99_us"],
-                              figures[f"none_before_{kind}"][f"{what}_p99_us"])
-                  for kind in ABUSES}
-        for kind, value in ratios.items():
-            result[f"{what}_p99_ratio_{kind}"] = value
-        known = [v for v in ratios.values() if v is not None]
-        result[f"{what}_p99_ratio_max"] = max(known) if known else None
+        ratios = {name: ratio(figures[name][f"{what}_p99_us"],
+                              figures[f"none_before_{name}"][f"{what}_p99_us"])
+                  for name, _, _ in RUNS}
+        for name, value in ratios.items():
+            result[f"{what}_p99_ratio_{name}"] = value
+        for suffix, names in (("", ABUSES), ("_local", [f"{k}_local" for k in LOCAL])):
+            known = [v for name, v in ratios.items() if name in names and v is not None]
+            result[f"{what}_p99_ratio_max{suffix}"] = max(known) if known else None
     result["load_average_1m"] = [load_before[0], os.getloadavg()[0]]
     return result
