@@ -145,6 +145,11 @@ class RemoteIoDevice:
     # -- the test side -----------------------------------------------------------------------
 
     @property
+    def beat_at(self) -> float:
+        """time.monotonic() when the module last saw the heartbeat change."""
+        return self._beat_at
+
+    @property
     def tripped(self) -> bool:
         return self._tripped
 

@@ -283,25 +283,28 @@ def test_idle_connections_are_closed(source: ImageSource) -> None:
     timeout_s = 1.0
     slave = ModbusSlave(source, source.sink, sizes=source.image.sizes, port=0,
                         idle_timeout_s=timeout_s)
-    with run_in_thread(slave) as handle, connect(handle.port) as idle, connect(handle.port) as busy:
-        started = last = time.monotonic()
-        idle.settimeout(0.1)
-        tid, longest_gap = 0, 0.0
-        while True:  # busy polls every ~0.1 s until idle is closed: never idle for timeout_s
-            assert request(busy, VALID_READ, tid=tid) == bytes.fromhex("04020000")
-            now = time.monotonic()
-            tid, longest_gap, last = tid + 1, max(longest_gap, now - last), now
-            with contextlib.suppress(TimeoutError):
-                if is_closed_by_peer(idle):
-                    break
-            assert now - started < 10 * timeout_s, "idle was never closed"
-        assert time.monotonic() - started >= timeout_s
-        # The bound of this test's own polling, measured: busy was never silent for timeout_s.
-        assert longest_gap < timeout_s, f"the machine stalled the test for {longest_gap:.2f} s"
-        busy.settimeout(3 * timeout_s)
-        assert request(busy, VALID_READ, tid=99) == bytes.fromhex("04020000")
-        assert is_closed_by_peer(busy)
-        assert wait_until(lambda: slave.connection_count == 0)
+    with run_in_thread(slave) as handle:
+        # Before the connects: the slave's idle clock starts when it accepts, during them.
+        started = time.monotonic()
+        with connect(handle.port) as idle, connect(handle.port) as busy:
+            last = time.monotonic()
+            idle.settimeout(0.1)
+            tid, longest_gap = 0, 0.0
+            while True:  # busy polls every ~0.1 s until idle is closed: never idle for timeout_s
+                assert request(busy, VALID_READ, tid=tid) == bytes.fromhex("04020000")
+                now = time.monotonic()
+                tid, longest_gap, last = tid + 1, max(longest_gap, now - last), now
+                with contextlib.suppress(TimeoutError):
+                    if is_closed_by_peer(idle):
+                        break
+                assert now - started < 10 * timeout_s, "idle was never closed"
+            assert time.monotonic() - started >= timeout_s
+            # The bound of this test's own polling, measured: busy was never silent for timeout_s.
+            assert longest_gap < timeout_s, f"the machine stalled the test for {longest_gap:.2f} s"
+            busy.settimeout(3 * timeout_s)
+            assert request(busy, VALID_READ, tid=99) == bytes.fromhex("04020000")
+            assert is_closed_by_peer(busy)
+            assert wait_until(lambda: slave.connection_count == 0)
 
 
 def test_stop_closes_client_connections_and_the_listener(source: ImageSource) -> None:
