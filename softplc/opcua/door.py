@@ -336,9 +336,8 @@ class Connection(OPCUAProtocol):
     def slot(self) -> Slot:
         """Live only with an activated session that made a request lately."""
         processor = self.processor
-        session = processor.session if processor is not None else None
-        active = session is not None and session.is_activated()
-        last = processor.session_last_activity if active and processor is not None else None
+        last = processor.session_last_activity \
+            if processor is not None and self.activated() else None
         return Slot(self.key, self.peer, self.connected_s, last)
 
     def data_received(self, data: bytes) -> None:
