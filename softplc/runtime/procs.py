@@ -95,6 +95,12 @@ class StopFlag:
 
     def set(self) -> None:
         self._event.set()
+        self.tell()
+
+    def tell(self) -> None:
+        """Parent side: SIGTERM to the bound child, nothing else. Takes no lock, so a signal
+        handler may call it (set() may not: the handler can interrupt the thread that holds
+        the event's lock, and wait on it for ever)."""
         for pid in self._pids:
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.kill(pid, signal.SIGTERM)

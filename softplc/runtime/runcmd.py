@@ -155,6 +155,9 @@ def run(args: argparse.Namespace) -> int:
     def on_signal(signum: int, frame: object) -> None:
         nonlocal stopping
         stopping = True
+        # The scan process drives the outputs safe the moment it hears, not when this main
+        # thread next looks (it may be spawning a service, printing, or waiting 50 ms).
+        supervisor.stop_scan.tell()
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
