@@ -26,9 +26,10 @@ from pathlib import Path
 from types import TracebackType
 from typing import Final
 
-from asyncua import Client, Node, ua
+from asyncua import Node, ua
 
 from softplc.api.auth import load_or_create_token
+from softplc.opcua.client import RefusingAwareClient
 from softplc.opcua.ids import string_id
 
 ROOT: Final = Path(__file__).resolve().parents[2]
@@ -194,7 +195,7 @@ class Watcher:
 
     def __init__(self, run: CellRun) -> None:
         self.run = run
-        self.clients = {name: Client(run.url(name), timeout=5, watchdog_intervall=5)
+        self.clients = {name: RefusingAwareClient(run.url(name), timeout=5, watchdog_intervall=5)
                         for name in STATES}
         # The cell's HMI bit end_feed is written, which needs a user token.
         self.clients["cell"].set_user("watcher")

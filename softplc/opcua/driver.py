@@ -36,6 +36,7 @@ from asyncua import Client, ua
 from softplc.core.image import ProcessImage
 from softplc.core.symbols import Direction, DriverSpec, Symbol, SymType
 from softplc.devices.driver import Health
+from softplc.opcua.client import RefusingAwareClient
 from softplc.opcua.typed import VARIANT_TYPES, remote_raw, remote_variant
 
 log = logging.getLogger(__name__)
@@ -207,8 +208,8 @@ class OpcUaIoDriver:
         while True:
             # asyncua probes the server every second and drops the connection when one
             # probe takes longer than that: a remote is lost after timeout_s, as for reads.
-            client = Client(str(self.params["url"]), timeout=timeout_s,
-                            watchdog_intervall=timeout_s)
+            client = RefusingAwareClient(str(self.params["url"]), timeout=timeout_s,
+                                         watchdog_intervall=timeout_s)
             if self.params.get("user"):
                 client.set_user(str(self.params["user"]))
                 client.set_password(os.environ.get(str(self.params.get("password_env", "")), ""))

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 from asyncua import Client
 
+from softplc.opcua.client import RefusingAwareClient
 from tests.support import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -26,7 +27,7 @@ def patient_client(url: str, patience_s: float = PATIENCE_S) -> Client:
     second (`watchdog_intervall`): beside 4 busy loops that cut the tests' clients off while
     the server was still working, rebuilding the address space after a download. What the
     tests check is the answers, not how fast a starved server gives them."""
-    return Client(url, timeout=patience_s, watchdog_intervall=patience_s)
+    return RefusingAwareClient(url, timeout=patience_s, watchdog_intervall=patience_s)
 
 
 def wait_port(port: int, proc: subprocess.Popen[str], timeout_s: float = 60.0) -> None:
