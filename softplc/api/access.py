@@ -4,7 +4,9 @@ Owns: Principal; reading credentials (a bearer API key `NAME.SECRET`, the owner'
 STATE_DIR/api_token, HTTP Basic user:password, the page's session cookie), the back-off of
 failed logins per user and per peer (a bounded table), the sessions of /login, the rule
 "no credentials: the anonymous role" (viewer on loopback, nothing off it), 401/403/429 as
-one-line problems, and writing audit records (in a thread: they fsync).
+one-line problems, and writing audit records (in a thread: they fsync): a refusal through
+refusals.py's rule (the first of a kind at once, its repeats counted per window), anything
+else at once; the chain's verdict for status (chainwatch.py).
 Does not know: the routes' table (roles.py), the users file's format (users.py), the
 trail's format (audit.py), the PLC.
 """
@@ -14,7 +16,6 @@ from __future__ import annotations
 import asyncio
 import base64
 import binascii
-import contextlib
 import hashlib
 import hmac
 import logging
@@ -29,7 +30,9 @@ from aiohttp import web
 
 from softplc.api.audit import AuditTrail
 from softplc.api.backoff import Backoff
+from softplc.api.chainwatch import ChainWatch
 from softplc.api.problems import ApiProblem
+from softplc.api.refusals import RefusalAudit
 from softplc.api.roles import Role
 from softplc.api.users import OWNER, User, UserError, UserStore
 
@@ -40,7 +43,6 @@ SESSION_S: Final = 8 * 3600.0  # a shift
 MAX_SESSIONS: Final = 256
 BASIC_CACHE: Final = 64  # verified user:password pairs kept, so scripts pay scrypt once
 BASIC_CACHE_S: Final = 300.0
-CHAIN_CHECK_S: Final = 5.0  # status re-verifies the trail at most this often, when it changed
 CHALLENGE: Final = {"WWW-Authenticate": 'Bearer realm="softplc"'}
 
 
@@ -67,40 +69,28 @@ class Gate:
         self.audit = audit or AuditTrail(state_dir)
         self.anonymous = anonymous
         self.backoff = Backoff()
-        self.throttled = 0  # requests refused while backing off (not audited one by one)
+        self.throttled = 0  # logins refused or failed while backing off
         self.anchor: tuple[int, str] | None = None  # the last record this server wrote
         self._owner = owner_token
         self._kdf = asyncio.Semaphore(1)  # one scrypt at a time: 32 MiB and ~0.3 s each
         self._pepper = secrets.token_bytes(32)
         self._basic: OrderedDict[bytes, tuple[str, Role, float]] = OrderedDict()
         self._sessions: OrderedDict[str, tuple[str, float]] = OrderedDict()
-        self._chain: tuple[float, object, dict[str, Any]] | None = None
-        self._chain_lock = asyncio.Lock()
+        self.watch = ChainWatch(self.audit)
+        self.refusals = RefusalAudit(self._append)
 
     def set_owner(self, token: str) -> None:
         self._owner = token
 
     async def chain(self) -> dict[str, Any]:
-        """The audit chain's verdict for status: verified again when a file of the trail
-        changed (inode, size, ctime: no one sets a ctime back), at most every CHAIN_CHECK_S."""
-        async with self._chain_lock:
-            now = time.monotonic()
-            if self._chain is None or now - self._chain[0] >= CHAIN_CHECK_S:
-                stamp = await asyncio.to_thread(self._stamp)
-                if self._chain is None or stamp != self._chain[1]:
-                    verdict = await asyncio.to_thread(self.audit.verify, self.anchor)
-                    self._chain = (now, stamp, verdict.as_dict())
-                else:
-                    self._chain = (now, stamp, self._chain[2])
-            return {**self._chain[2], "throttled_logins": self.throttled}
+        """The audit chain's verdict for status, at once: the last one computed (`checked_at`),
+        checked again in a thread when the trail changed (chainwatch.py)."""
+        return {**self.watch.verdict(self.anchor), "throttled_logins": self.throttled}
 
-    def _stamp(self) -> object:
-        stamps = []
-        for path in self.audit.files():
-            with contextlib.suppress(OSError):
-                info = path.stat()
-                stamps.append((path.name, info.st_ino, info.st_size, info.st_ctime_ns))
-        return (tuple(stamps), self.anchor)
+    async def close(self) -> None:
+        """At stop: every refusal still counted written, no further check of the chain."""
+        self.watch.close()
+        await self.refusals.close()
 
     def has_credentials(self, request: web.Request) -> bool:
         """An Authorization header (a wrong one is a 401 later), or the cookie of a live
@@ -145,7 +135,7 @@ class Gate:
                 (user := users.get(name)) is not None and user.role is cached[1]:
             return cached[1]
         if (wait_s := self.backoff.wait_s(*keys)) > 0:
-            raise self.throttle(wait_s)
+            raise await self.throttle(request, name[:32], wait_s)
         async with self._kdf:
             role = await asyncio.to_thread(self.users.verify, name, password) if users \
                 else None
@@ -164,24 +154,24 @@ class Gate:
             log.error("%s", exc)
             return {}
 
-    def throttle(self, wait_s: float) -> ApiProblem:
+    async def throttle(self, request: web.Request, name: str, wait_s: float) -> ApiProblem:
+        """Audit a login refused unchecked while its user or peer backs off, make its 429."""
         self.throttled += 1
+        await self.refused(request, Principal(name, None, "failed"), "login", "refused", 429,
+                           {"route": route(request), "reason": "too many failed logins"})
         seconds = max(1, round(wait_s + 0.5))
         return ApiProblem(429, f"too many failed logins: try again in {seconds} s",
                           headers={"Retry-After": str(seconds)})
 
     async def failure(self, request: web.Request, name: str | None, what: str,
                       keys: tuple[tuple[str, str], ...] = ()) -> ApiProblem:
-        """Audit a failed authentication and make its 401. While its peer is backing off a
-        failure is counted, not audited: a flood of wrong keys cannot push older records out
-        of the bounded trail."""
+        """Audit a failed authentication and make its 401 (counted in `throttled` while its
+        peer backs off)."""
         peer = ("peer", request.remote or "?")
         if self.backoff.wait_s(peer) > 0:
             self.throttled += 1
-        else:
-            await self.record(request, Principal(name, None, "failed"), "login", "failed",
-                              401, {"route": f"{request.method} {request.path[:100]}",
-                                    "reason": what})
+        await self.refused(request, Principal(name, None, "failed"), "login", "failed", 401,
+                           {"route": route(request), "reason": what})
         self.backoff.failed(*(keys or (peer,)))
         return ApiProblem(401, f"authentication failed: {what}", headers=CHALLENGE)
 
@@ -215,14 +205,34 @@ class Gate:
 
     async def record(self, request: web.Request, who: Principal, action: str, outcome: str,
                      status: int, detail: dict[str, Any] | None = None) -> None:
-        entry = {**who.audit(), "peer": request.remote, "iface": "http", "action": action,
-                 "outcome": outcome, "status": status, "detail": detail or {}}
+        """What a request did (or a login, a logout): written before it is answered."""
+        await self._append(_entry(request, who, action, outcome, status, detail))
+
+    async def refused(self, request: web.Request, who: Principal, action: str, outcome: str,
+                      status: int, detail: dict[str, Any] | None = None) -> None:
+        """A request refused at the gate (401, 403, 429): the first of its kind written before
+        it is answered, its repeats counted into one record per window (refusals.py), so that
+        a flood costs neither an fsync a request nor the trail's older records."""
+        await self.refusals.refused(_entry(request, who, action, outcome, status, detail),
+                                    route(request))
+
+    async def _append(self, entry: dict[str, Any]) -> None:
         try:
             written = await asyncio.to_thread(self.audit.append, entry)
         except OSError as exc:  # the action stands; the failure to record it is loud
             log.error("audit trail %s not written: %s", self.audit.path, exc)
             return
         self.anchor = (written["seq"], written["hash"])
+
+
+def route(request: web.Request) -> str:
+    return f"{request.method} {request.path[:100]}"
+
+
+def _entry(request: web.Request, who: Principal, action: str, outcome: str, status: int,
+           detail: dict[str, Any] | None) -> dict[str, Any]:
+    return {**who.audit(), "peer": request.remote, "iface": "http", "action": action,
+            "outcome": outcome, "status": status, "detail": detail or {}}
 
 
 def _basic(value: str) -> tuple[str, str] | None:

@@ -58,8 +58,8 @@ async def admit(gate: Gate, request: web.Request) -> Principal | None:
     else:
         problem = ApiProblem(403, f"{what}; {who.user} is {who.role.label if who.role else '?'}")
     if changes_state(request.method):
-        await gate.record(request, who, action(request), "denied", problem.status,
-                          {"needs": need.label})
+        await gate.refused(request, who, action(request), "denied", problem.status,
+                           {"needs": need.label})
     raise problem
 
 

@@ -4,9 +4,10 @@ Owns: the record format (canonical JSON: sorted keys, no spaces, ASCII; `seq` co
 across files, `time` UTC, `prev` = the previous record's `hash`, `hash` = SHA-256 of the
 record without it), appending from several processes (flock on STATE_DIR/audit.lock around
 read-last-hash + append + fsync), rotation bounded in size (audit.jsonl -> audit.1.jsonl ->
-... -> audit.KEEP.jsonl, then dropped; the chain and `seq` go on across files), reading and
-verifying (any changed byte breaks its record's hash or the next record's `prev`), and
-following it as records come (`Follower`: for the admin's event stream).
+... -> audit.KEEP.jsonl, then dropped; the chain and `seq` go on across files), reading,
+verifying (auditchain.py: any changed byte breaks its record's hash or the next record's
+`prev`; a verification can go on from where the last one ended), and following it as
+records come (`Follower`: for the admin's event stream).
 Does not know: HTTP, users, who calls it. Every call is blocking file I/O.
 """
 
@@ -19,23 +20,21 @@ import hashlib
 import json
 import os
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
+from softplc.api.auditchain import GENESIS as GENESIS
+from softplc.api.auditchain import Resume, verify_files, verify_tail
+from softplc.api.auditchain import Verdict as Verdict
+from softplc.api.auditchain import canonical as canonical
 from softplc.core.units import parse_duration_ns
 
 AUDIT_FILE: Final = "audit.jsonl"
 LOCK_FILE: Final = "audit.lock"
-GENESIS: Final = "0" * 64  # `prev` of the first record ever
 MAX_BYTES: Final = 1 << 20  # per file; with KEEP old files at most ~9 MiB in all
 KEEP: Final = 8
 _TAIL_BYTES: Final = 65536
 _TEXT_MAX: Final = 300  # a string in a record (a message, a symbol name) is cut here
-
-
-def canonical(record: dict[str, Any]) -> str:
-    return json.dumps(record, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
 
 
 def utc_now() -> str:
@@ -68,25 +67,6 @@ def _clip(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [_clip(v) for v in value[:32]]
     return value if isinstance(value, int | bool) or value is None else str(value)[:_TEXT_MAX]
-
-
-@dataclass(frozen=True, slots=True)
-class Verdict:
-    """What verify() found: `ok`, how many records, the last seq and hash, and for a break
-    the first bad record's position (`where`: FILE:LINE) and what is wrong with it."""
-
-    ok: bool
-    records: int
-    last_seq: int
-    last_hash: str
-    where: str | None = None
-    problem: str | None = None
-    first_seq: int = 0
-
-    def as_dict(self) -> dict[str, Any]:
-        return {"ok": self.ok, "records": self.records, "first_seq": self.first_seq,
-                "last_seq": self.last_seq, "last_hash": self.last_hash, "where": self.where,
-                "problem": self.problem}
 
 
 class AuditTrail:
@@ -174,30 +154,16 @@ class AuditTrail:
         return found[-limit:] if limit else found
 
     def verify(self, anchor: tuple[int, str] | None = None) -> Verdict:
-        """Check every record and the links between them. `anchor` (seq, hash), a record
-        known to have been written (a running server keeps its last one), must still be
-        there: a trail rewritten from before it, or cut short, fails."""
-        count, first, seq, last = 0, 0, 0, GENESIS
-        anchored = anchor is None
-        # Only when every rotated slot is taken can older records have been dropped.
-        dropped = len(self.files()) > self.keep
-        for name, number, raw in self.lines():
-            problem = _check(raw, seq, last, count == 0 and dropped)
-            if problem is not None:
-                return Verdict(False, count, seq, last, f"{name}:{number}", problem, first)
-            record = json.loads(raw)
-            count, seq, last = count + 1, record["seq"], record["hash"]
-            first = first or seq
-            if anchor is not None and seq == anchor[0]:
-                if last != anchor[1]:
-                    return Verdict(False, count, seq, last, f"{name}:{number}",
-                                   "this record is not the one written as seq "
-                                   f"{seq}: the trail was rewritten", first)
-                anchored = True
-        if not anchored and anchor is not None:
-            return Verdict(False, count, seq, last, self.path.name, f"record {anchor[0]} "
-                           "(written while this server ran) is gone: the trail was cut", first)
-        return Verdict(True, count, seq, last, first_seq=first)
+        """Check every record and the links between them (auditchain.py). `anchor` (seq,
+        hash), a record known to have been written (a running server keeps its last one),
+        must still be there: a trail rewritten from before it, or cut short, fails."""
+        return verify_files(self.files(), self.keep, anchor, self.path.name)
+
+    def verify_tail(self, resume: Resume, anchor: tuple[int, str] | None = None
+                    ) -> Verdict | None:
+        """Go on from an earlier verdict's `resume`: the bytes verified then hashed again,
+        only the records appended since parsed; None when a full verification is due."""
+        return verify_tail(resume, self.files(), anchor, self.path.name)
 
 
 class Follower:
@@ -282,28 +248,4 @@ def _first_seq(path: Path) -> int | None:
     with contextlib.suppress(OSError), path.open("rb") as handle:
         record = _record(handle.readline())
         return None if record is None else int(record["seq"])
-    return None
-
-
-def _check(raw: bytes, seq: int, last: str, after_dropped: bool) -> str | None:
-    """What is wrong with one line after a record (seq, last), or None. The oldest kept
-    record after rotation dropped older files links to a record no longer here."""
-    try:
-        record = json.loads(raw)
-    except ValueError as exc:
-        return f"not JSON ({exc})"
-    if not isinstance(record, dict) or not isinstance(record.get("hash"), str) \
-            or not isinstance(record.get("seq"), int) or not isinstance(record.get("prev"), str):
-        return "not an audit record (seq, prev and hash)"
-    if canonical(record).encode() != raw:
-        return "not in canonical form: the line was edited"
-    body = {k: v for k, v in record.items() if k != "hash"}
-    if hashlib.sha256(canonical(body).encode()).hexdigest() != record["hash"]:
-        return "its hash does not match its content: the record was edited"
-    if after_dropped:
-        return None
-    if record["seq"] != seq + 1:
-        return f"seq {record['seq']} follows {seq}: records are missing or repeated"
-    if record["prev"] != last:
-        return "prev is not the hash of the record before: the chain is broken"
     return None

@@ -143,6 +143,7 @@ class ApiServer:
         await self.bounds.site(self._runner, self.host, self.port).start()
         with contextlib.suppress(OSError):  # the owner's CLI then gives --state-dir itself
             self._indexed = auth.register_server(self.bound_port, self.state_dir)
+        await self.gate.chain()  # the first check of the audit chain starts now, in a thread
         log.info("HTTP API on %s://%s:%d (without credentials: %s)",
                  "https" if self.tls_cert else "http", self.host, self.bound_port,
                  "nothing" if self.token_required else "read only")
@@ -154,6 +155,7 @@ class ApiServer:
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
+        await self.gate.close()  # refusals still counted: written now
 
     def build_app(self) -> web.Application:
         app = web.Application(client_max_size=MAX_BODY_BYTES,

@@ -8,23 +8,24 @@ record at the window's close carrying how many, how often the value changed, the
 and the times of the first and last; a key still written at the close opens the next window
 without a record of its own, an idle one is forgotten. At most `max_keys` keys (and
 `max_keys_per_peer` of one peer) are open: writes beyond are counted per outcome into one
-record naming their peers.
+record naming their peers. The windows themselves are core/repeats.py's (the HTTP gate's
+refusals use the same rule: api/refusals.py); this module says what a write's key and
+records are.
 Does not know: sockets, clocks (times are arguments), the trail (records are returned).
 """
 
 from __future__ import annotations
 
-import datetime
 import struct
-from dataclasses import dataclass, field
 from typing import Any, Final
+
+from softplc.core.repeats import Repeats, Tally
 
 # Function codes that write (FC23 reads too, but its write is what matters here).
 WRITE_FUNCTIONS: Final = frozenset({5, 6, 15, 16, 23})
 WINDOW_S: Final = 10.0  # a key written on and on: one record per window
 MAX_KEYS: Final = 256
 MAX_KEYS_PER_PEER: Final = 64  # one peer cannot push the others' writes out of itemized records
-PEERS_NAMED: Final = 8  # in a record of writes beyond the keys
 
 Key = tuple[str, int, int, int | None, int, int]
 
@@ -64,71 +65,6 @@ def outcome_of(code: int) -> str:
     return "applied" if code == 0 else "refused"
 
 
-def utc_text(wall_s: float) -> str:
-    """A wall-clock time as the trail writes its own (`time`): UTC, milliseconds."""
-    when = datetime.datetime.fromtimestamp(wall_s, datetime.UTC)
-    return when.strftime("%Y-%m-%dT%H:%M:%S.") + f"{when.microsecond // 1000:03d}Z"
-
-
-@dataclass(slots=True)
-class _Window:
-    """The writes of one key counted since its last record."""
-
-    entry: dict[str, Any]  # who and what, without the counts
-    ends_s: float
-    values: Any  # of the last write: `changed` compares with it
-    writes: int = 0
-    changed: int = 0
-    first_s: float = 0.0
-    last_s: float = 0.0
-
-    def count(self, values: Any, now_s: float) -> None:
-        if self.writes == 0:
-            self.first_s = now_s
-        self.writes += 1
-        self.changed += values != self.values
-        self.values, self.last_s = values, now_s
-
-    def summary(self, now_s: float, wall_s: float) -> dict[str, Any]:
-        detail = {**self.entry["detail"], "writes": self.writes, "changed": self.changed,
-                  "first": utc_text(wall_s - (now_s - self.first_s)),
-                  "last": utc_text(wall_s - (now_s - self.last_s))}
-        if self.values is not None:
-            detail["values"] = self.values
-        return {**self.entry, "detail": detail}
-
-
-@dataclass(slots=True)
-class _Beyond:
-    """Writes of keys that found no room, per outcome, since their last record."""
-
-    entry: dict[str, Any]
-    ends_s: float
-    writes: int = 0
-    peers: list[str] = field(default_factory=list)
-    more_peers: int = 0
-    first_s: float = 0.0
-    last_s: float = 0.0
-
-    def count(self, peer: str, now_s: float) -> None:
-        if self.writes == 0:
-            self.first_s = now_s
-        self.writes += 1
-        self.last_s = now_s
-        if peer not in self.peers:
-            if len(self.peers) < PEERS_NAMED:
-                self.peers.append(peer)
-            else:
-                self.more_peers += 1
-
-    def summary(self, now_s: float, wall_s: float) -> dict[str, Any]:
-        detail = {**self.entry["detail"], "writes": self.writes, "peers": self.peers,
-                  "more_peers": self.more_peers,
-                  "first": utc_text(wall_s - (now_s - self.first_s)),
-                  "last": utc_text(wall_s - (now_s - self.last_s))}
-        return {**self.entry, "peer": self.peers[0], "detail": detail}
-
-
 class Coalescer:
     """The audit records of one slave's writes. `who` (user, role, via) and `context` (added
     to every detail: the write policy) are the same for every write."""
@@ -138,17 +74,18 @@ class Coalescer:
                  max_keys_per_peer: int = MAX_KEYS_PER_PEER) -> None:
         self._who = who
         self._context = context or {}
-        self.window_s = window_s
         self._max_keys = max_keys
         self._max_per_peer = max_keys_per_peer
-        self._open: dict[Key, _Window] = {}
-        self._per_peer: dict[str, int] = {}
-        self._beyond: dict[int, _Beyond] = {}
+        self._repeats: Repeats[Key] = Repeats(window_s, max_keys, max_keys_per_peer)
+
+    @property
+    def window_s(self) -> float:
+        return self._repeats.window_s
 
     @property
     def open(self) -> int:
         """Windows open (a timer must call `due` while there are any)."""
-        return len(self._open) + len(self._beyond)
+        return self._repeats.open
 
     def note(self, peer: str, unit: int, described: dict[str, Any], code: int, now_s: float,
              record_now: bool = True) -> dict[str, Any] | None:
@@ -158,66 +95,41 @@ class Coalescer:
         values = described.get("values")
         key = (peer, unit, int(described["function"]), described.get("address"),
                len(values) if isinstance(values, list) else 0, code)
-        window = self._open.get(key)
-        if window is not None:
-            window.count(values, now_s)
-            return None
-        if len(self._open) >= self._max_keys or \
-                self._per_peer.get(peer, 0) >= self._max_per_peer:
-            self._count_beyond(peer, code, now_s)
+        if self._repeats.again(key, now_s, values):
             return None
         detail = {**described, "unit": unit, **self._context}
         entry = {**self._who, "peer": peer, "iface": "modbus", "action": "write",
                  "outcome": outcome_of(code), "status": code, "detail": detail}
-        window = self._open[key] = _Window(entry, now_s + self.window_s, values)
-        self._per_peer[peer] = self._per_peer.get(peer, 0) + 1
-        if not record_now:
-            window.count(values, now_s)
+        if not self._repeats.first(key, peer, entry, now_s, values, counted=not record_now):
+            self._repeats.beyond(code, peer, now_s, lambda: self._beyond_entry(peer, code))
             return None
-        return {**entry, "detail": {**detail, "writes": 1}}
+        return {**entry, "detail": {**detail, "writes": 1}} if record_now else None
 
-    def _count_beyond(self, peer: str, code: int, now_s: float) -> None:
-        beyond = self._beyond.get(code)
-        if beyond is None:
-            detail = {"beyond_keys": self._max_keys, "beyond_keys_per_peer": self._max_per_peer,
-                      **self._context}
-            entry = {**self._who, "peer": peer, "iface": "modbus", "action": "write",
-                     "outcome": outcome_of(code), "status": code, "detail": detail}
-            beyond = self._beyond[code] = _Beyond(entry, now_s + self.window_s)
-        beyond.count(peer, now_s)
+    def _beyond_entry(self, peer: str, code: int) -> dict[str, Any]:
+        detail = {"beyond_keys": self._max_keys, "beyond_keys_per_peer": self._max_per_peer,
+                  **self._context}
+        return {**self._who, "peer": peer, "iface": "modbus", "action": "write",
+                "outcome": outcome_of(code), "status": code, "detail": detail}
 
     def due(self, now_s: float, wall_s: float) -> list[dict[str, Any]]:
         """The records of the windows closed by `now_s` (`wall_s`: the wall clock then)."""
-        records: list[dict[str, Any]] = []
-        for key, window in list(self._open.items()):
-            if window.ends_s > now_s:
-                continue
-            if window.writes:
-                records.append(window.summary(now_s, wall_s))
-                window.writes = window.changed = 0
-                window.ends_s = now_s + self.window_s
-            else:
-                self._forget(key)
-        for code, beyond in list(self._beyond.items()):
-            if beyond.ends_s <= now_s:
-                records.append(beyond.summary(now_s, wall_s))
-                del self._beyond[code]
-        return records
+        return [_summary(t, now_s, wall_s) for t in self._repeats.due(now_s)]
 
     def drain(self, now_s: float, wall_s: float) -> list[dict[str, Any]]:
         """Every count not recorded yet, as records (at stop); nothing stays open."""
-        records = [w.summary(now_s, wall_s) for w in self._open.values() if w.writes]
-        records += [b.summary(now_s, wall_s) for b in self._beyond.values()]
-        self._open.clear()
-        self._per_peer.clear()
-        self._beyond.clear()
-        return records
+        return [_summary(t, now_s, wall_s) for t in self._repeats.drain()]
 
-    def _forget(self, key: Key) -> None:
-        del self._open[key]
-        peer = key[0]
-        left = self._per_peer[peer] - 1
-        if left:
-            self._per_peer[peer] = left
-        else:
-            del self._per_peer[peer]
+
+def _summary(tally: Tally, now_s: float, wall_s: float) -> dict[str, Any]:
+    """The record of a window's writes: how many, how often the value changed, the last
+    value; for writes beyond the keys, how many and whose."""
+    entry = tally.entry
+    if tally.beyond:
+        return {**entry, "peer": tally.peers[0], "detail": {
+            **entry["detail"], "writes": tally.count, "peers": tally.peers,
+            "more_peers": tally.more_peers, **tally.times(now_s, wall_s)}}
+    detail = {**entry["detail"], "writes": tally.count, "changed": tally.changed,
+              **tally.times(now_s, wall_s)}
+    if tally.payload is not None:
+        detail["values"] = tally.payload
+    return {**entry, "detail": detail}
