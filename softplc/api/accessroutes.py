@@ -67,6 +67,13 @@ def action(request: web.Request) -> str:
     return f"{request.method} {request.path.removeprefix(API_PREFIX + '/')[:100]}"
 
 
+# Requests refused for their form before they reached the PLC (bad JSON, an unknown symbol,
+# too large): their repeats are counted into one record per window (docs/security.md,
+# "Refused requests"). A command the PLC refused (409) or a rejected program (422) stays one
+# record each: an operator's action, with its outcome.
+MALFORMED: Final = frozenset((400, 404, 405, 411, 413, 414, 415, 431))
+
+
 async def audited(gate: Gate, request: web.Request, who: Principal | None,
                   handler: Handler) -> web.StreamResponse:
     """Run a request; when it may change something, write its record (whatever the
@@ -101,7 +108,10 @@ async def _write(gate: Gate, request: web.Request, who: Principal, status: int,
         with contextlib.suppress(Exception):  # the handler read it: cached, no wait
             body = await asyncio.wait_for(request.read(), 1.0)
             detail.update(_what(request, body))
-    await gate.record(request, who, action(request), outcome, status, detail)
+    if status in MALFORMED:  # a flood of them (JSON bombs) coalesced as the gate's refusals
+        await gate.refused(request, who, action(request), outcome, status, detail)
+    else:
+        await gate.record(request, who, action(request), outcome, status, detail)
 
 
 def _what(request: web.Request, body: bytes) -> dict[str, Any]:

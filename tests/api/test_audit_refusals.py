@@ -16,7 +16,7 @@ from softplc.api.audit import AuditTrail
 from softplc.api.refusals import WINDOW_S, Refusals
 from softplc.api.roles import Role
 from tests.api.conftest import Plc, ScanThread, make_server
-from tests.api.helpers import call, owner_headers
+from tests.api.helpers import ANSWER_WITHIN_S, TRANSPORT, call, owner_headers
 from tests.support import eventually
 
 WALL_S = 1_700_000_000.0
@@ -74,10 +74,11 @@ class Flood:
         self.conn = http.client.HTTPConnection("127.0.0.1", self.port, timeout=30)
         self.answers: dict[int, int] = {}
 
-    def send(self, method: str, path: str, headers: dict[str, str]) -> None:
+    def send(self, method: str, path: str, headers: dict[str, str],
+             body: bytes | None = None) -> None:
         for attempt in (1, 2):
             try:
-                self.conn.request(method, path, headers=headers)
+                self.conn.request(method, path, body=body, headers=headers)
                 answer = self.conn.getresponse()
                 answer.read()
             except (http.client.HTTPException, ConnectionError):
@@ -152,4 +153,36 @@ def test_a_window_closes_while_the_service_runs(api: Any) -> None:
     assert records[0]["detail"]["refusals"] == 1 and len(records) >= 2
     assert all(r["detail"]["routes"] == {"POST /api/v1/stop": r["detail"]["refusals"]}
                for r in records[1:])
+    assert AuditTrail(state).verify().ok
+
+
+def test_a_flood_of_malformed_commands_is_a_few_records_and_a_plc_refusal_stays_itemized(
+        plc_parts: Plc, scan: ScanThread, tmp_path: Path) -> None:
+    # The issue's JSON bombs from an operator's key: each was one record with an fsync.
+    state = tmp_path / "state"
+    bombs = 400
+    with make_server(plc_parts, state) as api:
+        owner = owner_headers(api.url)
+        assert call(api.url, "POST", "/api/v1/program?name=transport.yaml",
+                    TRANSPORT.read_text(), timeout_s=ANSWER_WITHIN_S, owner=True).status == 200
+        eventually(lambda: call(api.url, "GET", "/api/v1/symbols").body["symbols"])
+        flood = Flood(api.url)
+        t0 = time.monotonic()
+        for n in range(bombs):
+            body = b"[" * 2_000 if n % 2 else b'{"value":' * 400
+            flood.send("PUT", "/api/v1/symbols/hold",
+                       {**owner, "Content-Type": "application/json"}, body)
+        elapsed_s = time.monotonic() - t0
+        flood.conn.close()
+        assert flood.answers == {400: bombs}, flood.answers
+        # A command is an operator's action, whatever its outcome: written before its answer.
+        stopped = call(api.url, "POST", "/api/v1/stop", headers=owner).status
+        newest = AuditTrail(state).records()[-1]
+        assert (newest["user"], newest["action"], newest["status"]) == (
+            "owner", "POST stop", stopped)
+    malformed = [r for r in AuditTrail(state).records() if r.get("status") == 400]
+    # Per kind (the two bombs' messages): the first at once, one per window, the rest at stop.
+    assert len(malformed) <= 2 * (2 + math.ceil(elapsed_s / WINDOW_S)), len(malformed)
+    assert sum(r["detail"]["refusals"] for r in malformed) == bombs
+    assert all(r["user"] == "owner" and r["outcome"] == "refused" for r in malformed)
     assert AuditTrail(state).verify().ok
