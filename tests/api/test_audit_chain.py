@@ -161,9 +161,12 @@ def test_status_never_waits_for_a_full_verification_and_then_parses_only_the_tai
     fill(state, records)
     assert (state / "audit.jsonl").stat().st_size < MAX_BYTES * 3 // 4  # no rotation below
     with make_server(plc_parts, state) as api:
+        # The first check starts with the service, in a thread: once it is under way (and
+        # held), status answers (a quiet run once asked before the thread had begun).
+        assert held.entered.wait(ANSWER_WITHIN_S), "no verification started with the service"
         first = call(api.url, "GET", "/api/v1/status", timeout_s=ANSWER_WITHIN_S)
         assert first.status == 200
-        assert held.entered.is_set() and held.calls == 1  # it answered while one was held
+        assert held.calls == 1 and not held.release.is_set()  # answered while one was held
         assert first.body["audit"]["ok"] is None and first.body["audit"]["checked_at"] is None
         held.release.set()
 
