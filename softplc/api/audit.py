@@ -19,6 +19,7 @@ import fcntl
 import hashlib
 import json
 import os
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Final
@@ -37,9 +38,14 @@ _TAIL_BYTES: Final = 65536
 _TEXT_MAX: Final = 300  # a string in a record (a message, a symbol name) is cut here
 
 
+def utc_text(wall_s: float) -> str:
+    """A wall-clock time as the trail writes its own (`time`): UTC, milliseconds."""
+    when = datetime.datetime.fromtimestamp(wall_s, datetime.UTC)
+    return when.strftime("%Y-%m-%dT%H:%M:%S.") + f"{when.microsecond // 1000:03d}Z"
+
+
 def utc_now() -> str:
-    now = datetime.datetime.now(datetime.UTC)
-    return now.strftime("%Y-%m-%dT%H:%M:%S.") + f"{now.microsecond // 1000:03d}Z"
+    return utc_text(time.time())
 
 
 def parse_since(text: str, now: datetime.datetime | None = None) -> str:

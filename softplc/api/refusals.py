@@ -22,6 +22,7 @@ import time
 from collections.abc import Awaitable, Callable
 from typing import Any, Final
 
+from softplc.api.audit import utc_text
 from softplc.core.repeats import Repeats, Tally
 
 WINDOW_S: Final = 10.0  # a key refused on and on: one record per window
@@ -86,8 +87,8 @@ class Refusals:
 
 def _summary(tally: Tally, now_s: float, wall_s: float) -> dict[str, Any]:
     """"N more refusals of this key between first and last", and on which routes."""
-    counts = {"refusals": tally.count, **tally.times(now_s, wall_s), "routes": tally.kinds,
-              "other_routes": tally.other_kinds}
+    counts = {"refusals": tally.count, **tally.times(now_s, wall_s, utc_text),
+              "routes": tally.kinds, "other_routes": tally.other_kinds}
     if tally.beyond:
         counts.update(peers=tally.peers, more_peers=tally.more_peers)
         return {**tally.entry, "peer": tally.peers[0],

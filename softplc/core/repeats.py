@@ -14,7 +14,6 @@ refused HTTP requests), how a tally becomes a record, files, clocks.
 from __future__ import annotations
 
 import dataclasses
-import datetime
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any, Final, Generic, TypeVar
@@ -23,12 +22,6 @@ PEERS_NAMED: Final = 8  # in a tally of events beyond the keys
 KINDS_NAMED: Final = 8  # kinds counted one by one in a tally; the others together
 
 K = TypeVar("K", bound=Hashable)
-
-
-def utc_text(wall_s: float) -> str:
-    """A wall-clock time as the audit trail writes its own (`time`): UTC, milliseconds."""
-    when = datetime.datetime.fromtimestamp(wall_s, datetime.UTC)
-    return when.strftime("%Y-%m-%dT%H:%M:%S.") + f"{when.microsecond // 1000:03d}Z"
 
 
 @dataclass(slots=True)
@@ -67,10 +60,12 @@ class Tally:
             else:
                 self.more_peers += 1
 
-    def times(self, now_s: float, wall_s: float) -> dict[str, str]:
-        """`first` and `last` as UTC text, `now_s` being the wall clock's `wall_s`."""
-        return {"first": utc_text(wall_s - (now_s - self.first_s)),
-                "last": utc_text(wall_s - (now_s - self.last_s))}
+    def times(self, now_s: float, wall_s: float,
+              text: Callable[[float], str]) -> dict[str, str]:
+        """`first` and `last` on the wall clock, `now_s` being its `wall_s`, written by
+        `text` (the caller's format: core reads no clock and formats no dates)."""
+        return {"first": text(wall_s - (now_s - self.first_s)),
+                "last": text(wall_s - (now_s - self.last_s))}
 
 
 class Repeats(Generic[K]):

@@ -16,10 +16,17 @@ Does not know: sockets, clocks (times are arguments), the trail (records are ret
 
 from __future__ import annotations
 
+import datetime
 import struct
 from typing import Any, Final
 
 from softplc.core.repeats import Repeats, Tally
+
+
+def utc_text(wall_s: float) -> str:
+    """A wall-clock time as the audit trail writes its own (`time`): UTC, milliseconds."""
+    when = datetime.datetime.fromtimestamp(wall_s, datetime.UTC)
+    return when.strftime("%Y-%m-%dT%H:%M:%S.") + f"{when.microsecond // 1000:03d}Z"
 
 # Function codes that write (FC23 reads too, but its write is what matters here).
 WRITE_FUNCTIONS: Final = frozenset({5, 6, 15, 16, 23})
@@ -127,9 +134,9 @@ def _summary(tally: Tally, now_s: float, wall_s: float) -> dict[str, Any]:
     if tally.beyond:
         return {**entry, "peer": tally.peers[0], "detail": {
             **entry["detail"], "writes": tally.count, "peers": tally.peers,
-            "more_peers": tally.more_peers, **tally.times(now_s, wall_s)}}
+            "more_peers": tally.more_peers, **tally.times(now_s, wall_s, utc_text)}}
     detail = {**entry["detail"], "writes": tally.count, "changed": tally.changed,
-              **tally.times(now_s, wall_s)}
+              **tally.times(now_s, wall_s, utc_text)}
     if tally.payload is not None:
         detail["values"] = tally.payload
     return {**entry, "detail": detail}
