@@ -17,7 +17,6 @@ import asyncio
 import base64
 import binascii
 import hashlib
-import hmac
 import logging
 import secrets
 import time
@@ -28,13 +27,14 @@ from typing import Any, Final
 
 from aiohttp import web
 
-from softplc.api.audit import AuditTrail
-from softplc.api.backoff import Backoff
-from softplc.api.chainwatch import ChainWatch
 from softplc.api.problems import ApiProblem
-from softplc.api.refusals import RefusalAudit
-from softplc.api.roles import Role
-from softplc.api.users import OWNER, User, UserError, UserStore
+from softplc.security.audit import AuditTrail
+from softplc.security.backoff import Backoff
+from softplc.security.chainwatch import ChainWatch
+from softplc.security.decide import Authority, Decision, Identity, anonymous
+from softplc.security.refusals import RefusalAudit
+from softplc.security.roles import Act, Role
+from softplc.security.users import UserStore
 
 log = logging.getLogger(__name__)
 
@@ -48,12 +48,13 @@ CHALLENGE: Final = {"WWW-Authenticate": 'Bearer realm="softplc"'}
 
 @dataclass(frozen=True, slots=True)
 class Principal:
-    """Who a request is from: `user` None when it carried no credentials; `role` None when
-    such a request may do nothing (off loopback)."""
+    """Who a request is from: `user` None when it carried no credentials; `role` (what the
+    identity holds now, security/decide.py) None when such a request may do nothing."""
 
     user: str | None
     role: Role | None
     via: str  # owner, key, basic, session, anonymous
+    identity: Identity | None = None  # None: a failed login (audit only)
 
     def audit(self) -> dict[str, Any]:
         return {"user": self.user, "role": self.role.label if self.role else None,
@@ -61,11 +62,12 @@ class Principal:
 
 
 class Gate:
-    """The credentials check of one API server."""
+    """The credentials check of one API server: the HTTP door of security/decide.py."""
 
     def __init__(self, state_dir: Path, owner_token: str, anonymous: Role | None,
                  audit: AuditTrail | None = None) -> None:
         self.users = UserStore(state_dir)
+        self.authority = Authority(self.users, lambda: self._owner)
         self.audit = audit or AuditTrail(state_dir)
         self.anonymous = anonymous
         self.backoff = Backoff()
@@ -74,13 +76,21 @@ class Gate:
         self._owner = owner_token
         self._kdf = asyncio.Semaphore(1)  # one scrypt at a time: 32 MiB and ~0.3 s each
         self._pepper = secrets.token_bytes(32)
-        self._basic: OrderedDict[bytes, tuple[str, Role, float]] = OrderedDict()
-        self._sessions: OrderedDict[str, tuple[str, float]] = OrderedDict()
+        self._basic: OrderedDict[bytes, tuple[Identity, float]] = OrderedDict()
+        self._sessions: OrderedDict[str, tuple[Identity, float]] = OrderedDict()
         self.watch = ChainWatch(self.audit)
         self.refusals = RefusalAudit(self._append)
 
     def set_owner(self, token: str) -> None:
         self._owner = token
+
+    def principal(self, who: Identity, via: str | None = None) -> Principal:
+        """`who` with the role it holds now."""
+        return Principal(who.user, self.authority.role_now(who)[0], via or who.via, who)
+
+    def decide(self, who: Principal, act: Act) -> Decision:
+        """The one decision point (security/decide.py) for a request of this door."""
+        return self.authority.decide(who.identity or anonymous(None), act)
 
     async def chain(self) -> dict[str, Any]:
         """The audit chain's verdict for status, at once: the last one computed (`checked_at`),
@@ -105,54 +115,46 @@ class Gate:
         if header is None:
             if (found := self._session(request.cookies.get(COOKIE))) is not None:
                 return found
-            return Principal(None, self.anonymous, "anonymous")
+            return Principal(None, self.anonymous, "anonymous", anonymous(self.anonymous))
         scheme, _, value = header.strip().partition(" ")
         if scheme.lower() == "bearer":
             return await self._bearer(request, value.strip())
         if scheme.lower() == "basic" and (pair := _basic(value)) is not None:
-            role = await self.password(request, *pair)
-            return Principal(pair[0], role, "basic")
+            return self.principal(await self.password(request, *pair), "basic")
         raise await self.failure(request, None, "credentials neither Bearer nor Basic "
                                    "user:password")
 
     async def _bearer(self, request: web.Request, token: str) -> Principal:
-        if token and hmac.compare_digest(token.encode(), self._owner.encode()):
-            return Principal(OWNER, Role.ADMIN, "owner")
-        user = self.users.verify_key(token) if self._users() else None
-        if user is not None:
-            return Principal(user.name, user.role, "key")
+        who = self.authority.owner(token) or self.authority.by_key(token)
+        if who is not None:
+            return self.principal(who)
         name = token.partition(".")[0] if "." in token else None
         raise await self.failure(request, name[:32] if name else None, "a wrong API key")
 
-    async def password(self, request: web.Request, name: str, password: str) -> Role:
-        """The role of `name` if `password` is theirs (Basic and /login): cached for a
-        while, backing off per user and per peer, every failure audited."""
+    async def password(self, request: web.Request, name: str, password: str) -> Identity:
+        """The identity of `name` if `password` is theirs (Basic and /login): kept for a
+        while so that scripts pay scrypt once, but only while the users file still holds the
+        hash it was verified with (a changed password is verified again, and fails);
+        backing off per user and per peer, every failure audited."""
         keys = (("user", name[:64]), ("peer", request.remote or "?"))
         stamp = hashlib.sha256(self._pepper + f"{name}\0{password}".encode()).digest()
-        cached = self._basic.get(stamp)
-        users = self._users()
-        if cached is not None and cached[2] > time.monotonic() and \
-                (user := users.get(name)) is not None and user.role is cached[1]:
-            return cached[1]
+        cached = self._basic.pop(stamp, None)
+        if cached is not None and cached[1] > time.monotonic() and \
+                self.authority.role_now(cached[0])[0] is not None:
+            self._basic[stamp] = cached
+            return cached[0]
         if (wait_s := self.backoff.wait_s(*keys)) > 0:
             raise await self.throttle(request, name[:32], wait_s)
         async with self._kdf:
-            role = await asyncio.to_thread(self.users.verify, name, password) if users \
-                else None
-        if role is None:
+            who = await asyncio.to_thread(self.authority.by_password, name, password) \
+                if self.authority.known() else None
+        if who is None:
             raise await self.failure(request, name[:32], "a wrong user name or password", keys)
         self.backoff.succeeded(*keys)
-        self._basic[stamp] = (name, role, time.monotonic() + BASIC_CACHE_S)
+        self._basic[stamp] = (who, time.monotonic() + BASIC_CACHE_S)
         while len(self._basic) > BASIC_CACHE:
             self._basic.popitem(last=False)
-        return role
-
-    def _users(self) -> dict[str, User]:
-        try:
-            return self.users.users()  # re-read when the file changed
-        except UserError as exc:  # an unusable users file: nobody but the owner gets in
-            log.error("%s", exc)
-            return {}
+        return who
 
     async def throttle(self, request: web.Request, name: str, wait_s: float) -> ApiProblem:
         """Audit a login refused unchecked while its user or peer backs off, make its 429."""
@@ -177,10 +179,10 @@ class Gate:
 
     # -- sessions (the page's login) ----------------------------------------------------------
 
-    def open_session(self, name: str) -> str:
+    def open_session(self, who: Identity) -> str:
         session = secrets.token_urlsafe(32)
         self._sessions[hashlib.sha256(session.encode()).hexdigest()] = (
-            name, time.monotonic() + SESSION_S)
+            who, time.monotonic() + SESSION_S)
         while len(self._sessions) > MAX_SESSIONS:
             self._sessions.popitem(last=False)
         return session
@@ -189,17 +191,22 @@ class Gate:
         if not session:
             return None
         entry = self._sessions.pop(hashlib.sha256(session.encode()).hexdigest(), None)
-        return entry[0] if entry else None
+        return entry[0].user if entry else None
 
     def _session(self, session: str | None) -> Principal | None:
-        """A live session's user with their role now (a removed user's session is over)."""
+        """A live session's user with their role now: a session whose user was removed or
+        whose password (or, for the owner, key) changed is over, at its next request."""
         if not session:
             return None
-        entry = self._sessions.get(hashlib.sha256(session.encode()).hexdigest())
+        digest = hashlib.sha256(session.encode()).hexdigest()
+        entry = self._sessions.get(digest)
         if entry is None or entry[1] < time.monotonic():
             return None
-        user = self._users().get(entry[0])
-        return Principal(user.name, user.role, "session") if user is not None else None
+        found = self.principal(entry[0], "session")
+        if found.role is None:
+            del self._sessions[digest]
+            return None
+        return found
 
     # -- the audit trail ----------------------------------------------------------------------
 

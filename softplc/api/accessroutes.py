@@ -22,11 +22,11 @@ from typing import Any, Final
 from aiohttp import web
 
 from softplc.api.access import COOKIE, SESSION_S, Gate, Principal
-from softplc.api.audit import parse_since
 from softplc.api.auditstream import AuditStreams
 from softplc.api.openapi import API_PREFIX
 from softplc.api.problems import ApiProblem, json_body
-from softplc.api.roles import changes_state, required_role
+from softplc.api.roles import changes_state, route_act
+from softplc.security.audit import parse_since
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 # Who the guard admitted, for the handler it then runs (the same task).
@@ -41,14 +41,16 @@ def route_of(request: web.Request) -> str | None:
 
 
 async def admit(gate: Gate, request: web.Request) -> Principal | None:
-    """The principal a request runs as, or None for a public route; raises 401/403/429."""
-    need = required_role(request.method, route_of(request))
-    if need is None:
+    """The principal a request runs as, or None for a public route; raises 401/403/429.
+    Decided by the one decision point (security/decide.py) on the route's act."""
+    act = route_act(request.method, route_of(request))
+    if act is None:
         return None
     who = await gate.identify(request)
-    if who.role is not None and who.role >= need:
+    decision = gate.decide(who, act)
+    if decision.allowed:
         return who
-    what = f"{request.method} {request.path[:100]} needs {need.label}"
+    what = f"{request.method} {request.path[:100]} needs {decision.need.label}"
     if who.user is None:
         problem = ApiProblem(401, f"{what}: give credentials (an API key as a bearer token, "
                              "user and password, or STATE_DIR/api_token on this machine)"
@@ -56,10 +58,12 @@ async def admit(gate: Gate, request: web.Request) -> Principal | None:
                                 if who.role else ""), headers={"WWW-Authenticate":
                                                                'Bearer realm="softplc"'})
     else:
-        problem = ApiProblem(403, f"{what}; {who.user} is {who.role.label if who.role else '?'}")
+        problem = ApiProblem(403, f"{what}; {who.user} is "
+                             f"{decision.role.label if decision.role else '?'}"
+                             + (f" ({decision.why_none})" if decision.why_none else ""))
     if changes_state(request.method):
         await gate.refused(request, who, action(request), "denied", problem.status,
-                           {"needs": need.label})
+                           {"needs": decision.need.label})
     raise problem
 
 
@@ -148,18 +152,18 @@ class _Routes:
         cookie (HttpOnly, SameSite=Strict, Secure over TLS) for the page."""
         if "Authorization" in request.headers:
             who = await self._gate.identify(request)
-            name, role = who.user, who.role
         else:
             body = await json_body(request)
             if not isinstance(body, dict) or not isinstance(body.get("user"), str) \
                     or not isinstance(body.get("password"), str):
                 raise ApiProblem(400, 'login takes {"user": "...", "password": "..."}')
-            name, role = body["user"], await self._gate.password(request, body["user"],
-                                                                 body["password"])
-        if name is None or role is None:
+            who = self._gate.principal(await self._gate.password(request, body["user"],
+                                                                 body["password"]))
+        name, role = who.user, who.role
+        if name is None or role is None or who.identity is None:
             raise ApiProblem(401, "authentication failed: no user")
         response = web.json_response({"user": name, "role": role.label})
-        response.set_cookie(COOKIE, self._gate.open_session(name), max_age=int(SESSION_S),
+        response.set_cookie(COOKIE, self._gate.open_session(who.identity), max_age=int(SESSION_S),
                             path="/", httponly=True, samesite="Strict", secure=request.secure)
         await self._gate.record(request, Principal(name, role, "session"), "login", "applied",
                                 200)

@@ -18,9 +18,9 @@ import os
 import sys
 from typing import Any, Final
 
-from softplc.api.audit import AuditTrail, parse_since
-from softplc.api.roles import Role
-from softplc.api.users import OWNER, UserError, UserStore
+from softplc.security.audit import AuditTrail, parse_since
+from softplc.security.roles import Role
+from softplc.security.users import OWNER, UserError, UserStore
 
 EXIT_OK: Final = 0
 EXIT_REFUSED: Final = 1

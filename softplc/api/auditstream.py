@@ -4,8 +4,8 @@ Owns: following the trail for one client (audit.py's Follower, in a thread, ever
 from where it asks (`Last-Event-ID: N`: the records after seq N the trail still keeps; else
 from now), one `data:` line per record with `id:` = its seq, `event: overflow` with how many
 records were skipped, heartbeats, and ending the stream (`event: end`) once the client's
-credentials no longer give admin (checked every RECHECK_S: a removed user, a revoked key,
-a session logged out or a role lowered).
+credentials no longer give admin (decided again by security/decide.py at every poll: a
+removed user, a revoked key, a changed password or a lowered role ends it within POLL_S).
 Does not know: who writes the records (every process of the PLC and `softplc users` do:
 that is why the file is followed, not this process's own writes), the program's events
 (events.py), the route's role (roles.py).
@@ -20,14 +20,13 @@ from typing import Final
 
 from aiohttp import web
 
-from softplc.api.access import Gate
-from softplc.api.audit import Follower
+from softplc.api.access import Gate, Principal
 from softplc.api.events import sse
 from softplc.api.problems import ApiProblem
-from softplc.api.roles import Role
+from softplc.security.audit import Follower
+from softplc.security.roles import Act
 
 POLL_S: Final = 0.25  # a record reaches the stream within about this
-RECHECK_S: Final = 5.0
 BATCH: Final = 1000  # records per poll at most (a replay): older ones are skipped and told
 
 
@@ -48,6 +47,7 @@ class AuditStreams:
         if last_id is not None and not last_id.strip().isdigit():
             raise ApiProblem(400, "Last-Event-ID must be an audit record's seq (a number)")
         after = None if last_id is None else int(last_id)
+        who = await self._gate.identify(request)  # kept: decided again at every poll
         follower = await asyncio.to_thread(Follower, self._gate.audit, after)
         response = web.StreamResponse(headers={
             "Content-Type": "text/event-stream", "Cache-Control": "no-cache",
@@ -55,14 +55,18 @@ class AuditStreams:
         with contextlib.suppress(ConnectionResetError, asyncio.CancelledError):
             await response.prepare(request)
             await response.write(b"retry: 1000\n: connected\n\n")
-            await self._follow(request, response, follower)
+            await self._follow(who, response, follower)
         return response
 
-    async def _follow(self, request: web.Request, response: web.StreamResponse,
+    async def _follow(self, who: Principal, response: web.StreamResponse,
                       follower: Follower) -> None:
         loop = asyncio.get_running_loop()
-        said_s = checked_s = loop.time()
+        said_s = loop.time()
         while not self._closing.is_set():
+            decision = self._gate.decide(who, Act.AUDIT)  # acts at once (security/decide.py)
+            if not decision.allowed:
+                await response.write(_named("end", {"reason": decision.reason()}))
+                return
             records, skipped = await asyncio.to_thread(follower.poll, BATCH)
             if skipped:
                 await response.write(_named("overflow", {"dropped": skipped}))
@@ -74,23 +78,8 @@ class AuditStreams:
             elif now_s - said_s >= self._heartbeat_s:
                 await response.write(b": heartbeat\n\n")
                 said_s = now_s
-            if now_s - checked_s >= RECHECK_S:
-                checked_s = now_s
-                if (reason := await self._not_admin(request)) is not None:
-                    await response.write(_named("end", {"reason": reason}))
-                    return
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._closing.wait(), POLL_S)
-
-    async def _not_admin(self, request: web.Request) -> str | None:
-        """Why the request's credentials no longer give admin, or None while they do."""
-        try:
-            who = await self._gate.identify(request)
-        except ApiProblem as problem:
-            return problem.error
-        if who.role is None or who.role < Role.ADMIN:
-            return f"{who.user or 'this client'} is no longer admin"
-        return None
 
 
 def _named(event: str, data: dict[str, object]) -> bytes:

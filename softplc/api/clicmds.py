@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any, Final
 
 from softplc.api.admincmds import add_admin_commands, read_password
-from softplc.api.auth import TOKEN_ENV
 from softplc.api.client import DEFAULT_URL, ApiClient, ApiError, ApiUnreachable
 from softplc.api.openapi import LIFECYCLE_COMMANDS
 from softplc.api.signcmds import add_download_options, add_signing_commands, download_body
@@ -23,6 +22,7 @@ from softplc.api.signcmds import signature_for as signature_of
 from softplc.api.trustcmds import add_trust_commands
 from softplc.core.lifecycle import Command, accepting
 from softplc.program import bundle as bundles
+from softplc.security.auth import TOKEN_ENV
 
 EXIT_OK: Final = 0
 EXIT_REFUSED: Final = 1

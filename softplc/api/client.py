@@ -7,7 +7,7 @@ Does not know: argparse or exit codes (clicmds.py), the server's internals.
 Proxies from the environment and redirects are not followed: the token must go to the
 PLC named by the URL and nowhere else. Over https the server is verified against a CA file:
 `ca`, else $SOFTPLC_API_CA, else the certificate of the PLC's state directory (given, or this
-account's server at a loopback URL), else the system's CAs (api/tls.py, the pin rule).
+account's server at a loopback URL), else the system's CAs (security/tls.py, the pin rule).
 """
 
 from __future__ import annotations
@@ -24,8 +24,9 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, Final
 
-from softplc.api import auth, secopts, tls
+from softplc.api import secopts
 from softplc.core.errors import SoftplcError
+from softplc.security import auth, tls
 
 DEFAULT_URL: Final = "http://127.0.0.1:8080"
 API: Final = "/api/v1"

@@ -80,8 +80,10 @@ class EventHub:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
 
-    async def serve(self, request: web.Request, heartbeat_s: float) -> web.StreamResponse:
-        """The event stream of one client, until it goes away or the server stops."""
+    async def serve(self, request: web.Request, heartbeat_s: float,
+                    revoked: Callable[[], str | None] = lambda: None) -> web.StreamResponse:
+        """The event stream of one client, until it goes away, the server stops or its
+        identity may no longer read (`revoked`: why not, asked before everything it sends)."""
         names = frozenset(n.strip() for n in request.query.get("names", "").split(",")
                           if n.strip())
         last_id = request.headers.get("Last-Event-ID")
@@ -94,7 +96,7 @@ class EventHub:
         try:
             await response.prepare(request)
             await response.write(b"retry: 1000\n: connected\n\n")
-            await _stream(sub, response, heartbeat_s)
+            await _stream(sub, response, heartbeat_s, revoked)
         except (ConnectionResetError, asyncio.CancelledError):
             pass  # the client went away
         finally:
@@ -126,16 +128,23 @@ class EventHub:
             await asyncio.sleep(BOARD_POLL_S)
 
 
-async def _stream(sub: Subscriber, response: web.StreamResponse, heartbeat_s: float) -> None:
+async def _stream(sub: Subscriber, response: web.StreamResponse, heartbeat_s: float,
+                  revoked: Callable[[], str | None]) -> None:
     reported = 0
     while True:
         try:
             event = await asyncio.wait_for(sub.queue.get(), heartbeat_s)
         except TimeoutError:
-            await response.write(b": heartbeat\n\n")
-            continue
+            event = {}
         if event is None:
             return  # the server stops
+        if (reason := revoked()) is not None:  # a removed user, a changed password, ...
+            await response.write(f"event: end\ndata: {json.dumps({'reason': reason})}\n\n"
+                                 .encode())
+            return
+        if not event:
+            await response.write(b": heartbeat\n\n")
+            continue
         if sub.dropped != reported:
             reported = sub.dropped
             await response.write(f"event: overflow\ndata: {json.dumps({'dropped': reported})}"

@@ -6,7 +6,7 @@ handing them to the HTTP service: the supervisor starts it in another process fr
 configuration that has no room for them, so `softplc run` writes them to
 STATE_DIR/security.json at every start and the service reads them there (absent: plain HTTP
 and STATE_DIR/trusted_keys, as for a service started on its own).
-Does not know: certificates (tls.py), signatures (program/signing.py), processes.
+Does not know: certificates (tls.py), signatures (security/signing.py), processes.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
-from softplc.api.tls import (
+from softplc.security.tls import (
     MODES,
     Mode,
     TlsError,

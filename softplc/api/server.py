@@ -27,7 +27,7 @@ from typing import Any, Final
 
 from aiohttp import web
 
-from softplc.api import accessroutes, auth, debug, history, programs, secopts, symbols, tls
+from softplc.api import accessroutes, debug, history, programs, secopts, symbols
 from softplc.api import web as web_page
 from softplc.api.access import Gate
 from softplc.api.commands import (
@@ -42,7 +42,6 @@ from softplc.api.events import EventHub
 from softplc.api.limits import HttpBounds, HttpLimits, Kind
 from softplc.api.openapi import API_PREFIX, LIFECYCLE_COMMANDS, openapi_document
 from softplc.api.problems import MAX_JSON_BYTES, ApiProblem, idempotency_key
-from softplc.api.roles import Role
 from softplc.api.service import BoardSource, CommandChannel
 from softplc.api.signed import DownloadSigning
 from softplc.api.tlsproto import TlsRunner
@@ -56,6 +55,8 @@ from softplc.core.snapshot import (
     SnapshotUnavailable,
     age_ns,
 )
+from softplc.security import auth, tls
+from softplc.security.roles import Act, Role
 
 log = logging.getLogger(__name__)
 
@@ -350,7 +351,13 @@ class ApiServer:
         return self.answer(await self.command(command, key=idempotency_key(request)))
 
     async def _events(self, request: web.Request) -> web.StreamResponse:
-        return await self._hub.serve(request, self.heartbeat_s)
+        who = accessroutes.PRINCIPAL.get()
+
+        def revoked() -> str | None:
+            decision = self.gate.decide(who, Act.READ) if who is not None else None
+            return None if decision is None or decision.allowed else decision.reason()
+
+        return await self._hub.serve(request, self.heartbeat_s, revoked)
 
     def image(self) -> tuple[int, ProcessImage | None]:
         """The latest snapshot's seq and image; (0, None) when none can be read."""

@@ -4,7 +4,7 @@ signature options of `softplc download` (--sign-key, --signature).
 Owns: where an engineer's keys live (--dir, default $XDG_CONFIG_HOME/softplc/keys), what
 `softplc download` sends for a program (its bundle, or its text when its files are not all
 here; a bundle zip as it is), and so what `softplc sign` signs: exactly those bytes, into
-FILE.sig. Does not know: HTTP (client.py), Ed25519 (program/signing.py).
+FILE.sig. Does not know: HTTP (client.py), Ed25519 (security/signing.py).
 """
 
 from __future__ import annotations
@@ -90,7 +90,7 @@ def private_key_path(key: str) -> Path:
 def signature_for(args: argparse.Namespace, body: bytes) -> str | None:
     """The signature line to send with `body`: made with --sign-key, or read from
     --signature; None without either. Raises SigningError or OSError."""
-    from softplc.program import signing
+    from softplc.security import signing
 
     if getattr(args, "sign_key", None):
         return signing.sign(body, signing.load_private(private_key_path(args.sign_key)))
@@ -102,7 +102,7 @@ def signature_for(args: argparse.Namespace, body: bytes) -> str | None:
 
 
 def cmd_sign(args: argparse.Namespace) -> int:
-    from softplc.program import signing
+    from softplc.security import signing
 
     try:
         body, is_bundle, absent = download_body(args.program)
@@ -121,7 +121,7 @@ def cmd_sign(args: argparse.Namespace) -> int:
 
 
 def cmd_keys(args: argparse.Namespace) -> int:
-    from softplc.program import signing
+    from softplc.security import signing
 
     try:
         if args.verb == "new":

@@ -6,7 +6,7 @@ removed acts at the next download), the check (`SIGNATURE_HEADER`, 422 with the 
 `refusal: "signature"`), and the signers of accepted bodies in STATE_DIR/signers.json
 (SHA-256 of the body -> the key's name), which status matches against the boot program: so
 a warm start or a restarted scan process of a kept program still names its signer.
-Does not know: Ed25519 (program/signing.py), the scan, routes.
+Does not know: Ed25519 (security/signing.py), the scan, routes.
 """
 
 from __future__ import annotations
@@ -19,11 +19,11 @@ import logging
 from pathlib import Path
 from typing import Any, Final
 
-from softplc.api.files import write_private
 from softplc.api.problems import ApiProblem
 from softplc.core.snapshot import Refusal
 from softplc.program import boot
-from softplc.program.signing import SignatureRefused, TrustedKeys
+from softplc.security.files import write_private
+from softplc.security.signing import SignatureRefused, TrustedKeys
 
 log = logging.getLogger(__name__)
 

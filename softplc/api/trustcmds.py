@@ -15,10 +15,10 @@ import os
 import sys
 from typing import Any, Final
 
-from softplc.api.audit import AuditTrail
-from softplc.api.roles import Role
-from softplc.api.trust import Certificate, TrustError, TrustList
-from softplc.api.users import OWNER
+from softplc.security.audit import AuditTrail
+from softplc.security.roles import Role
+from softplc.security.trust import Certificate, TrustError, TrustList
+from softplc.security.users import OWNER
 
 MODBUS_TLS_DIR: Final = "modbus-tls"  # hmi/secure.py's, which this room may not import
 

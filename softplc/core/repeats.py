@@ -7,7 +7,7 @@ the window closes; a key still busy then opens the next window without a report 
 an idle one is forgotten. At most `max_keys` keys (`max_keys_per_peer` of one peer) are
 open: events beyond are counted per class into one tally naming up to PEERS_NAMED peers.
 Pure: times are arguments. Room walls: hmi and api both use it, and both may import core.
-Does not know: what the events are (hmi/coalesce.py: Modbus writes; api/refusals.py:
+Does not know: what the events are (hmi/coalesce.py: Modbus writes; security/refusals.py:
 refused HTTP requests), how a tally becomes a record, files, clocks.
 """
 

@@ -9,7 +9,7 @@ and the times of the first and last; a key still written at the close opens the 
 without a record of its own, an idle one is forgotten. At most `max_keys` keys (and
 `max_keys_per_peer` of one peer) are open: writes beyond are counted per outcome into one
 record naming their peers. The windows themselves are core/repeats.py's (the HTTP gate's
-refusals use the same rule: api/refusals.py); this module says what a write's key and
+refusals use the same rule: security/refusals.py); this module says what a write's key and
 records are.
 Does not know: sockets, clocks (times are arguments), the trail (records are returned).
 """

@@ -9,7 +9,7 @@ handshake; catching the certificate a refused client offered (to keep it in reje
 answering a write of a client whose role may not write with exception 01, as the spec's
 role-based authorization does; handing every write and refused client to tlsaudit.py.
 Does not know: where the certificates are made or the trust list's and the trail's files
-(handed in: api/tls.py, api/trust.py, api/audit.py); Modbus semantics (frames.py).
+(handed in: security/tls.py, security/trust.py, security/audit.py); Modbus semantics (frames.py).
 """
 
 from __future__ import annotations

@@ -8,8 +8,8 @@ fsync); the bound on records not yet written (a write beyond it is answered busy
 secure.py, not left unrecorded); at most one record of refused clients per peer and
 interval, with the count of those not recorded, so that a client retrying in a loop cannot
 rotate the trail's history away.
-Does not know: the trail's format and files (api/audit.py) or the trust list's (api/trust.py):
-both are handed in as the small protocols below; sockets; TLS.
+Does not know: the trail's format and files (security/audit.py) or the trust list's
+(security/trust.py): both are handed in as the small protocols below; sockets; TLS.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ _PEERS_KEPT: Final = 1024  # peers whose last refusal record is remembered
 
 
 class TrustStore(Protocol):
-    """api/trust.py's TrustList: the trusted certificates (DER), the same object until they
+    """security/trust.py's TrustList: the trusted certificates (DER), the same object until they
     change; `reject` keeps a refused certificate for an admin to accept (blocking)."""
 
     def trusted(self) -> frozenset[bytes]: ...

@@ -6,7 +6,7 @@ and WriteAudit: each write on the plain Modbus TCP port handed to coalesce.py's 
 the slave's loop, a timer closing its windows while any is open, every count left written
 at stop. While the thread lags (MAX_PENDING records waiting), writes are counted, not
 recorded one by one, and windows stay open: nothing is lost, the loop is never held.
-Does not know: the trail's format and files (api/audit.py, handed in as AuditSink),
+Does not know: the trail's format and files (security/audit.py, handed in as AuditSink),
 sockets, Modbus framing.
 """
 
@@ -29,7 +29,7 @@ TICK_S: Final = 1.0  # how often open windows are looked at (at most; less with 
 
 
 class AuditSink(Protocol):
-    """api/audit.py's AuditTrail: appends one record (blocking, it fsyncs)."""
+    """security/audit.py's AuditTrail: appends one record (blocking, it fsyncs)."""
 
     def append(self, entry: dict[str, Any]) -> object: ...
 

@@ -1,11 +1,13 @@
 """Who may do what on the OPC UA server (issue 31), and the audit records of what they did.
 
-Owns: the sessions' users: a user-name token is checked against STATE_DIR/users (api/users.py
-`verify`, scrypt, in a thread before ActivateSession reaches asyncua, whose user manager is
+Owns: the sessions' users: a user-name token is proven by security/decide.py's Authority
+(scrypt, in a thread before ActivateSession reaches asyncua, whose user manager is
 synchronous), the owner's key as password is the owner (admin; any user name: the old single
 token), no identity is anonymous: a viewer, and only on a loopback bind; the back-off of
-failed logins per user name and per peer; which role each action needs (api/roles.py's route
-table: the rights are those of the same command over HTTP); the service ruleset; appending
+failed logins per user name and per peer; which act each method is (METHOD_ACTS: the role is
+security/roles.py's, as at every door), each request decided by the Authority as the users
+file is now (a removed or demoted user's session loses its rights at its next request); the
+service ruleset; appending
 records to the audit trail (interface "opcua", in a thread: it fsyncs).
 Does not know: symbols, the channel, the address space.
 """
@@ -13,9 +15,9 @@ Does not know: symbols, the channel, the address space.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import enum
 import hashlib
-import hmac
 import logging
 import secrets
 import time
@@ -29,42 +31,41 @@ from asyncua.crypto.permission_rules import USER_TYPES, SimpleRoleRuleset, User,
 from asyncua.server.internal_session import InternalSession
 from asyncua.server.user_managers import UserManager
 
-from softplc.api.audit import AuditTrail
-from softplc.api.backoff import Backoff
-from softplc.api.openapi import API_PREFIX
-from softplc.api.roles import Role, required_role
-from softplc.api.users import OWNER, UserError, UserStore
 from softplc.opcua.ids import numeric_id
+from softplc.security.audit import AuditTrail
+from softplc.security.backoff import Backoff
+from softplc.security.decide import Authority, Decision, Identity, anonymous
+from softplc.security.roles import Act, Role
+from softplc.security.users import UserStore
 
 log = logging.getLogger(__name__)
 
-
-def _route_role(method: str, route: str) -> Role:
-    role = required_role(method, f"{API_PREFIX}/{route}")
-    assert role is not None, route
-    return role
-
-
-# Part 10's methods and Download -> the role of the same command over HTTP (Halt = kill).
-METHOD_ROLES: Final = {method: _route_role("POST", route) for method, route in (
-    ("Start", "start"), ("Suspend", "stop"), ("Resume", "resume"), ("Halt", "kill"),
-    ("Reset", "reset"), ("Download", "program"))}
-WRITE_ROLE: Final = _route_role("PUT", "symbols/{name}")  # an HMI write of a symbol
+# Part 10's methods and Download -> the act of the same command at every door (Halt = kill);
+# the role each needs is security/roles.py's COMMAND_ROLES, as for HTTP.
+METHOD_ACTS: Final = {"Start": Act.START, "Suspend": Act.STOP, "Resume": Act.RESUME,
+                      "Halt": Act.KILL, "Reset": Act.RESET, "Download": Act.DOWNLOAD}
 VERIFIED_KEPT: Final = 64  # verified name:password pairs: a reconnecting client pays scrypt once
 VERIFIED_S: Final = 300.0
 
 
 @dataclass
 class PlcUser(User):
-    """asyncua's session user with softplc's role; `plc_role` None: may do nothing."""
+    """asyncua's session user with softplc's identity; its role is decided at every request
+    (security/decide.py): a removed or demoted user's open session loses its rights at once."""
 
-    plc_role: Role | None = None
-    via: str = ""  # owner, password, anonymous
+    identity: Identity = dataclasses.field(default_factory=lambda: anonymous(None))
+    authority: Authority | None = None
     peer: str = "?"
 
+    def decide(self, act: Act) -> Decision:
+        if self.authority is None:
+            return Decision(self.identity, act, Role.ADMIN, None, "no authority")
+        return self.authority.decide(self.identity, act)
+
     def audit(self) -> dict[str, Any]:
-        return {"user": self.name, "role": self.plc_role.label if self.plc_role else None,
-                "via": self.via, "peer": self.peer}
+        role = self.decide(Act.READ).role
+        return {"user": self.name, "role": role.label if role else None,
+                "via": self.identity.via, "peer": self.peer}
 
 
 class Login(enum.Enum):
@@ -73,14 +74,16 @@ class Login(enum.Enum):
     THROTTLED = "throttled"  # backing off: refused unchecked, counted, not audited
 
 
-def role_of(session: InternalSession) -> Role | None:
+def decide(session: InternalSession, act: Act) -> Decision:
+    """The one decision point (security/decide.py) for a request of this session."""
     user = session.user
-    return user.plc_role if isinstance(user, PlcUser) else None
+    if isinstance(user, PlcUser):
+        return user.decide(act)
+    return Decision(anonymous(None), act, Role.ADMIN, None, "not a softplc session")
 
 
-def may(session: InternalSession, needed: Role) -> bool:
-    role = role_of(session)
-    return role is not None and role >= needed
+def role_of(session: InternalSession) -> Role | None:
+    return decide(session, Act.READ).role
 
 
 class Users(UserManager):
@@ -89,52 +92,46 @@ class Users(UserManager):
 
     def __init__(self, state_dir: Path, owner_token: str, anonymous: bool) -> None:
         self.store = UserStore(state_dir)
+        self.authority = Authority(self.store, lambda: self._owner)
         self.backoff = Backoff()
         self.throttled = 0
         self._owner = owner_token
         self._anonymous = anonymous
         self._pepper = secrets.token_bytes(32)
-        self._verified: OrderedDict[bytes, tuple[Role, str, float]] = OrderedDict()
+        self._verified: OrderedDict[bytes, tuple[Identity, float]] = OrderedDict()
         self._kdf: asyncio.Semaphore | None = None
 
     def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
                  certificate: Any = None) -> User | None:
         if not username and password is None:  # anonymous (a certificate alone is no user)
-            return PlcUser(UserRole.Anonymous, None, Role.VIEWER, "anonymous") \
-                if self._anonymous else None
+            return self._user(UserRole.Anonymous, None,
+                              anonymous(Role.VIEWER)) if self._anonymous else None
         if password is None or username is None:
             return None
-        if self._is_owner(password):
-            return PlcUser(UserRole.User, OWNER, Role.ADMIN, "owner")
-        role = self._known(username, password)
-        return None if role is None else PlcUser(UserRole.User, username, role, "password")
+        if (owner := self.authority.owner(password)) is not None:
+            return self._user(UserRole.User, owner.user, owner)
+        who = self._known(username, password)
+        return None if who is None else self._user(UserRole.User, username, who)
 
-    def _is_owner(self, password: str) -> bool:
-        return hmac.compare_digest(password.encode(), self._owner.encode())
+    def _user(self, role: UserRole, name: str | None, who: Identity) -> PlcUser:
+        return PlcUser(role, name, identity=who, authority=self.authority)
 
     def _stamp(self, name: str, password: str) -> bytes:
         return hashlib.sha256(self._pepper + f"{name}\0{password}".encode()).digest()
 
-    def _known(self, name: str, password: str) -> Role | None:
-        """The role of a pair `login` verified lately, while the user's role and password
-        hash are still those it was verified with (a changed password ends it)."""
+    def _known(self, name: str, password: str) -> Identity | None:
+        """The identity of a pair `login` verified lately, while it still holds a role (a
+        changed password, a removed user end it)."""
         entry = self._verified.get(self._stamp(name, password))
-        user = self._users().get(name)
-        if entry is None or entry[2] < time.monotonic() or user is None \
-                or (user.role, user.password) != entry[:2]:
+        if entry is None or entry[1] < time.monotonic() or \
+                self.authority.role_now(entry[0])[0] is None:
             return None
         return entry[0]
 
-    def _users(self) -> dict[str, Any]:
-        try:
-            return dict(self.store.users())  # read again when the file changed
-        except UserError as exc:  # an unusable users file: nobody but the owner gets in
-            log.error("%s", exc)
-            return {}
-
     async def login(self, name: str, password: str, peer: str) -> Login:
         """Check `name`/`password` before asyncua activates the session with them."""
-        if self._is_owner(password) or self._known(name, password) is not None:
+        if self.authority.owner(password) is not None or \
+                self._known(name, password) is not None:
             return Login.OK
         keys = (("user", name[:64]), ("peer", peer))
         if self.backoff.wait_s(*keys) > 0:
@@ -143,23 +140,20 @@ class Users(UserManager):
         if self._kdf is None:
             self._kdf = asyncio.Semaphore(1)  # one scrypt at a time: 32 MiB, ~0.3 s each
         async with self._kdf:
-            users = self._users()
-            role = await asyncio.to_thread(self.store.verify, name, password) if users \
-                else None
-        user = users.get(name)
-        if role is None or user is None:
+            who = await asyncio.to_thread(self.authority.by_password, name, password) \
+                if self.authority.known() else None
+        if who is None:
             self.backoff.failed(*keys)
             return Login.FAILED
         self.backoff.succeeded(*keys)
-        self._verified[self._stamp(name, password)] = (role, user.password,
-                                                       time.monotonic() + VERIFIED_S)
+        self._verified[self._stamp(name, password)] = (who, time.monotonic() + VERIFIED_S)
         while len(self._verified) > VERIFIED_KEPT:
             self._verified.popitem(last=False)
         return Login.OK
 
 
 class Recorder:
-    """Audit records of the OPC UA interface (the trail of api/audit.py, one chain with HTTP
+    """Audit records of the OPC UA interface (the trail of security/audit.py, one chain with HTTP
     and the CLI). A record that cannot be written is logged; the action stands."""
 
     def __init__(self, state_dir: Path) -> None:

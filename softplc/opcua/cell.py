@@ -28,9 +28,9 @@ from typing import Final
 
 from asyncua import Node, ua
 
-from softplc.api.auth import load_or_create_token
 from softplc.opcua.client import RefusingAwareClient
 from softplc.opcua.ids import string_id
+from softplc.security.auth import load_or_create_token
 
 ROOT: Final = Path(__file__).resolve().parents[2]
 PROGRAMS: Final = {"transport": "programs/transport.yaml", "drilling": "programs/drilling.yaml"}

@@ -5,7 +5,7 @@ and a self-signed application instance certificate at the first start (SubjectAl
 server's ApplicationUri, which Part 4 requires to match, and the host's names; the key and
 extended key uses of OPC UA Part 6's application certificates), and a new certificate for the
 same key when the ApplicationUri changed (another port). Blocking: run it in a thread.
-Does not know: asyncua's server, the trust list of clients (api/trust.py), sessions.
+Does not know: asyncua's server, the trust list of clients (security/trust.py), sessions.
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
-from softplc.api.certnames import alt_names, subject
-from softplc.api.files import write_private
-from softplc.api.trust import PKI_DIR, TrustList, thumbprint
+from softplc.security.certnames import alt_names, subject
+from softplc.security.files import write_private
+from softplc.security.trust import PKI_DIR, TrustList, thumbprint
 
 log = logging.getLogger(__name__)
 

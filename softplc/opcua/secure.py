@@ -4,7 +4,7 @@ Owns: which endpoints are offered (Basic256Sha256, Aes128_Sha256_RsaOaep and
 Aes256_Sha256_RsaPss, each in Sign and SignAndEncrypt; None only on a loopback bind), which
 identity tokens (anonymous only on a loopback bind; user name), the server's certificate
 (pki.py), the check of a new secure channel's client certificate against the trust list
-(api/trust.py: an untrusted one is refused and kept in STATE_DIR/pki/rejected/), the checks
+(security/trust.py: an untrusted one is refused and kept in STATE_DIR/pki/rejected/), the checks
 of CreateSession (the certificate is the channel's, and names the client's ApplicationUri),
 checking a user-name token's password before asyncua activates the session (access.py), and
 the audit records of refused certificates and failed logins.
@@ -28,12 +28,12 @@ from asyncua.server.uaprocessor import UaProcessor
 from asyncua.ua.ua_binary import struct_from_binary
 from cryptography import x509
 
-from softplc.api import auth
-from softplc.api.trust import TrustList, first_certificate
 from softplc.opcua.access import ClientServices, Login, PlcUser, Recorder, Users
 from softplc.opcua.door import DoorServer
 from softplc.opcua.ids import numeric_id
 from softplc.opcua.pki import ServerIdentity, server_identity
+from softplc.security import auth
+from softplc.security.trust import TrustList, first_certificate
 
 log = logging.getLogger(__name__)
 

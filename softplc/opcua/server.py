@@ -47,7 +47,7 @@ from softplc.core.snapshot import (
     SnapshotSource,
     SnapshotUnavailable,
 )
-from softplc.opcua.access import METHOD_ROLES, WRITE_ROLE, may, role_of, who
+from softplc.opcua.access import METHOD_ACTS, decide, who
 from softplc.opcua.door import DoorServer
 from softplc.opcua.ids import numeric_id, status_code, string_id
 from softplc.opcua.limits import DoorStats, OpcUaLimits
@@ -57,6 +57,7 @@ from softplc.opcua.secure import Security, application_uri
 from softplc.opcua.sessions import hook
 from softplc.opcua.space import METHODS, NAMESPACE_URI, PROGRAM, Space, SymbolNode
 from softplc.opcua.typed import Refusal
+from softplc.security.roles import Act
 
 log = logging.getLogger(__name__)
 
@@ -237,7 +238,7 @@ class OpcUaServer:
                       value: ua.WriteValue) -> int:
         if value.AttributeId != ua.AttributeIds.Value:
             return ua.StatusCodes.BadNotWritable
-        if not may(session, WRITE_ROLE):
+        if not decide(session, Act.WRITE).allowed:
             return ua.StatusCodes.BadUserAccessDenied  # anonymous and viewers: read only
         if not symbol.writable:
             return ua.StatusCodes.BadNotWritable  # an input, or the write policy says no
@@ -267,12 +268,13 @@ class OpcUaServer:
             if method is None:
                 results.extend(await inner([request]))
                 continue
-            needed = METHOD_ROLES[method]
-            if not may(session, needed):
-                role = role_of(session)
+            decision = decide(session, METHOD_ACTS[method])
+            if not decision.allowed:
+                held = decision.role.label if decision.role else "none"
+                why = f"; {decision.why_none}" if decision.why_none else ""
                 result = Outcome(ua.StatusCodes.BadUserAccessDenied,
-                                 f"{method} needs the {needed.label} role (this session: "
-                                 f"{role.label if role else 'none'})").result()
+                                 f"{method} needs the {decision.need.label} role (this "
+                                 f"session: {held}{why})").result()
             else:
                 result = await self._handling.call(method, request.InputArguments or [],
                                                    request.ObjectId)

@@ -22,8 +22,8 @@ from asyncua import ua
 from asyncua.common.utils import ServiceError
 from asyncua.server.internal_session import InternalSession
 
-from softplc.api.roles import Role
-from softplc.opcua.access import METHOD_ROLES, WRITE_ROLE, role_of
+from softplc.opcua.access import METHOD_ACTS, decide
+from softplc.security.roles import Act
 
 # The AccessLevel bits that let a session change something (Part 3, AccessLevelType).
 _WRITE_BITS: Final = sum(1 << int(bit) for bit in (
@@ -44,32 +44,27 @@ def hook(session: InternalSession, method_of: MethodOf) -> None:
 async def read(session: InternalSession, inner: Reader, method_of: MethodOf,
                params: ua.ReadParameters) -> list[ua.DataValue]:
     results = await inner(params)
-    role = role_of(session)
     wanted = params.TimestampsToReturn
-    return [_told(item, value, role, method_of, wanted)
+    return [_told(item, value, session, method_of, wanted)
             for item, value in zip(params.NodesToRead, results, strict=True)]
 
 
-def _told(item: ua.ReadValueId, value: ua.DataValue, role: Role | None, method_of: MethodOf,
-          wanted: ua.TimestampsToReturn) -> ua.DataValue:
+def _told(item: ua.ReadValueId, value: ua.DataValue, session: InternalSession,
+          method_of: MethodOf, wanted: ua.TimestampsToReturn) -> ua.DataValue:
     attribute = item.AttributeId
     if attribute == ua.AttributeIds.Value:
         return _timestamps(value, wanted)
     if value.Value is None:
         return value
     if attribute == ua.AttributeIds.UserAccessLevel and isinstance(value.Value.Value, int) \
-            and not _holds(role, WRITE_ROLE):
+            and not decide(session, Act.WRITE).allowed:
         level = value.Value.Value & ~_WRITE_BITS
         return dataclasses.replace(value, Value=ua.Variant(level, ua.VariantType.Byte))
     if attribute == ua.AttributeIds.UserExecutable and value.Value.Value is True:
         method = method_of(item.NodeId)
-        if not _holds(role, METHOD_ROLES.get(method or "", Role.OPERATOR)):
+        if not decide(session, METHOD_ACTS.get(method or "", Act.ADMINISTER)).allowed:
             return dataclasses.replace(value, Value=ua.Variant(False, ua.VariantType.Boolean))
     return value
-
-
-def _holds(role: Role | None, needed: Role) -> bool:
-    return role is not None and role >= needed
 
 
 def _timestamps(value: ua.DataValue, wanted: ua.TimestampsToReturn) -> ua.DataValue:

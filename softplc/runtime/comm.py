@@ -178,9 +178,9 @@ def modbus_slave(config: CommConfig, source: SnapshotSource, sink: Callable[[Hmi
                  read_board: Callable[[], dict[str, Any]]) -> ModbusSlave:
     """The HMI slave of `config` (not started), with its write policy; its writes audited
     in STATE_DIR's trail (docs/security.md, "Audit of plain Modbus writes")."""
-    from softplc.api.audit import AuditTrail
     from softplc.hmi.server import ModbusSlave
     from softplc.hmi.writeaudit import WritesAudited
+    from softplc.security.audit import AuditTrail
 
     if config.modbus is None:
         raise ValueError("Modbus is off in this configuration")
@@ -202,10 +202,10 @@ def secure_modbus_slave(config: CommConfig, source: SnapshotSource,
     """The Modbus/TCP Security slave of `config` (not started): its certificate made at the
     first start in STATE_DIR/modbus-tls/tls/, client certificates trusted in
     STATE_DIR/modbus-tls/trusted/ (docs/modbus.md, Modbus/TCP Security)."""
-    from softplc.api.audit import AuditTrail
-    from softplc.api.tls import TlsSettings, certificate
-    from softplc.api.trust import TrustList
     from softplc.hmi.secure import MODBUS_TLS_DIR, SecureModbusSlave, TlsConfig
+    from softplc.security.audit import AuditTrail
+    from softplc.security.tls import TlsSettings, certificate
+    from softplc.security.trust import TrustList
 
     assert config.modbus_tls is not None
     host, port = config.modbus_tls

@@ -40,7 +40,7 @@ ENTRY: dict[str, Any] = {"user": "op", "role": "operator", "via": "key", "peer":
 
 def fill(state: Path, files: int, max_bytes: int) -> int:
     """A trail of `files` full files in the trail's own format (written at once, no fsync)."""
-    from softplc.api.audit import GENESIS, canonical, utc_now
+    from softplc.security.audit import GENESIS, canonical, utc_now
 
     state.mkdir(parents=True, exist_ok=True)
     seq, prev = 0, GENESIS
@@ -144,7 +144,7 @@ def flood(port: int, requests: int) -> None:
 def measure(requests: int, refused: int) -> dict[str, Any]:
     """In the tree on sys.path: the figures of this process's softplc."""
     import softplc.api.access as access
-    import softplc.api.audit as audit
+    import softplc.security.audit as audit
 
     with tempfile.TemporaryDirectory() as tmp:
         state = Path(tmp) / "state"

@@ -2,7 +2,7 @@
 
 `call` sends what it is given, credentials included: without them a loopback service treats
 it as a viewer. `owner=True` adds the owner's key, found as the owner's CLI finds it (the
-index of this account's local servers, softplc/api/auth.py)."""
+index of this account's local servers, softplc/security/auth.py)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from softplc.api import auth
 from softplc.api.commands import DOWNLOAD_DEADLINE_S, REPLY_GRACE_S
+from softplc.security import auth
 
 ROOT = Path(__file__).resolve().parents[2]
 TRANSPORT = ROOT / "programs" / "transport.yaml"

@@ -1,4 +1,4 @@
-"""The audit chain checked from where the last check ended (softplc/api/auditchain.py,
+"""The audit chain checked from where the last check ended (softplc/security/auditchain.py,
 chainwatch.py): only appended records parsed, any byte of the verified part changed in place
 found, a rotated or replaced file verified again in full; and a real service whose status
 answers while a full verification is held, then checks only what was appended."""
@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from softplc.api.audit import GENESIS, MAX_BYTES, AuditTrail, canonical, utc_now
+from softplc.security.audit import GENESIS, MAX_BYTES, AuditTrail, canonical, utc_now
 from tests.api.conftest import Plc, ScanThread, make_server
 from tests.api.helpers import ANSWER_WITHIN_S, call
 from tests.support import eventually

@@ -1,4 +1,4 @@
-"""Refused requests in the audit trail (softplc/api/refusals.py): the rule on virtual time (no
+"""Refused requests in the audit trail (softplc/security/refusals.py): the rule on virtual time (no
 socket, no sleep), then a real service on 127.0.0.1 port 0 flooded with 2,000 refused
 requests: a bounded number of records, exact counts, older records kept, the chain intact,
 accepted commands written before they are answered."""
@@ -12,9 +12,9 @@ from pathlib import Path
 from typing import Any
 
 from softplc.api.access import Gate
-from softplc.api.audit import AuditTrail
-from softplc.api.refusals import WINDOW_S, Refusals
-from softplc.api.roles import Role
+from softplc.security.audit import AuditTrail
+from softplc.security.refusals import WINDOW_S, Refusals
+from softplc.security.roles import Role
 from tests.api.conftest import Plc, ScanThread, make_server
 from tests.api.helpers import ANSWER_WITHIN_S, TRANSPORT, call, owner_headers
 from tests.support import eventually

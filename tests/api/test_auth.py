@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from softplc.api import auth
-from softplc.api.roles import Role
 from softplc.api.server import ApiServer
+from softplc.security import auth
+from softplc.security.roles import Role
 from tests.api.conftest import Plc, ScanThread, make_server
 from tests.api.helpers import call
 

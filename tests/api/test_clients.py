@@ -10,7 +10,6 @@ from pathlib import Path
 
 import pytest
 
-from softplc.api import auth
 from softplc.api.clicmds import (
     EXIT_OK,
     EXIT_REFUSED,
@@ -22,6 +21,7 @@ from softplc.api.client import ApiClient, ApiError, ApiUnreachable
 from softplc.core.lifecycle import PlcState
 from softplc.devices.driver import DeviceUnavailable, ProgramHandlingError
 from softplc.interface.remote import RemoteProgramRefused, RemoteSoftplc
+from softplc.security import auth
 from tests.api.conftest import Plc, ScanThread, ServerThread, make_server
 from tests.api.helpers import BAD_PROGRAM, TRANSPORT
 from tests.support import eventually

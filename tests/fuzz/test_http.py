@@ -17,9 +17,9 @@ from hypothesis.errors import Unsatisfiable
 from schemathesis import GenerationMode
 from schemathesis.checks import not_a_server_error
 
-from softplc.api import auth
 from softplc.api.openapi import openapi_document
 from softplc.api.server import ApiServer
+from softplc.security import auth
 from tests.api.conftest import ServerThread
 from tests.fuzz import budget
 from tests.fuzz.live import LivePlc

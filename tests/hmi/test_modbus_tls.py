@@ -1,6 +1,6 @@
 """Modbus/TCP Security (hmi/secure.py) with real clients: pymodbus' TLS client, raw TLS
 sockets, openssl s_client. Certificates are made here: the PLC's as the wiring makes it
-(api/tls.py in STATE_DIR/modbus-tls), clients' with or without the ModbusRole extension."""
+(security/tls.py in STATE_DIR/modbus-tls), clients' with or without the ModbusRole extension."""
 
 from __future__ import annotations
 
@@ -24,12 +24,12 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from pymodbus.client import ModbusTlsClient
 from pymodbus.exceptions import ModbusException
 
-from softplc.api.audit import AuditTrail
-from softplc.api.tls import TlsSettings, certificate
-from softplc.api.trust import TrustList, name_of
 from softplc.core.image import ImageSizes, parse_address
 from softplc.hmi.secure import MODBUS_TLS_DIR, SecureModbusSlave, TlsConfig
 from softplc.hmi.tlspeer import ROLE_OID
+from softplc.security.audit import AuditTrail
+from softplc.security.tls import TlsSettings, certificate
+from softplc.security.trust import TrustList, name_of
 from tests.hmi.helpers import ImageSource, SlaveThread, adu, run_in_thread
 
 OPENSSL = shutil.which("openssl")

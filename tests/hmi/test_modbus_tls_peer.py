@@ -11,7 +11,6 @@ from typing import Any
 
 import pytest
 
-from softplc.api.roles import Role
 from softplc.hmi.tlsaudit import AuditRecorder
 from softplc.hmi.tlspeer import (
     NO_ROLE,
@@ -22,6 +21,7 @@ from softplc.hmi.tlspeer import (
     identity_of,
     offered_certificate,
 )
+from softplc.security.roles import Role
 from tests.hmi.test_modbus_tls import make_client, utf8_string
 
 

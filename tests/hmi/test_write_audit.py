@@ -14,10 +14,10 @@ from typing import Any
 
 from pymodbus.client import ModbusTcpClient
 
-from softplc.api.audit import AuditTrail
 from softplc.hmi.coalesce import Coalescer, describe_write
 from softplc.hmi.server import ModbusSlave
 from softplc.hmi.writeaudit import WriteAudit, WritesAudited
+from softplc.security.audit import AuditTrail
 from tests.hmi.helpers import ImageSource, run_in_thread
 from tests.support import eventually
 

@@ -13,8 +13,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from softplc.api.roles import Role
-from softplc.api.users import UserStore
+from softplc.security.roles import Role
+from softplc.security.users import UserStore
 from tests.opcua.conftest import ROOT, Plc
 from tests.opcua.test_node_opcua import NODE_DIR, node_modules
 

@@ -19,10 +19,10 @@ from asyncua.crypto.security_policies import (
     SecurityPolicyBasic256Sha256,
 )
 
-from softplc.api.audit import AuditTrail
-from softplc.api.roles import Role
-from softplc.api.users import UserStore
 from softplc.opcua.ids import string_id
+from softplc.security.audit import AuditTrail
+from softplc.security.roles import Role
+from softplc.security.users import UserStore
 from tests.opcua.certs import client_certificate
 from tests.opcua.conftest import ROOT, Plc, patient_client
 

@@ -12,10 +12,10 @@ import pytest
 from asyncua import ua
 from cryptography import x509
 
-from softplc.api import trust as trustmod
-from softplc.api.trust import TrustError, TrustList, first_certificate
 from softplc.opcua.limits import OpcUaLimits
 from softplc.opcua.secure import SECURE_POLICIES, Security, application_uri
+from softplc.security import trust as trustmod
+from softplc.security.trust import TrustError, TrustList, first_certificate
 from tests.opcua.certs import client_certificate
 
 

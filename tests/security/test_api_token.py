@@ -1,4 +1,4 @@
-"""The rule of softplc/api/auth.py as deployed: a service bound off loopback (0.0.0.0 here,
+"""The rule of softplc/security/auth.py as deployed: a service bound off loopback (0.0.0.0 here,
 reached through 127.0.0.1) needs credentials on every path but /healthz and the page; the
 owner's key is kept in a 0600 file and compared in constant time; bound to loopback a request
 without credentials may read, not change anything, and foreign Host headers are refused
@@ -9,8 +9,8 @@ from __future__ import annotations
 import stat
 from pathlib import Path
 
-from softplc.api import auth
 from softplc.api.server import ApiServer
+from softplc.security import auth
 from tests.api.conftest import ServerThread
 from tests.api.helpers import call
 from tests.fuzz.live import LivePlc

@@ -1,4 +1,4 @@
-"""The audit trail's files (softplc/api/audit.py): a hash chain that any changed byte
+"""The audit trail's files (softplc/security/audit.py): a hash chain that any changed byte
 breaks, appends from several processes at once, rotation that keeps the chain."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import multiprocessing
 import stat
 from pathlib import Path
 
-from softplc.api.audit import GENESIS, AuditTrail, parse_since
+from softplc.security.audit import GENESIS, AuditTrail, parse_since
 
 
 def entry(n: int) -> dict[str, object]:

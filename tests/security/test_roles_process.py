@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 
 from softplc.api.client import ApiClient
-from softplc.api.refusals import WINDOW_S
+from softplc.security.refusals import WINDOW_S
 from tests.api.helpers import Answer, call
 from tests.support import eventually, free_port, softplc_run
 

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from softplc.api import auth
 from softplc.api.server import ApiServer
+from softplc.security import auth
 from tests.api.conftest import ServerThread
 from tests.api.helpers import call
 from tests.fuzz.live import LivePlc

@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 
 from softplc.api.access import COOKIE, SESSION_S
-from softplc.api.audit import AuditTrail
-from softplc.api.roles import Role
-from softplc.api.users import UserStore
+from softplc.security.audit import AuditTrail
+from softplc.security.roles import Role
+from softplc.security.users import UserStore
 from tests.api.conftest import (  # noqa: F401 - plc_parts and scan are pytest fixtures
     Plc,
     ScanThread,

@@ -18,9 +18,9 @@ import pytest
 
 from softplc.api.client import ApiClient, ApiError
 from softplc.api.signcmds import download_body
-from softplc.program import signing
-from softplc.program.signing import SignatureRefused, SigningError, TrustedKeys
 from softplc.runtime.loop import LoopConfig
+from softplc.security import signing
+from softplc.security.signing import SignatureRefused, SigningError, TrustedKeys
 from tests.api.conftest import PERIOD_NS, ROOT, Plc, ScanThread, make_server
 from tests.api.conftest import plc_parts as plc_parts  # a pytest fixture, reexported
 from tests.support import eventually
@@ -154,6 +154,6 @@ def _cli(*argv: str) -> subprocess.CompletedProcess[str]:
 
 
 def _trail(state: Path) -> list[dict[str, Any]]:
-    from softplc.api.audit import AuditTrail
+    from softplc.security.audit import AuditTrail
 
     return list(AuditTrail(state).records(None, 1000))

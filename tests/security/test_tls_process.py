@@ -17,9 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from softplc.api import tls
 from softplc.api.client import ApiClient, ApiUnreachable
-from softplc.program import signing
+from softplc.security import signing, tls
 from tests.support import eventually, free_port, softplc_run
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,4 +1,4 @@
-"""Users (softplc/api/users.py), roles (roles.py) and the back-off (access.py), without a
+"""Users (softplc/security/users.py), roles (roles.py) and the back-off (access.py), without a
 server: scrypt hashes with their parameters and a salt each, a 0600 file replaced whole,
 API keys stored hashed, the route table covering every served route."""
 
@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 
-from softplc.api import users as users_module
-from softplc.api.backoff import BACKOFF_ENTRIES, FREE_FAILURES, Backoff
 from softplc.api.roles import ROUTE_ROLES, Role, required_role
 from softplc.api.server import ApiServer
-from softplc.api.users import OWNER, UserError, UserStore, hash_password, password_matches
+from softplc.security import users as users_module
+from softplc.security.backoff import BACKOFF_ENTRIES, FREE_FAILURES, Backoff
+from softplc.security.users import OWNER, UserError, UserStore, hash_password, password_matches
 
 
 def test_password_hashes_are_scrypt_with_stated_parameters_and_a_salt_each() -> None:

@@ -19,8 +19,8 @@ import logging
 import math
 from typing import Any, Final
 
-from softplc.api.audit import AuditTrail, utc_now
-from softplc.api.auditchain import Resume, Verdict
+from softplc.security.audit import AuditTrail, utc_now
+from softplc.security.auditchain import Resume, Verdict
 
 log = logging.getLogger(__name__)
 

@@ -20,9 +20,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Final, Literal
 
-from softplc.api.auth import is_loopback
-from softplc.api.files import write_private
 from softplc.core.errors import SoftplcError
+from softplc.security.auth import is_loopback
+from softplc.security.files import write_private
 
 TLS_DIR: Final = "tls"
 CERT_FILE: Final = "cert.pem"
@@ -117,7 +117,7 @@ def _self_signed(host: str) -> tuple[bytes, bytes]:
     from cryptography.hazmat.primitives.asymmetric import ec
     from cryptography.x509.oid import ExtendedKeyUsageOID
 
-    from softplc.api.certnames import alt_names, subject
+    from softplc.security.certnames import alt_names, subject
 
     key = ec.generate_private_key(ec.SECP256R1())
     names = _names(host)

@@ -25,9 +25,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
-from softplc.api.files import write_private
-from softplc.api.roles import Role
 from softplc.core.errors import SoftplcError
+from softplc.security.files import write_private
+from softplc.security.roles import Role
 
 USERS_FILE: Final = "users"
 OWNER: Final = "owner"  # the built-in user of STATE_DIR/api_token: reserved

@@ -24,11 +24,11 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Final
 
-from softplc.api.auditchain import GENESIS as GENESIS
-from softplc.api.auditchain import Resume, verify_files, verify_tail
-from softplc.api.auditchain import Verdict as Verdict
-from softplc.api.auditchain import canonical as canonical
 from softplc.core.units import parse_duration_ns
+from softplc.security.auditchain import GENESIS as GENESIS
+from softplc.security.auditchain import Resume, verify_files, verify_tail
+from softplc.security.auditchain import Verdict as Verdict
+from softplc.security.auditchain import canonical as canonical
 
 AUDIT_FILE: Final = "audit.jsonl"
 LOCK_FILE: Final = "audit.lock"

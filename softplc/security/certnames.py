@@ -1,4 +1,4 @@
-"""The names in softplc's self-signed certificates (HTTPS: api/tls.py; OPC UA: opcua/pki.py).
+"""The names in softplc's self-signed certificates (HTTPS: security/tls.py; OPC UA: opcua/pki.py).
 
 Owns: the subject (`softplc@HOST`, organisation softplc) and the subject alternative names
 (each host as an IP address when it is one, else a DNS name; an OPC UA ApplicationUri first).

@@ -22,8 +22,8 @@ import time
 from collections.abc import Awaitable, Callable
 from typing import Any, Final
 
-from softplc.api.audit import utc_text
 from softplc.core.repeats import Repeats, Tally
+from softplc.security.audit import utc_text
 
 WINDOW_S: Final = 10.0  # a key refused on and on: one record per window
 MAX_KEYS: Final = 256
