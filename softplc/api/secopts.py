@@ -2,26 +2,18 @@
 signatures downloads need (--trusted-keys).
 
 Owns: registering them on the run parser, checking them at start (one line per problem), and
-handing them to the HTTP service: the supervisor starts it in another process from a
-configuration that has no room for them, so `softplc run` writes them to
-STATE_DIR/security.json at every start and the service reads them there (absent: plain HTTP
-and STATE_DIR/trusted_keys, as for a service started on its own).
+handing them to the services (security/settings.py: STATE_DIR/security.json).
 Does not know: certificates (tls.py), signatures (security/signing.py), processes.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import tempfile
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Final
 
+from softplc.security.settings import TRUSTED_DIR, SecuritySettings, load, save
 from softplc.security.tls import (
     MODES,
-    Mode,
     TlsError,
     TlsSettings,
     certificate,
@@ -29,18 +21,7 @@ from softplc.security.tls import (
     server_context,
 )
 
-SETTINGS_FILE: Final = "security.json"
-TRUSTED_DIR: Final = "trusted_keys"  # in the state directory, unless --trusted-keys
-
-
-@dataclass(frozen=True, slots=True)
-class SecuritySettings:
-    tls: TlsSettings = field(default_factory=TlsSettings)
-    trusted_keys: str | None = None  # None: STATE_DIR/trusted_keys
-
-    def trusted_dir(self, state_dir: Path) -> Path:
-        return Path(self.trusted_keys) if self.trusted_keys else Path(state_dir) / TRUSTED_DIR
-
+__all__ = ["TRUSTED_DIR", "SecuritySettings", "add_run_options", "load", "prepare", "save"]
 
 def add_run_options(run: argparse.ArgumentParser) -> None:
     run.add_argument("--tls", choices=MODES, default="auto",
@@ -100,37 +81,5 @@ def prepare(args: argparse.Namespace) -> str | None:
     return None
 
 
-def save(state_dir: Path, settings: SecuritySettings) -> None:
-    state_dir.mkdir(mode=0o700, parents=True, exist_ok=True)
-    data = {"tls": {"mode": settings.tls.mode, "cert": settings.tls.cert,
-                    "key": settings.tls.key}, "trusted_keys": settings.trusted_keys}
-    fd, tmp = tempfile.mkstemp(dir=state_dir, prefix=f".{SETTINGS_FILE}.")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as out:
-            json.dump(data, out)
-        os.replace(tmp, state_dir / SETTINGS_FILE)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def load(state_dir: Path) -> SecuritySettings:
-    """What the last `softplc run` on `state_dir` asked for; the defaults without it."""
-    try:
-        data: Any = json.loads((Path(state_dir) / SETTINGS_FILE).read_text(encoding="utf-8"))
-        tls = data["tls"]
-        mode: Mode = tls["mode"] if tls["mode"] in MODES else "on"  # edited: the safe side
-        return SecuritySettings(TlsSettings(mode, _text(tls.get("cert")), _text(tls.get("key"))),
-                                _text(data.get("trusted_keys")))
-    except FileNotFoundError:
-        return SecuritySettings()
-    except (OSError, ValueError, KeyError, TypeError):
-        return SecuritySettings(TlsSettings("on"))
-
-
 def _absolute(path: str | None) -> str | None:
     return str(Path(path).resolve()) if path else None
-
-
-def _text(value: object) -> str | None:
-    return value if isinstance(value, str) and value else None

@@ -113,7 +113,8 @@ class ApiServer:
         self.bounds = HttpBounds(limits, request_class, pools=len(set(STREAM_POOLS.values())))
         # None: what `softplc run` asked for (none: plain HTTP, STATE_DIR/trusted_keys).
         self.security = security or secopts.load(self.state_dir)
-        self.signing = DownloadSigning(self.state_dir, self.security.trusted_dir(self.state_dir))
+        self.signing = DownloadSigning(self.state_dir, self.security.trusted_dir(self.state_dir),
+                                       required=self.security.trusted_keys is not None)
         self.tls_cert: Path | None = None  # the certificate served, when TLS is on
 
     @property
@@ -339,6 +340,7 @@ class ApiServer:
                                              "overruns": s.overruns})
         status["program_signer"] = await self.signing.running_signer(
             status.get("program_hash"))
+        status["signatures"] = (await asyncio.to_thread(self.signing.keys)).status()
         status["http"] = self.bounds.report()  # refusals counted here, not logged one by one
         status["audit"] = await self.gate.chain()  # "ok": false names the first bad record
         status["last_event_seq"] = max(

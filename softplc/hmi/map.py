@@ -17,6 +17,8 @@ from softplc.core.image import WORD_MAX, Address, Area, ImageSizes, Width, split
 from softplc.core.present import ValueRefused
 from softplc.core.snapshot import HmiWrite, Snapshot, Status
 from softplc.hmi.eng import EngTable, Presentation, join_registers
+from softplc.security.decide import Identity, granted
+from softplc.security.roles import Act, Role, needs
 
 
 class Table(enum.Enum):
@@ -187,6 +189,8 @@ class RegisterMap:
     ) -> None:
         self.sizes = sizes
         self.read_only = read_only
+        self._policy = Identity(None, "policy",
+                                granted=Role.VIEWER if read_only else needs(Act.WRITE))
         self._writable = writable
         self._presentation = presentation  # None: every register is raw
         self._segments = _segments(sizes)
@@ -219,7 +223,8 @@ class RegisterMap:
             raise MapError(ExceptionCode.ILLEGAL_FUNCTION, f"{table.value} are read-only")
         _check_values(table, values)
         pieces = list(self._pieces(table, address, len(values)))
-        if self.read_only:
+        # Plain Modbus has no users: its write policy grants the role (security/decide.py)
+        if not granted(self._policy, Act.WRITE).allowed:
             raise MapError(ExceptionCode.ILLEGAL_DATA_ADDRESS, "the Modbus slave is read-only")
         writes = [_journal_entry(piece, values) for piece in pieces]
         for write in writes:

@@ -19,11 +19,13 @@ from cryptography.x509.oid import NameOID
 # The description of a write lives with the plain port's audit (coalesce.py, no cryptography).
 from softplc.hmi.coalesce import WRITE_FUNCTIONS as WRITE_FUNCTIONS
 from softplc.hmi.coalesce import describe_write as describe_write
+from softplc.security.decide import Identity as Grant
+from softplc.security.decide import granted
+from softplc.security.roles import Act, Role
 
 ROLE_OID: Final = x509.ObjectIdentifier("1.3.6.1.4.1.50316.802.1")
-# softplc's roles (api/roles.py), lowest first; a role may do what those below it may.
-ROLES: Final = ("viewer", "operator", "engineer", "admin")
-WRITER: Final = "operator"  # the least role whose HMI writes are served
+# softplc's roles (security/roles.py), lowest first; a role may do what those below it may.
+ROLES: Final = tuple(role.label for role in Role)
 NO_ROLE: Final = "viewer"  # no role extension, or a role softplc does not know: reads only
 # ASN.1 string tags accepted for the role: UTF8String (the spec's), PrintableString, IA5String.
 _STRING_TAGS: Final = frozenset({0x0C, 0x13, 0x16})
@@ -41,7 +43,9 @@ class Identity:
 
     @property
     def may_write(self) -> bool:
-        return ROLES.index(self.role) >= ROLES.index(WRITER)
+        """Decided where every door's writes are (security/decide.py)."""
+        who = Grant(self.user, "certificate", granted=Role.parse(self.role))
+        return granted(who, Act.WRITE).allowed
 
     def audit(self) -> dict[str, Any]:
         return {"user": self.user, "role": self.role, "via": "certificate"}

@@ -2,8 +2,10 @@
 ProgramStateMachineType) and Download, sent to the scan process as the HTTP API sends them.
 
 Owns: the method table (Part 10 name -> softplc Command), input/output arguments, checking
-Download's arguments, sending the command over the channel off the event loop, and mapping a
-refusal onto an OPC UA status code with its reason (Bad status + the reason as output).
+Download's arguments, asking the program gate (security/programgate.py: the signature, as
+for HTTP) before a download is sent, sending the command over the channel off the event
+loop, and mapping a refusal onto an OPC UA status code with its reason (Bad status + the
+reason as output).
 Does not know: sessions and who may call (server.py guards that), the address space layout.
 """
 
@@ -31,6 +33,7 @@ from softplc.core.snapshot import (
 from softplc.opcua.ids import numeric_id, status_code, string_id
 from softplc.opcua.part10 import TYPE_METHODS, refusal
 from softplc.opcua.space import METHODS, PROGRAM, Space
+from softplc.security.programgate import ProgramGate, ProgramRefused
 
 COMMAND_TIMEOUT_S: Final = 8.0  # as the HTTP API: below a client's usual 10 s
 DOWNLOAD_TIMEOUT_S: Final = 60.0  # a download compiles off the scan; a big net takes seconds
@@ -81,6 +84,8 @@ def arguments(method: str) -> tuple[list[ua.Argument], list[ua.Argument]]:
     return [_arg("ProgramText", ua.VariantType.String, "the program, YAML text"),
             _arg("Online", ua.VariantType.Boolean, "swap while RUNNING (online change)"),
             _arg("Name", ua.VariantType.String, "file name for messages ('' = downloaded.yaml)"),
+            _arg("Signature", ua.VariantType.String, "the signature line of the text's UTF-8 "
+                 "bytes (softplc sign; '' = unsigned): needed when the PLC trusts keys"),
             ], outputs
 
 
@@ -90,11 +95,14 @@ def _arg(name: str, vtype: ua.VariantType, text: str) -> ua.Argument:
 
 
 class ProgramHandling:
-    """Sends program commands for the server; `on_outcome` hears every outcome."""
+    """Sends program commands for the server; `on_outcome` hears every outcome. A download
+    goes through `gate` (security/programgate.py) before anything parses it."""
 
     def __init__(self, channel: CommandChannel,
-                 on_outcome: Callable[[str, Outcome], Awaitable[None]]) -> None:
+                 on_outcome: Callable[[str, Outcome], Awaitable[None]],
+                 gate: ProgramGate) -> None:
         self._channel = channel
+        self._gate = gate
         self._on_outcome = on_outcome
         self._ids = itertools.count(_FIRST_ID)
         self.space: Space | None = None  # the address space, once the server built it
@@ -142,9 +150,20 @@ class ProgramHandling:
         checked = _download_args(values)
         if isinstance(checked, Outcome):
             return checked
-        text, online, name = checked
-        return await self._send(CommandRequest(next(self._ids), command, program_text=text,
-                                               program_path=name, online=online))
+        text, online, name, signature = checked
+        body = text.encode("utf-8")
+        try:  # the exact bytes, before anything parses them: as the HTTP door
+            signer = await asyncio.to_thread(self._gate.admit, body, signature)
+        except ProgramRefused as exc:
+            return Outcome(ua.StatusCodes.BadSecurityChecksFailed, exc.reason,
+                           problems=(exc.reason,))
+        if signer is not None:
+            await asyncio.to_thread(self._gate.remember, body, signer)
+        outcome = await self._send(CommandRequest(next(self._ids), command, program_text=text,
+                                                  program_path=name, online=online))
+        if signer is not None and outcome.ok:
+            return dataclasses.replace(outcome, message=f"{outcome.message} (signed by {signer})")
+        return outcome
 
     async def _send(self, request: CommandRequest) -> Outcome:
         timeout_s = DOWNLOAD_TIMEOUT_S if request.command is Command.DOWNLOAD else \
@@ -162,18 +181,20 @@ class ProgramHandling:
         return _reply_outcome(reply)
 
 
-def _download_args(values: list[object]) -> tuple[str, bool, str | None] | Outcome:
+def _download_args(values: list[object]) -> tuple[str, bool, str | None, str | None] | Outcome:
     if len(values) < 2:
         return Outcome(ua.StatusCodes.BadArgumentsMissing,
                        "Download needs ProgramText (String) and Online (Boolean)")
-    if len(values) > 3:
+    if len(values) > 4:
         return Outcome(ua.StatusCodes.BadTooManyArguments,
-                       "Download takes ProgramText, Online and an optional Name")
+                       "Download takes ProgramText, Online, and an optional Name and Signature")
     text, online = values[0], values[1]
-    name = values[2] if len(values) == 3 else ""
-    if not isinstance(text, str) or not isinstance(online, bool) or not isinstance(name, str):
-        return Outcome(ua.StatusCodes.BadTypeMismatch,
-                       "Download arguments: ProgramText String, Online Boolean, Name String")
+    name = values[2] if len(values) >= 3 else ""
+    signature = values[3] if len(values) == 4 else ""
+    if not isinstance(text, str) or not isinstance(online, bool) or not isinstance(name, str) \
+            or not isinstance(signature, str):
+        return Outcome(ua.StatusCodes.BadTypeMismatch, "Download arguments: ProgramText "
+                       "String, Online Boolean, Name String, Signature String")
     if len(text.encode()) > MAX_PROGRAM_BYTES:
         return Outcome(ua.StatusCodes.BadEncodingLimitsExceeded,
                        f"the program is larger than {MAX_PROGRAM_BYTES} bytes")
@@ -183,7 +204,7 @@ def _download_args(values: list[object]) -> tuple[str, bool, str | None] | Outco
     if not text.strip():
         return Outcome(ua.StatusCodes.BadInvalidArgument, f"{DOWNLOAD_REFUSED}: empty program",
                        problems=(f"{name or 'program'}:1: the request holds no program",))
-    return text, online, name or None
+    return text, online, name or None, signature or None
 
 
 def _reply_outcome(reply: CommandReply) -> Outcome:

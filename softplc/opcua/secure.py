@@ -33,6 +33,8 @@ from softplc.opcua.door import DoorServer
 from softplc.opcua.ids import numeric_id
 from softplc.opcua.pki import ServerIdentity, server_identity
 from softplc.security import auth
+from softplc.security.programgate import ProgramGate
+from softplc.security.settings import load as load_settings
 from softplc.security.trust import TrustList, first_certificate
 
 log = logging.getLogger(__name__)
@@ -60,6 +62,9 @@ class Security:
         self.loopback = auth.is_loopback(host)
         self.trust = TrustList(state_dir)
         self.recorder = Recorder(state_dir)
+        settings = load_settings(self.state_dir)  # what `softplc run` was started with
+        self.programs = ProgramGate(self.state_dir, settings.trusted_dir(self.state_dir),
+                                    required=settings.trusted_keys is not None)
         self.users: Users | None = None
         self.identity: ServerIdentity | None = None
         self._tasks: set[asyncio.Task[None]] = set()

@@ -87,11 +87,11 @@ class OpcUaServer:
         self._board = board
         self._server: DoorServer | None = None
         self.space: Space | None = None
-        self._handling = ProgramHandling(channel, self._after_command)
+        self.security = Security(self.state_dir, host, port)
+        self._handling = ProgramHandling(channel, self._after_command, self.security.programs)
         self._methods: dict[ua.NodeId, str] = {}
         self._mirror: Mirror | None = None  # the address space kept in step, once started
         self._task: asyncio.Task[None] | None = None
-        self.security = Security(self.state_dir, host, port)
 
     @property
     def endpoint(self) -> str:

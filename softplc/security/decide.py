@@ -68,6 +68,15 @@ def anonymous(role: Role | None) -> Identity:
     return Identity(None, "anonymous", granted=role)
 
 
+def granted(who: Identity, act: Act) -> Decision:
+    """The decision for an identity whose door grants its role, with no users file to ask
+    (a Modbus/TCP Security certificate's role, a Modbus write policy, no credentials);
+    Authority.decide comes here for them too. A proven identity holds nothing here."""
+    if who.via not in GRANTED:
+        return Decision(who, act, needs(act), None, "no users file at this door")
+    return Decision(who, act, needs(act), who.granted)
+
+
 def _digest(text: str) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
@@ -133,8 +142,10 @@ class Authority:
         return None, f"unknown proof {who.via!r}"
 
     def decide(self, who: Identity, act: Act) -> Decision:
+        if who.via in GRANTED:
+            return granted(who, act)
         role, why = self.role_now(who)
         return Decision(who, act, needs(act), role, why)
 
 
-__all__ = ["Authority", "Decision", "Identity", "anonymous", "key_digest"]
+__all__ = ["Authority", "Decision", "Identity", "anonymous", "granted", "key_digest"]

@@ -15,19 +15,18 @@ from softplc.hmi.tlsaudit import AuditRecorder
 from softplc.hmi.tlspeer import (
     NO_ROLE,
     ROLES,
-    WRITER,
     der_string,
     describe_write,
     identity_of,
     offered_certificate,
 )
-from softplc.security.roles import Role
+from softplc.security.roles import Act, Role, needs
 from tests.hmi.test_modbus_tls import make_client, utf8_string
 
 
 def test_the_role_names_are_softplcs() -> None:
     assert [role.label for role in sorted(Role)] == list(ROLES)
-    assert (Role.OPERATOR.label, Role.VIEWER.label) == (WRITER, NO_ROLE)
+    assert (needs(Act.WRITE), Role.VIEWER.label) == (Role.OPERATOR, NO_ROLE)
 
 
 @pytest.mark.parametrize(("role", "granted", "writes"), [

@@ -1,0 +1,132 @@
+"""The one decision point of "may this program be loaded", for every door that downloads
+(HTTP `POST /program`, OPC UA `Download`, and any door added later: tests/security/test_doors.py).
+
+Owns: the PLC's trusted keys as their directory holds them *now* (compared by content: a key
+replaced in place, added or removed acts at the next download), whether signatures are
+required (fail closed: once `--trusted-keys` was given or a trusted key was seen, a directory
+that becomes empty or unreadable refuses every download, says so in status and logs it once
+per change), the check of the exact bytes before anything parses them, and the signers of
+accepted bodies in STATE_DIR/signers.json (SHA-256 of the body -> the key's name, the last
+KEEP), which status matches against the running program.
+Does not know: HTTP, OPC UA, the scan, Ed25519 (signing.py), how a program is parsed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Final
+
+from softplc.core.errors import SoftplcError
+from softplc.core.snapshot import DOWNLOAD_REFUSED
+from softplc.security.files import write_private
+from softplc.security.signing import MAX_KEYS, SignatureRefused, TrustedKeys
+
+log = logging.getLogger(__name__)
+
+SIGNERS_FILE: Final = "signers.json"
+KEEP: Final = 64  # signed bodies remembered; the running one is the newest but a few
+
+
+class ProgramRefused(SoftplcError):
+    """A download no trusted key allows; `reason` is one line for the client."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+@dataclass(frozen=True, slots=True)
+class KeysSeen:
+    """The trusted keys as last read: `digest` of the directory's content, `problem` why
+    none could be used while signatures are required (status shows it)."""
+
+    keys: TrustedKeys
+    digest: str
+    required: bool
+    problem: str | None = None
+
+    def status(self) -> dict[str, object]:
+        return {"required": self.required, "trusted": self.keys.names,
+                "problem": self.problem}
+
+
+class ProgramGate:
+    """The trusted keys of one PLC (`trusted_dir`); `required` from the start when the
+    directory was named on the command line (`--trusted-keys`)."""
+
+    def __init__(self, state_dir: Path, trusted_dir: Path, required: bool = False) -> None:
+        self.state_dir = Path(state_dir)
+        self.trusted_dir = Path(trusted_dir)
+        self._lock = threading.Lock()
+        self._seen = KeysSeen(TrustedKeys(), "", required)
+
+    def keys(self) -> KeysSeen:
+        """The keys as the directory holds them now (read at every call: a few small files)."""
+        digest, files = _content(self.trusted_dir)
+        with self._lock:
+            if digest == self._seen.digest:
+                return self._seen
+            keys = TrustedKeys.load(self.trusted_dir) if files else TrustedKeys()
+            required = self._seen.required or bool(keys.keys)
+            problem = None
+            if required and not keys.keys:
+                problem = (f"no trusted key can be read in {self.trusted_dir} "
+                           f"({'unreadable' if files is None else 'none there'}): every "
+                           "download is refused until a key is trusted again (softplc keys "
+                           "trust) or the PLC is restarted without trusted keys")
+                log.error("signed downloads: %s", problem)
+            for skipped in keys.problems:
+                log.warning("trusted key skipped: %s", skipped)
+            if keys.keys:
+                log.info("signed downloads: trusted keys %s (%s)", ", ".join(keys.names),
+                         self.trusted_dir)
+            self._seen = KeysSeen(keys, digest, required, problem)
+            return self._seen
+
+    def admit(self, body: bytes, signature: str | None) -> str | None:
+        """The signer's name, or None when signatures are not required. Raises
+        ProgramRefused when they are and no trusted key signed `body` (or none is left).
+        Blocking (reads the directory, verifies): call it in a thread from a loop."""
+        seen = self.keys()
+        if seen.problem is not None:
+            raise ProgramRefused(f"{DOWNLOAD_REFUSED}: {seen.problem}")
+        if not seen.keys.keys:
+            return None
+        try:
+            return seen.keys.verify(body, signature)
+        except SignatureRefused as exc:
+            raise ProgramRefused(exc.reason) from None
+
+    def remember(self, body: bytes, signer: str) -> None:
+        """Record that `signer` signed `body` (before it is sent: status never finds the
+        program running without its record). Blocking."""
+        digest = hashlib.sha256(body).hexdigest()
+        signers = {k: v for k, v in self.signers().items() if k != digest}
+        signers[digest] = signer
+        data = json.dumps(dict(list(signers.items())[-KEEP:]), indent=0).encode()
+        write_private(self.state_dir / SIGNERS_FILE, data)
+
+    def signers(self) -> dict[str, str]:
+        with contextlib.suppress(OSError, ValueError):
+            data = json.loads((self.state_dir / SIGNERS_FILE).read_text(encoding="utf-8"))
+            if isinstance(data, dict):
+                return {str(k): str(v) for k, v in data.items()}
+        return {}
+
+
+def _content(directory: Path) -> tuple[str, list[Path] | None]:
+    """A digest of the names and bytes of the `*.pub` files (None: unreadable)."""
+    digest = hashlib.sha256()
+    try:
+        files = sorted(directory.glob("*.pub"))[:MAX_KEYS]
+        for path in files:
+            digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
+    except OSError as exc:
+        return f"unreadable: {exc.strerror}", None
+    return digest.hexdigest(), files
