@@ -37,6 +37,7 @@ from softplc.runtime.supervisor import (
     GaveUp,
     Supervisor,
 )
+from softplc.security import preflight
 
 EXIT_OK, EXIT_START, EXIT_USAGE, EXIT_GAVE_UP = 0, 1, 2, 3
 BOOT_POLICIES = ("stop", "warm", "cold")  # docs/retain.md, boot policy
@@ -121,6 +122,20 @@ def resolve_boot_policy(args: argparse.Namespace) -> str | None:
     return None
 
 
+def _security_files_usable(args: argparse.Namespace) -> bool:
+    """One line per security file that is corrupt, truncated or unreadable (issue 38): the
+    start refused for those a service cannot start without, a warning for the others (the
+    service starts closed)."""
+    state_dir = Path(args.state_dir)
+    found = preflight.check(state_dir, secopts.load(state_dir),
+                            opcua=bool(getattr(args, "opcua", None)))
+    for line in found.warnings:
+        print(f"softplc: warning: {line}", file=sys.stderr)
+    for line in found.refused:
+        print(f"softplc: {line}", file=sys.stderr)
+    return not found.refused
+
+
 def run(args: argparse.Namespace) -> int:
     if not (args.watchdog > 0 and math.isfinite(args.watchdog)):  # its budget: period x this
         print(f"softplc: --watchdog must be a number above 0, got {args.watchdog:g}",
@@ -143,6 +158,8 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_START
     if trouble := resolve_boot_policy(args) or secopts.prepare(args):  # TLS, trusted keys
         print(f"softplc: {trouble}", file=sys.stderr)
+        return EXIT_START
+    if not _security_files_usable(args):
         return EXIT_START
     remove_stale_segments()
     try:

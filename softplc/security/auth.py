@@ -17,6 +17,7 @@ import hmac
 import ipaddress
 import json
 import os
+import re
 import secrets
 import stat
 import tempfile
@@ -30,6 +31,7 @@ TOKEN_FILE: Final = "api_token"
 TOKEN_ENV: Final = "SOFTPLC_API_TOKEN"
 INDEX_ENV: Final = "SOFTPLC_RUNTIME_DIR"  # where the index of local servers is (tests)
 _TOKEN_BYTES: Final = 32  # 256 bits, 43 URL-safe characters
+_TOKEN_TEXT: Final = re.compile(r"[A-Za-z0-9_\-.~+/=]{16,512}")
 
 
 class TokenFileError(SoftplcError, OSError):
@@ -88,21 +90,31 @@ def load_or_create_token(state_dir: Path) -> str:
             handle.write(token + "\n")
         os.link(tmp, path)
     except FileExistsError:
-        return _read_token(path)
+        return read_token(path)
     finally:
         os.unlink(tmp)
     return token
 
 
-def _read_token(path: Path) -> str:
+def read_token(path: Path) -> str:
+    """The owner's key in `path`; TokenFileError (one line: the file, what is wrong, what to
+    do) when it is no usable key: a garbled key would be a password nobody knows."""
     info = path.lstat()
     if not stat.S_ISREG(info.st_mode):
         raise TokenFileError(f"{path} is not a regular file; remove it to get a new token")
     if stat.S_IMODE(info.st_mode) & 0o077:
         path.chmod(0o600)
-    token = path.read_text(encoding="ascii").strip()
+    try:
+        token = path.read_bytes().decode("ascii").strip()
+    except UnicodeDecodeError:
+        raise TokenFileError(f"{path} is not a softplc key (not ASCII text); remove it to get "
+                             "a new one (clients holding the old key need the new one)") from None
     if not token:
         raise TokenFileError(f"{path} is empty; remove it to get a new token")
+    if not _TOKEN_TEXT.fullmatch(token):
+        raise TokenFileError(f"{path} is not a softplc key (one line of letters, digits, - "
+                             "and _ expected); remove it to get a new one (clients holding "
+                             "the old key need the new one)")
     return token
 
 

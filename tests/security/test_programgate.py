@@ -1,0 +1,69 @@
+"""The program gate (security/programgate.py, issue 38 items 3 and 4): trusted keys read by
+content at every download, and closed once signatures were asked for."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from softplc.security import signing
+from softplc.security.programgate import ProgramGate, ProgramRefused
+
+BODY = b"places: {p: 1}\n"
+
+
+@pytest.fixture
+def keys(tmp_path: Path) -> Path:
+    directory = tmp_path / "keys"
+    for name in ("alice", "bob"):
+        signing.new_key_pair(directory, name)
+    return directory
+
+
+def signed(keys: Path, name: str) -> str:
+    return signing.sign(BODY, signing.load_private(keys / f"{name}.key"))
+
+
+def test_a_key_replaced_in_place_acts_at_the_next_download(keys: Path, tmp_path: Path) -> None:
+    trusted = tmp_path / "trusted"
+    trusted.mkdir()
+    shutil.copy(keys / "alice.pub", trusted / "plant.pub")
+    gate = ProgramGate(tmp_path, trusted)
+    assert gate.admit(BODY, signed(keys, "alice")) == "plant"
+    info = trusted.stat()
+    # bob's key written over alice's in place: same name, directory mtime kept as it was
+    (trusted / "plant.pub").write_bytes((keys / "bob.pub").read_bytes())
+    os.utime(trusted, ns=(info.st_atime_ns, info.st_mtime_ns))
+    with pytest.raises(ProgramRefused, match="does not trust"):
+        gate.admit(BODY, signed(keys, "alice"))
+    assert gate.admit(BODY, signed(keys, "bob")) == "plant"
+
+
+def test_an_emptied_or_removed_directory_keeps_refusing(keys: Path, tmp_path: Path) -> None:
+    trusted = tmp_path / "trusted"
+    trusted.mkdir()
+    shutil.copy(keys / "alice.pub", trusted)
+    gate = ProgramGate(tmp_path, trusted)
+    assert gate.admit(BODY, signed(keys, "alice")) == "alice"
+    (trusted / "alice.pub").unlink()
+    with pytest.raises(ProgramRefused, match="no trusted key can be read.*none there"):
+        gate.admit(BODY, None)
+    assert gate.keys().status()["problem"] is not None
+    trusted.rmdir()
+    with pytest.raises(ProgramRefused, match="no trusted key can be read"):
+        gate.admit(BODY, None)
+    trusted.mkdir()
+    shutil.copy(keys / "bob.pub", trusted)
+    assert gate.admit(BODY, signed(keys, "bob")) == "bob"  # trusted again: open again
+
+
+def test_named_on_the_command_line_an_empty_directory_refuses_from_the_start(
+        tmp_path: Path) -> None:
+    trusted = tmp_path / "trusted"
+    trusted.mkdir()
+    with pytest.raises(ProgramRefused, match="none there"):
+        ProgramGate(tmp_path, trusted, required=True).admit(BODY, None)
+    assert ProgramGate(tmp_path, trusted).admit(BODY, None) is None  # never asked: open
