@@ -49,7 +49,7 @@ def test_an_emptied_or_removed_directory_keeps_refusing(keys: Path, tmp_path: Pa
     gate = ProgramGate(tmp_path, trusted)
     assert gate.admit(BODY, signed(keys, "alice")) == "alice"
     (trusted / "alice.pub").unlink()
-    with pytest.raises(ProgramRefused, match="no trusted key can be read.*none there"):
+    with pytest.raises(ProgramRefused, match=r"no trusted key can be read.*none there"):
         gate.admit(BODY, None)
     assert gate.keys().status()["problem"] is not None
     trusted.rmdir()
