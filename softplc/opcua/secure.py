@@ -142,6 +142,15 @@ class Security:
             processor.iserver.lookup_external_session(header.AuthenticationToken)
         if not isinstance(token, ua.UserNameIdentityToken) or session is None:
             return  # anonymous, or no session: asyncua decides
+        mode = processor._connection.security_policy.Mode
+        if not token.EncryptionAlgorithm and mode != ua.MessageSecurityMode.SignAndEncrypt:
+            # Part 4, 7.41: the token policy names Basic256Sha256, so the password must come
+            # encrypted with the server's certificate; sent in clear it is refused, unread.
+            await self.recorder.record(
+                {"user": str(token.UserName or "")[:32], "via": "failed", "peer": peer},
+                "login", "failed", ua.StatusCodes.BadIdentityTokenRejected,
+                {"reason": "a password sent unencrypted on an unencrypted channel"})
+            raise ServiceError(ua.StatusCodes.BadIdentityTokenRejected)
         try:
             name, password = processor.iserver.decrypt_user_token(session, token)
         except Exception:

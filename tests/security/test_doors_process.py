@@ -146,6 +146,40 @@ def test_a_removed_or_demoted_users_open_opcua_session_loses_its_rights(
         stop_plc(plc.proc)
 
 
+@pytest.fixture
+def plain_plc(tmp_path: Path) -> Iterator[Plc]:
+    plc = start_plc("programs/transport.yaml", tmp_path)
+    try:
+        yield plc
+    finally:
+        stop_plc(plc.proc)
+
+
+def test_a_password_sent_in_clear_on_the_none_endpoint_is_refused(plain_plc: Plc) -> None:
+    """The token policy names Basic256Sha256: a client that ignores it and sends the owner's
+    key in clear over security None is refused, as the policy says (it was accepted)."""
+    async def body() -> None:
+        client = _client(plain_plc, "owner", plain_plc.token)
+        own = client.server_policy
+
+        def clear(token_type: ua.UserTokenType) -> ua.UserTokenPolicy:
+            policy = own(token_type)
+            return ua.UserTokenPolicy(PolicyId=policy.PolicyId, TokenType=policy.TokenType)
+
+        client.server_policy = clear  # type: ignore[method-assign]
+        with pytest.raises(ua.UaStatusCodeError) as caught:
+            async with client:
+                pass
+        assert caught.value.code == ua.StatusCodes.BadIdentityTokenRejected
+        async with _client(plain_plc, "owner", plain_plc.token) as good:
+            assert (await _call(good, "Suspend")).StatusCode.is_good()  # encrypted: taken
+
+    asyncio.run(body())
+    failed = [r for r in AuditTrail(plain_plc.state_dir).records()
+              if r.get("action") == "login" and r.get("iface") == "opcua"]
+    assert failed and "unencrypted" in failed[-1]["detail"]["reason"]
+
+
 def _basic(name: str, password: str) -> dict[str, str]:
     return {"Authorization": "Basic " + base64.b64encode(f"{name}:{password}".encode()).decode()}
 
