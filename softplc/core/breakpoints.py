@@ -47,6 +47,13 @@ class Outputs(enum.Enum):
     SAFE = "safe"  # the declared safe values; the program's own come back when it runs
 
 
+def strictest(policies: Iterable[Outputs], default: Outputs = Outputs.HOLD) -> Outputs:
+    """The policy of a pause several breakpoints hit: `safe` if any of them asks for it.
+    Outputs someone asked to be safe are never held because another breakpoint hit too,
+    whatever their order or ids (issue 38 item 7)."""
+    return Outputs.SAFE if Outputs.SAFE in {default, *policies} else Outputs.HOLD
+
+
 class BreakRefused(SoftplcError):
     """A breakpoint that cannot be set or removed (the reason for people)."""
 
@@ -295,9 +302,10 @@ class Breakpoints:
             if self.steps_left or self._step is None:
                 return None
             (steps, outputs), self._step = self._step, None
-            pause = Pause(k, now_ns, outputs, tuple(self._step_hits), steps)
+            hit = tuple(self._step_hits)
+            pause = Pause(k, now_ns, strictest((b.outputs for b in hit), outputs), hit, steps)
         elif hits and self.pause is None:
-            pause = Pause(k, now_ns, hits[0].outputs, tuple(hits))
+            pause = Pause(k, now_ns, strictest(b.outputs for b in hits), tuple(hits))
         else:
             return None
         self.pause, self.cycle_ns = pause, now_ns
@@ -330,9 +338,18 @@ class Breakpoints:
             return 0, held
         if steps > 0:
             self.steps_left, self._step = steps, (steps, pause.outputs)
+        return self._shift(pause, now_ns), held
+
+    def frozen_shift(self, now_ns: int) -> int:
+        """How far the net's timers move were the pause to end at `now_ns` (0: not paused):
+        what a retain snapshot taken while paused applies, so that the pause does not exist
+        for the net after a restart either (the time rule)."""
+        return 0 if self.pause is None else self._shift(self.pause, now_ns)
+
+    def _shift(self, pause: Pause, now_ns: int) -> int:
         if self.period_ns > 0:
-            return now_ns - pause.net_ns - self.period_ns, held
-        return self.cycle_ns - pause.net_ns, held
+            return now_ns - pause.net_ns - self.period_ns
+        return self.cycle_ns - pause.net_ns
 
     def as_dict(self) -> dict[str, Any]:
         """For the status board: the breakpoints, the pause and a running step."""

@@ -50,5 +50,9 @@ class LoopConfig:
     stall_fault_ns: int = 3_000_000_000
     restarts: int = 0  # how often the supervisor restarted the scan process before this one
     restart_reason: str = ""  # why it restarted it last
+    # The dead scan process was paused at a breakpoint (or stepping): what the pause was.
+    # Not empty: the restart does not run on; the PLC waits STOPPED, outputs safe, the net
+    # as it was paused (docs/debug.md, a pause and a restart).
+    paused_at_restart: str = ""
     boot: bool = True  # no program given: run the boot program of state_dir, if any
     verify: str = "warn"  # analysis gate on downloads: "refuse", "warn" or "off"

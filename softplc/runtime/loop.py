@@ -55,6 +55,7 @@ class ScanLoop:
         self.board = board
         self.board_every = max(1, 50_000_000 // config.period_ns)  # about every 50 ms
         self._board_program: str | None = None  # the program hash the board was published with
+        self._board_pause: object = None  # the pause the board shows (core/breakpoints.py)
         self.budget_ns = int(config.period_ns * config.watchdog)
         self.watchdog = CycleWatchdog(
             self.budget_ns, config.watchdog_sensitivity, config.watchdog_hard_ns,
@@ -96,6 +97,8 @@ class ScanLoop:
         self.runner.plc.debug.period_ns = config.period_ns  # a step is one period of net time
         if config.restarts:
             self._event(f"plc_restarted:{config.restarts}", 0)
+        if config.paused_at_restart:  # not run on (docs/debug.md): start_reason says why
+            self._event("plc_restarted_stopped:paused", 0)
 
     # -- retain -----------------------------------------------------------------------------
 
@@ -322,6 +325,9 @@ class ScanLoop:
             if self.board is not None and program != self._board_program:
                 self._board_program, refresh = program, False
                 self.board.publish(self.document())
+            # A pause on the board at once: the supervisor reads it if this process dies.
+            if (pause := self.runner.plc.debug.pause) is not self._board_pause:
+                self._board_pause, refresh = pause, True
             if self.writer is not None:
                 self.writer.publish(self.runner.plc.image, self.status())
             interval = self.config.retain_interval_ns

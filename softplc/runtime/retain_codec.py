@@ -72,8 +72,16 @@ def capture(plc: Plc, now_ns: int, plants: dict[str, object]) -> Capture | None:
     if plc.net is None or plc.engine is None:
         return None
     held = None if plc.held is None else plc.held.copy()
+    net_state, image = plc.engine.state.copy(), plc.image.copy()
+    # Paused at a breakpoint (docs/debug.md): the net as it will run on, whoever restores
+    # it: its timers past the pause (the time rule), the program's outputs, not `safe`'s.
+    if shift := plc.debug.frozen_shift(now_ns):
+        net_state.enabled_since = {t: ns + shift for t, ns in net_state.enabled_since.items()}
+        net_state.busy = {t: Busy(b.end_ns + shift, b.produce) for t, b in net_state.busy.items()}
+    if plc.debug.held is not None:
+        plc.debug.held.restore(image)
     return Capture(plc.net, plc.state, plc.fault_code, plc.scan_count, now_ns,
-                   plc.engine.state.copy(), plc.image.copy(), held, plc.stopped_at_ns,
+                   net_state, image, held, plc.stopped_at_ns,
                    dict(plc.events.last), dict(plc.events.armed),
                    {name: pickle.dumps(plant) for name, plant in plants.items()},
                    tuple(plc.forces.triples()), plc.fault_reason)

@@ -5,8 +5,9 @@ with outputs driven safe.
 Owns: process start order; the shared-memory segments (they outlive a scan process, so the
 service processes keep serving across a restart); restarting a dead scan process warm from
 the newest retain snapshot and the boot program, with backoff, at most SCAN_RESTARTS times in
-RESTART_WINDOW_S, then giving up (GaveUp); restarting a dead service process within the
-same kind of budget, each its own; stopping everything within STOP_S in every state, also
+RESTART_WINDOW_S, then giving up (GaveUp), and STOPPED if it died paused at a breakpoint
+(its last status board says so; docs/debug.md); restarting a dead service process within
+the same kind of budget, each its own; stopping everything within STOP_S in every state, also
 while a child is still starting: the scan process first (outputs safe, confirmed by the
 devices), then every service process at once, so no service goes away while an output is
 still on.
@@ -104,6 +105,7 @@ class Supervisor:
         self.scan_restarts: deque[float] = deque()  # when, within the window
         self.restarts = 0  # scan process restarts in this run, for status
         self.restart_reason = ""
+        self.paused_at_restart = ""  # the pause a dead scan process was in (docs/debug.md)
         self._restart_due: float | None = None
         self.final: dict[str, Any] = {}
         self.segment: SnapshotWriter | None = None
@@ -258,19 +260,41 @@ class Supervisor:
         if used >= SCAN_RESTARTS:
             raise GaveUp(f"the scan process {reason}; it died {used + 1} times within "
                          f"{RESTART_WINDOW_S:g} s: giving up")
+        paused, on_board = self._paused_when_died()
+        if paused:
+            reason += (" while paused at a breakpoint" if on_board
+                       else " before it ran again after a pause at a breakpoint") + f" ({paused})"
+        self.paused_at_restart = paused
         self.restart_reason = f"scan process {reason}"
         now = self.clock()
         recent = sum(1 for t in self.scan_restarts if now - t <= BACKOFF_WINDOW_S)
         delay = BACKOFF_S[min(recent, len(BACKOFF_S) - 1)]
         self._restart_due = now + delay
         return [f"scan process {reason}; restarting it warm"
-                + (f" in {delay:g} s" if delay else "")]
+                + (f" in {delay:g} s" if delay else "")
+                + (": STOPPED, outputs safe, not run on (resume runs on)" if paused else "")]
+
+    def _paused_when_died(self) -> tuple[str, bool]:
+        """The pause the dead scan process last published on the board (its reason; a step
+        running counts: a person is stepping the net), "" if it was running on; and whether
+        the board said so. A board that says neither (another state, unreadable) keeps what
+        the last restart knew: a PLC restarted STOPPED that dies again before it ran is not
+        run on either."""
+        doc = self.status()
+        if doc.get("state") != "RUNNING":
+            return self.paused_at_restart, False
+        if pause := doc.get("paused"):
+            return str(pause.get("reason") or "paused"), True
+        if steps := doc.get("steps_left"):
+            return f"a step running, {steps} scan(s) left", True
+        return "", True
 
     def _restart_scan(self) -> str:
         self.scan_restarts.append(self.clock())
         self.restarts += 1
         config = dataclasses.replace(
             self.loop_config, restarts=self.restarts, restart_reason=self.restart_reason,
+            paused_at_restart=self.paused_at_restart,
             # The boot program (the last one accepted) and the newest snapshot: warm.
             program=None if self.loop_config.state_dir else self.loop_config.program,
             start=True)

@@ -3,7 +3,8 @@ same program, else cold from the initial marking (docs/retain.md).
 
 Owns: the start decision applied to a starting loop (`Starting`: what it may set) before its
 first scan: the program's devices opened and the snapshot put in (warm), or the download
-queued (cold); a snapshot that does not fit after all falls back to cold, with the reason.
+queued (cold); a snapshot that does not fit after all falls back to cold, with the reason;
+a restart of a scan process that died paused at a breakpoint waits STOPPED.
 Does not know: how snapshots are stored and chosen (runtime/retain.py).
 """
 
@@ -71,6 +72,10 @@ def begin(loop: Starting, net: CompiledNet | None) -> None:
         cold(loop, net, decision)
     if net is not None and policy == "stop" and config.start and decision.ran_before:
         loop.start_reason += "; boot policy stop: not started (resume or start it)"
+    if config.paused_at_restart:
+        loop.start_reason += (f"; paused at a breakpoint when the scan process died "
+                              f"({config.paused_at_restart}): not run on, outputs safe "
+                              f"(resume runs on; breakpoints are not retained)")
     continue_count(loop)
 
 
@@ -136,8 +141,11 @@ def warm(loop: Starting, net: CompiledNet, snap: Loaded) -> None:
     not fit after all (same hash, unusable content) fall back to a cold start."""
     payload = snap.payload
     config = loop.config
-    resume = config.restarts > 0 or (config.start and config.warm_start == "run"
-                                     and config.boot_policy == "warm")
+    # A PLC paused at a breakpoint when its scan process died is not run on by the restart:
+    # a person was looking at it (docs/debug.md).
+    resume = not config.paused_at_restart and (
+        config.restarts > 0 or (config.start and config.warm_start == "run"
+                                and config.boot_policy == "warm"))
     plc = loop.runner.plc
     plc.apply(ProgramCommand(Command.DOWNLOAD, net), payload["now_ns"])
     try:
