@@ -209,7 +209,8 @@ class ApiServer:
         if self.gate.anonymous is not None and not self.gate.has_credentials(request) \
                 and not auth.host_header_is_loopback(host):
             raise ApiProblem(403, "this service answers requests to a loopback host only")
-        if not auth.same_origin(request.headers.get("Origin"), host):
+        if not auth.same_origin(request.headers.get("Origin"), host,
+                                "https" if request.secure else "http"):
             raise ApiProblem(403, "cross-origin requests are refused")
         who = await accessroutes.admit(self.gate, request)  # 401, 403 (roles.py), 429
         accessroutes.PRINCIPAL.set(who)

@@ -65,13 +65,17 @@ def host_header_is_loopback(host_header: str | None) -> bool:
     return hostname is not None and is_loopback(hostname)
 
 
-def same_origin(origin: str | None, host_header: str | None) -> bool:
+def same_origin(origin: str | None, host_header: str | None, scheme: str = "http") -> bool:
     """Whether a browser's Origin header (absent for non-browser clients) is the service
-    itself: a cross-site page must not drive the PLC with a simple POST (CSRF)."""
+    itself, scheme included: a cross-site page must not drive the PLC with a simple POST
+    (CSRF), nor a page served over plain HTTP drive the HTTPS service under the same host
+    name (its scripts are anybody's on the way)."""
     if origin is None:
         return True
-    netloc = urlsplit(origin).netloc.lower()
-    return bool(netloc) and netloc == (host_header or "").lower()
+    parts = urlsplit(origin)
+    netloc = parts.netloc.lower()
+    return bool(netloc) and netloc == (host_header or "").lower() and \
+        parts.scheme.lower() == scheme
 
 
 def load_or_create_token(state_dir: Path) -> str:

@@ -187,6 +187,9 @@ def test_foreign_host_and_cross_origin_requests_are_refused(api: ServerThread) -
     same = call(api.url, "GET", "/api/v1/status",
                 headers={"Origin": f"http://127.0.0.1:{port}", "Host": f"127.0.0.1:{port}"})
     assert same.status == 200
+    other_scheme = call(api.url, "POST", "/api/v1/start", headers={
+        "Origin": f"https://127.0.0.1:{port}", "Host": f"127.0.0.1:{port}"})
+    assert other_scheme.status == 403  # the scheme is part of the origin (issue 38)
 
 
 def test_openapi_describes_every_route(api: ServerThread) -> None:
