@@ -108,8 +108,10 @@ async def _write(gate: Gate, request: web.Request, who: Principal, status: int,
     outcome = ("applied" if status in (200, 201, 204) else "queued" if status == 202
                else "refused" if status < 500 else "failed")
     detail: dict[str, Any] = {"message": message} if message else {}
-    if status not in (408, 413) and request.can_read_body:
-        with contextlib.suppress(Exception):  # the handler read it: cached, no wait
+    # The handler read it (the stream at its end): cached, no wait. (`can_read_body` is
+    # false once read: asked alone, no download's hash or flags reached the trail.)
+    if status not in (408, 413) and request.body_exists and not request.can_read_body:
+        with contextlib.suppress(Exception):
             body = await asyncio.wait_for(request.read(), 1.0)
             detail.update(_what(request, body))
     if status in MALFORMED:  # a flood of them (JSON bombs) coalesced as the gate's refusals
@@ -123,7 +125,7 @@ def _what(request: web.Request, body: bytes) -> dict[str, Any]:
     if request.path == f"{API_PREFIX}/program":
         return {"body_sha256": hashlib.sha256(body).hexdigest(), "bytes": len(body),
                 **{k: v for k, v in request.query.items()
-                   if k in ("name", "online", "replace", "dry_run")}}
+                   if k in ("name", "online", "replace", "dry_run", "allow_older")}}
     with contextlib.suppress(ValueError, AttributeError):
         return {"value": json.loads(body).get("value")}
     return {}

@@ -57,7 +57,7 @@ def add_client_commands(subparsers: Any) -> None:
                           help="show what the download would do against the running state "
                           "(kept, new and dropped places with tokens, outputs changing hands, "
                           "accepted or not) and apply nothing (default: off)")
-    add_download_options(download)  # --sign-key, --signature
+    add_download_options(download)  # --sign-key, --version, --signature, --allow-older
     _connection_options(download)
     download.set_defaults(func=cmd_download)
     upload = subparsers.add_parser(
@@ -141,7 +141,7 @@ def _call(args: argparse.Namespace, what: str,
 def cmd_download(args: argparse.Namespace) -> int:
     try:
         blob, _, absent = download_body(args.program)  # a program's bundle, or a bundle zip
-        signature = signature_of(args, blob)  # --sign-key, --signature (signcmds.py)
+        signature = signature_of(args, blob)  # --sign-key [--version], --signature
     except (OSError, UnicodeDecodeError, ValueError, bundles.BundleError) as exc:
         print(f"softplc download: cannot read {args.program}: {exc}", file=sys.stderr)
         return EXIT_REFUSED
@@ -151,10 +151,11 @@ def cmd_download(args: argparse.Namespace) -> int:
               file=sys.stderr)
         name = Path(args.program).name
         code, reply = _call(args, "download", lambda client: client.download_text(
-            blob.decode(), args.online, name, args.replace, args.dry_run, signature))
+            blob.decode(), args.online, name, args.replace, args.dry_run, signature,
+            args.allow_older))
     else:
         code, reply = _call(args, "download", lambda client: client.download_bundle(
-            blob, args.online, args.replace, args.dry_run, signature))
+            blob, args.online, args.replace, args.dry_run, signature, args.allow_older))
     if code != EXIT_OK:
         return code
     if "plan" in reply:

@@ -120,27 +120,23 @@ class ApiClient:
 
     def download_text(self, text: str, online: bool = False, name: str | None = None,
                       replace: bool = False, dry_run: bool = False,
-                      signature: str | None = None) -> dict[str, Any]:
-        """`signature`: the line `softplc sign` made of exactly `text` (UTF-8)."""
-        query = {"online": "true" if online else "false"}
-        if replace:
-            query["replace"] = "true"
-        if dry_run:
-            query["dry_run"] = "true"
+                      signature: str | None = None, allow_older: bool = False
+                      ) -> dict[str, Any]:
+        """`signature`: the line `softplc sign` made of exactly `text` (UTF-8);
+        `allow_older`: take a signed version older than the running one (a rollback)."""
+        query = _download_query(online, replace, dry_run, allow_older)
         if name:  # the server takes plain file names only
             query["name"] = re.sub(r"[^A-Za-z0-9._-]", "_", name)[:128]
         return self._json("POST", "/program", text.encode(), "application/yaml", query,
                           max(self.timeout_s, DOWNLOAD_TIMEOUT_S), _signed(signature))
 
     def download_bundle(self, blob: bytes, online: bool = False, replace: bool = False,
-                        dry_run: bool = False, signature: str | None = None) -> dict[str, Any]:
+                        dry_run: bool = False, signature: str | None = None,
+                        allow_older: bool = False) -> dict[str, Any]:
         """Download a bundle (softplc/program/bundle.py); with `dry_run` the answer's `plan`
-        says what it would do, and nothing is applied. `signature`: of exactly `blob`."""
-        query = {"online": "true" if online else "false"}
-        if replace:
-            query["replace"] = "true"
-        if dry_run:
-            query["dry_run"] = "true"
+        says what it would do, and nothing is applied. `signature`: of exactly `blob`;
+        `allow_older`: as download_text."""
+        query = _download_query(online, replace, dry_run, allow_older)
         return self._json("POST", "/program", blob, "application/zip", query,
                           max(self.timeout_s, DOWNLOAD_TIMEOUT_S), _signed(signature))
 
@@ -345,6 +341,14 @@ def server_ca(ca: Path | str | None, state_dir: Path | str | None,
     given = secopts.load(Path(state_dir)).tls.cert
     cert = Path(given) if given else tls.generated_paths(Path(state_dir))[0]
     return cert if cert.is_file() else None
+
+
+def _download_query(online: bool, replace: bool, dry_run: bool,
+                    allow_older: bool) -> dict[str, str]:
+    query = {"online": "true" if online else "false"}
+    query.update({flag: "true" for flag, given in (
+        ("replace", replace), ("dry_run", dry_run), ("allow_older", allow_older)) if given})
+    return query
 
 
 def _signed(signature: str | None) -> dict[str, str] | None:

@@ -94,6 +94,9 @@ _PROGRAM: Final[dict[str, Any]] = {
              "description": "Compile and answer the plan (`plan`: kept, new and dropped "
              "places with tokens, outputs changing hands, verdict) against the running state; "
              "nothing is applied."},
+            {"name": "allow_older", "in": "query", "schema": {"type": "boolean"},
+             "description": "With trusted keys: take a program signed with a version older "
+             "than the running one (a rollback, audited; refused without it)."},
             {"name": "X-Softplc-Online", "in": "header", "schema": {"type": "boolean"},
              "description": "Same as the `online` query parameter."},
             {"name": "name", "in": "query",

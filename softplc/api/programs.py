@@ -1,9 +1,10 @@
 """The program routes: download (`POST /api/v1/program`, YAML text or a bundle) and upload
 (`GET /api/v1/program`, the running program's bundle byte for byte).
 
-Owns: what is checked before a download reaches the scan process (the signature when keys
-are trusted: signed.py; UTF-8, not empty, no character YAML forbids, a usable bundle, a plain
-name), and turning a refused download into 422 with one located problem per line.
+Owns: what is checked before a download reaches the scan process (the signature and its
+version when keys are trusted: signed.py, `allow_older`; UTF-8, not empty, no character YAML
+forbids, a usable bundle, a plain name), telling the gate which signed downloads the PLC took,
+and turning a refused download into 422 with one located problem per line.
 Does not know: compiling (the scan process does, behind the channel), the lifecycle.
 """
 
@@ -18,7 +19,7 @@ from typing import Final
 
 from aiohttp import web
 
-from softplc.api.commands import Record
+from softplc.api.commands import Outcome, Record
 from softplc.api.openapi import API_PREFIX
 from softplc.api.problems import ApiProblem, flag, idempotency_key
 from softplc.api.service import ApiService
@@ -41,6 +42,14 @@ def register(app: web.Application, api: ApiService, signing: DownloadSigning) ->
     app.router.add_get(f"{API_PREFIX}/program", routes.upload)
 
 
+def _taken(reply: CommandReply | Record) -> bool:
+    """The PLC took the download, or may still (a pending reply: applied before its deadline
+    or never; counted as taken, so that a late one never leaves the running version low)."""
+    if isinstance(reply, CommandReply):
+        return reply.ok
+    return reply.outcome in (Outcome.APPLIED, Outcome.PENDING)
+
+
 def unprintable(text: str, name: str) -> list[str]:
     """Problems for characters no YAML may contain, found before the scan process sees them."""
     problems = []
@@ -61,23 +70,37 @@ class _Routes:
                       "online")
         replace = flag(request.query.get("replace"), "replace")
         dry_run = flag(request.query.get("dry_run"), "dry_run")
+        allow_older = flag(request.query.get("allow_older"), "allow_older")
         name = request.query.get("name")
         if name is not None and not _NAME.fullmatch(name):
             raise ApiProblem(400, "name must be a plain file name (letters, digits, . _ -)")
         body = await request.read()
-        # The exact bytes, before anything else reads them: nothing unsigned reaches a parser.
-        signer = await self._signing.check(body, request.headers.get(SIGNATURE_HEADER))
-        if signer is not None and not dry_run:
+        signature = request.headers.get(SIGNATURE_HEADER)
+        # The exact bytes, before anything else reads them: nothing unsigned reaches a parser,
+        # and no signed version older than the running one unless allowed.
+        signer = await self._signing.check(body, signature, allow_older)
+        if signer is None:
+            reply = await self._send(request, body, name, (online, replace, dry_run))
+            return self._answer(reply, None, None)
+        if not dry_run:
             await self._signing.remember(body, signer)
+        reply = await self._send(request, body, name, (online, replace, dry_run))
+        note = ""
+        if signature and not dry_run and _taken(reply):
+            note = await self._signing.applied(body, signature, signer, allow_older)
+        return self._answer(reply, signer, f"signed by {signer}{note}")
+
+    async def _send(self, request: web.Request, body: bytes, name: str | None,
+                    flags: tuple[bool, bool, bool]) -> CommandReply | Record:
+        online, replace, dry_run = flags
         if request.content_type == bundles.CONTENT_TYPE or bundles.is_bundle(body):
             try:  # checked here, so that a bad archive never reaches the scan process
                 bundle = await asyncio.to_thread(bundles.unpack, body)
             except bundles.BundleError as exc:
                 raise ApiProblem(422, f"{DOWNLOAD_REFUSED}: unusable bundle", [str(exc)]) from None
-            reply = await self._api.command(Command.DOWNLOAD, None, bundle.program, online,
-                                            idempotency_key(request), replace=replace,
-                                            bundle=body, dry_run=dry_run)
-            return self._answer(reply, signer)
+            return await self._api.command(Command.DOWNLOAD, None, bundle.program, online,
+                                           idempotency_key(request), replace=replace,
+                                           bundle=body, dry_run=dry_run)
         try:
             text = body.decode("utf-8")
         except UnicodeDecodeError as exc:
@@ -88,12 +111,12 @@ class _Routes:
                              [f"{name or 'program'}:1: the request body holds no program"])
         if problems := unprintable(text, name or "program"):
             raise ApiProblem(422, f"{DOWNLOAD_REFUSED}: not YAML text", problems)
-        reply = await self._api.command(Command.DOWNLOAD, text, name, online,
-                                        idempotency_key(request), replace=replace,
-                                        dry_run=dry_run)
-        return self._answer(reply, signer)
+        return await self._api.command(Command.DOWNLOAD, text, name, online,
+                                       idempotency_key(request), replace=replace,
+                                       dry_run=dry_run)
 
-    def _answer(self, reply: CommandReply | Record, signer: str | None) -> web.Response:
+    def _answer(self, reply: CommandReply | Record, signer: str | None,
+                signed: str | None) -> web.Response:
         if isinstance(reply, CommandReply) and reply.refusal is not None \
                 and reply.refusal.of_program:
             raise ApiProblem(422, reply.message.partition("\n")[0].rstrip(":"),
@@ -104,11 +127,12 @@ class _Routes:
                                       "state": reply.state.name, "plan": reply.detail,
                                       "signer": signer})
         response = self._api.answer(reply)
-        if signer is not None and response.status == 200 and isinstance(response.body, bytes):
-            # In the answer and so in the audit record's message: who signed what was applied.
+        if signed is not None and response.status == 200 and isinstance(response.body, bytes):
+            # In the answer and so in the audit record's message: who signed what was applied,
+            # its version, and a rollback an engineer allowed.
             answer = json.loads(response.body)
             answer["signer"] = signer
-            answer["message"] = f"{answer.get('message') or 'download'} (signed by {signer})"
+            answer["message"] = f"{answer.get('message') or 'download'} ({signed})"
             return web.json_response(answer, headers={
                 k: v for k, v in response.headers.items() if k == "Location"})
         return response

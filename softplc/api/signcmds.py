@@ -1,5 +1,6 @@
-"""The CLI of signed programs: `softplc keys new|list|trust`, `softplc sign`, and the
-signature options of `softplc download` (--sign-key, --signature).
+"""The CLI of signed programs: `softplc keys new|list|trust`, `softplc sign [--version N]`,
+and the signature options of `softplc download` (--sign-key, --version, --signature,
+--allow-older).
 
 Owns: where an engineer's keys live (--dir, default $XDG_CONFIG_HOME/softplc/keys), what
 `softplc download` sends for a program (its bundle, or its text when its files are not all
@@ -55,9 +56,17 @@ def add_signing_commands(subparsers: Any) -> None:
     sign.add_argument("program", help="a program file (YAML) or a bundle (.zip)")
     sign.add_argument("--key", required=True, help="a private key file, or the NAME of one in "
                       f"{keys_dir()} (required)")
+    _version_option(sign, "")
     sign.add_argument("-o", "--output", metavar="FILE", default=None,
                       help="where the signature goes (default: PROGRAM.sig)")
     sign.set_defaults(func=cmd_sign)
+
+
+def _version_option(parser: argparse.ArgumentParser, only: str) -> None:
+    parser.add_argument("--version", metavar="N", type=int, default=None,
+                        help=f"{only}sign the program's version N (a whole number >= 0) with "
+                        "it: a PLC refuses a signed version older than the one it runs "
+                        "unless --allow-older (default: unversioned, taken as version 0)")
 
 
 def add_download_options(download: argparse.ArgumentParser) -> None:
@@ -66,7 +75,13 @@ def add_download_options(download: argparse.ArgumentParser) -> None:
                        help="sign what is sent with this private key (a file, or a NAME in "
                        f"{keys_dir()}) (default: unsigned, or --signature)")
     given.add_argument("--signature", metavar="FILE", default=None,
-                       help="send this signature (softplc sign's PROGRAM.sig) (default: none)")
+                       help="send this signature (softplc sign's PROGRAM.sig, with its "
+                       "version) (default: none)")
+    _version_option(download, "with --sign-key: ")
+    download.add_argument("--allow-older", action="store_true",
+                          help="take a signed version older than the one the PLC runs: a "
+                          "rollback an engineer decides, named in the audit trail (default: "
+                          "refused)")
 
 
 def download_body(program: str) -> tuple[bytes, bool, list[Path]]:
@@ -92,8 +107,13 @@ def signature_for(args: argparse.Namespace, body: bytes) -> str | None:
     --signature; None without either. Raises SigningError or OSError."""
     from softplc.security import signing
 
+    version = getattr(args, "version", None)
     if getattr(args, "sign_key", None):
-        return signing.sign(body, signing.load_private(private_key_path(args.sign_key)))
+        return signing.sign(body, signing.load_private(private_key_path(args.sign_key)),
+                            version)
+    if version is not None:
+        raise signing.SigningError("--version goes with --sign-key (a --signature file "
+                                   "carries the version it was signed with)")
     if getattr(args, "signature", None):
         line = Path(args.signature).read_text(encoding="ascii").strip()
         signing.Signature.parse(line)  # malformed: said here, not by the PLC
@@ -106,7 +126,8 @@ def cmd_sign(args: argparse.Namespace) -> int:
 
     try:
         body, is_bundle, absent = download_body(args.program)
-        line = signing.sign(body, signing.load_private(private_key_path(args.key)))
+        line = signing.sign(body, signing.load_private(private_key_path(args.key)),
+                            args.version)
         out = Path(args.output or args.program + SIG_SUFFIX)
         out.write_text(line + "\n", encoding="ascii")
     except (OSError, UnicodeDecodeError, bundles.BundleError, signing.SigningError) as exc:
@@ -114,8 +135,9 @@ def cmd_sign(args: argparse.Namespace) -> int:
         return EXIT_REFUSED
     what = "bundle" if is_bundle else "text (its files are not all here: " + \
         ", ".join(map(str, absent)) + ")"
+    version = "unversioned" if args.version is None else f"version {args.version}"
     print(f"{out}: {line.split()[1]} signed the {what}, {len(body)} bytes, SHA-256 "
-          f"{hashlib.sha256(body).hexdigest()}")
+          f"{hashlib.sha256(body).hexdigest()}, {version}")
     print(f"send it: softplc download {args.program} --signature {out}")
     return EXIT_OK
 

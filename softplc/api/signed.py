@@ -2,8 +2,9 @@
 signer of the running program for status.
 
 Owns: the header (`SIGNATURE_HEADER`), turning the gate's refusal into 422 with the reason
-and `refusal: "signature"`, and matching the boot program against the signers the gate kept
-(so a warm start or a restarted scan process of a kept program still names its signer).
+and `refusal: "signature"`, telling the gate what the PLC took (its version runs), and
+matching the boot program against the signers the gate kept (so a warm start or a restarted
+scan process of a kept program still names its signer).
 Does not know: Ed25519, trusted keys (the gate decides), the scan, routes.
 """
 
@@ -32,16 +33,24 @@ class DownloadSigning:
     def keys(self) -> KeysSeen:
         return self.gate.keys()
 
-    async def check(self, body: bytes, signature: str | None) -> str | None:
+    async def check(self, body: bytes, signature: str | None,
+                    allow_older: bool = False) -> str | None:
         """The signer's name; None when signatures are not required. Raises 422 when the
-        gate refuses `body`."""
+        gate refuses `body` (unsigned, not trusted, or older than the running version and
+        not `allow_older`)."""
         try:
-            return await asyncio.to_thread(self.gate.admit, body, signature)
+            return await asyncio.to_thread(self.gate.admit, body, signature, allow_older)
         except ProgramRefused as exc:
             raise ApiProblem(422, exc.reason, refusal=Refusal.SIGNATURE.value) from None
 
     async def remember(self, body: bytes, signer: str) -> None:
         await asyncio.to_thread(self.gate.remember, body, signer)
+
+    async def applied(self, body: bytes, signature: str, signer: str,
+                      allow_older: bool) -> str:
+        """The PLC took `body`: its signed version runs now (the gate's `applied`)."""
+        return await asyncio.to_thread(self.gate.applied, body, signature, signer,
+                                       allow_older)
 
     async def running_signer(self, program_hash: str | None) -> str | None:
         """Who signed the running program (`program_hash`): None when unsigned, unknown, or

@@ -2,10 +2,10 @@
 ProgramStateMachineType) and Download, sent to the scan process as the HTTP API sends them.
 
 Owns: the method table (Part 10 name -> softplc Command), input/output arguments, checking
-Download's arguments, asking the program gate (security/programgate.py: the signature, as
-for HTTP) before a download is sent, sending the command over the channel off the event
-loop, and mapping a refusal onto an OPC UA status code with its reason (Bad status + the
-reason as output).
+Download's arguments, asking the program gate (security/programgate.py: the signature and
+its version, AllowOlder, as for HTTP) before a download is sent and telling it what the PLC
+took, sending the command over the channel off the event loop, and mapping a refusal onto an
+OPC UA status code with its reason (Bad status + the reason as output).
 Does not know: sessions and who may call (server.py guards that), the address space layout.
 """
 
@@ -86,6 +86,8 @@ def arguments(method: str) -> tuple[list[ua.Argument], list[ua.Argument]]:
             _arg("Name", ua.VariantType.String, "file name for messages ('' = downloaded.yaml)"),
             _arg("Signature", ua.VariantType.String, "the signature line of the text's UTF-8 "
                  "bytes (softplc sign; '' = unsigned): needed when the PLC trusts keys"),
+            _arg("AllowOlder", ua.VariantType.Boolean, "take a signed version older than "
+                 "the running one (a rollback; default false)"),
             ], outputs
 
 
@@ -150,10 +152,10 @@ class ProgramHandling:
         checked = _download_args(values)
         if isinstance(checked, Outcome):
             return checked
-        text, online, name, signature = checked
+        text, online, name, signature, allow_older = checked
         body = text.encode("utf-8")
         try:  # the exact bytes, before anything parses them: as the HTTP door
-            signer = await asyncio.to_thread(self._gate.admit, body, signature)
+            signer = await asyncio.to_thread(self._gate.admit, body, signature, allow_older)
         except ProgramRefused as exc:
             return Outcome(ua.StatusCodes.BadSecurityChecksFailed, exc.reason,
                            problems=(exc.reason,))
@@ -161,9 +163,13 @@ class ProgramHandling:
             await asyncio.to_thread(self._gate.remember, body, signer)
         outcome = await self._send(CommandRequest(next(self._ids), command, program_text=text,
                                                   program_path=name, online=online))
-        if signer is not None and outcome.ok:
-            return dataclasses.replace(outcome, message=f"{outcome.message} (signed by {signer})")
-        return outcome
+        if signer is None or signature is None or not outcome.ok:
+            return outcome
+        # The version now runs; the message (and so the audit record) says it, and a rollback.
+        note = await asyncio.to_thread(self._gate.applied, body, signature, signer,
+                                       allow_older)
+        return dataclasses.replace(outcome,
+                                   message=f"{outcome.message} (signed by {signer}{note})")
 
     async def _send(self, request: CommandRequest) -> Outcome:
         timeout_s = DOWNLOAD_TIMEOUT_S if request.command is Command.DOWNLOAD else \
@@ -181,20 +187,21 @@ class ProgramHandling:
         return _reply_outcome(reply)
 
 
-def _download_args(values: list[object]) -> tuple[str, bool, str | None, str | None] | Outcome:
+def _download_args(values: list[object]
+                   ) -> tuple[str, bool, str | None, str | None, bool] | Outcome:
     if len(values) < 2:
         return Outcome(ua.StatusCodes.BadArgumentsMissing,
                        "Download needs ProgramText (String) and Online (Boolean)")
-    if len(values) > 4:
-        return Outcome(ua.StatusCodes.BadTooManyArguments,
-                       "Download takes ProgramText, Online, and an optional Name and Signature")
-    text, online = values[0], values[1]
-    name = values[2] if len(values) >= 3 else ""
-    signature = values[3] if len(values) == 4 else ""
+    if len(values) > 5:
+        return Outcome(ua.StatusCodes.BadTooManyArguments, "Download takes ProgramText, "
+                       "Online, and an optional Name, Signature and AllowOlder")
+    defaults: list[object] = ["", "", False]  # Name, Signature, AllowOlder
+    text, online, name, signature, allow_older = [*values, *defaults[len(values) - 2:]]
     if not isinstance(text, str) or not isinstance(online, bool) or not isinstance(name, str) \
-            or not isinstance(signature, str):
+            or not isinstance(signature, str) or not isinstance(allow_older, bool):
         return Outcome(ua.StatusCodes.BadTypeMismatch, "Download arguments: ProgramText "
-                       "String, Online Boolean, Name String, Signature String")
+                       "String, Online Boolean, Name String, Signature String, AllowOlder "
+                       "Boolean")
     if len(text.encode()) > MAX_PROGRAM_BYTES:
         return Outcome(ua.StatusCodes.BadEncodingLimitsExceeded,
                        f"the program is larger than {MAX_PROGRAM_BYTES} bytes")
@@ -204,7 +211,7 @@ def _download_args(values: list[object]) -> tuple[str, bool, str | None, str | N
     if not text.strip():
         return Outcome(ua.StatusCodes.BadInvalidArgument, f"{DOWNLOAD_REFUSED}: empty program",
                        problems=(f"{name or 'program'}:1: the request holds no program",))
-    return text, online, name or None, signature or None
+    return text, online, name or None, signature or None, allow_older
 
 
 def _reply_outcome(reply: CommandReply) -> Outcome:

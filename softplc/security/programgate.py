@@ -5,9 +5,11 @@ Owns: the PLC's trusted keys as their directory holds them *now* (compared by co
 replaced in place, added or removed acts at the next download), whether signatures are
 required (fail closed: once `--trusted-keys` was given or a trusted key was seen, a directory
 that becomes empty or unreadable refuses every download, says so in status and logs it once
-per change), the check of the exact bytes before anything parses them, and the signers of
-accepted bodies in STATE_DIR/signers.json (SHA-256 of the body -> the key's name, the last
-KEEP), which status matches against the running program.
+per change), the check of the exact bytes before anything parses them, the rollback rule (a
+signed version older than the running one is refused unless an engineer allows it; the
+version file is versions.py's), and the signers of accepted bodies in STATE_DIR/signers.json
+(SHA-256 of the body -> the key's name, the last KEEP), which status matches against the
+running program.
 Does not know: HTTP, OPC UA, the scan, Ed25519 (signing.py), how a program is parsed.
 """
 
@@ -24,8 +26,15 @@ from typing import Final
 
 from softplc.core.errors import SoftplcError
 from softplc.core.snapshot import DOWNLOAD_REFUSED
+from softplc.security import versions
 from softplc.security.files import write_private
-from softplc.security.signing import MAX_KEYS, SignatureRefused, TrustedKeys
+from softplc.security.signing import (
+    MAX_KEYS,
+    Signature,
+    SignatureRefused,
+    SigningError,
+    TrustedKeys,
+)
 
 log = logging.getLogger(__name__)
 
@@ -89,19 +98,44 @@ class ProgramGate:
             self._seen = KeysSeen(keys, digest, required, problem)
             return self._seen
 
-    def admit(self, body: bytes, signature: str | None) -> str | None:
+    def admit(self, body: bytes, signature: str | None, allow_older: bool = False) -> str | None:
         """The signer's name, or None when signatures are not required. Raises
-        ProgramRefused when they are and no trusted key signed `body` (or none is left).
-        Blocking (reads the directory, verifies): call it in a thread from a loop."""
+        ProgramRefused when they are and no trusted key signed `body` (or none is left), or
+        when its signed version is older than the running one and not `allow_older` (an
+        engineer's rollback). Blocking (reads the directory, verifies): call it in a thread
+        from a loop."""
         seen = self.keys()
         if seen.problem is not None:
             raise ProgramRefused(f"{DOWNLOAD_REFUSED}: {seen.problem}")
         if not seen.keys.keys:
             return None
         try:
-            return seen.keys.verify(body, signature)
+            signed = seen.keys.verify(body, signature)
         except SignatureRefused as exc:
             raise ProgramRefused(exc.reason) from None
+        running = versions.read(self.state_dir)
+        if reason := versions.refusal(running, signed.version, allow_older):
+            raise ProgramRefused(reason)
+        return signed.signer
+
+    def applied(self, body: bytes, signature: str, signer: str,
+                allow_older: bool = False) -> str:
+        """After the PLC took a download `admit` let through as signed by `signer` (not a dry
+        run): its version becomes the running one. Returns what to add to the download's
+        message, and so to its audit record (the version, a rollback). Blocking."""
+        try:
+            version = Signature.parse(signature).version or 0
+        except SigningError:
+            return ""
+        digest = hashlib.sha256(body).hexdigest()
+        with self._lock:
+            try:
+                return versions.applied(self.state_dir, version, signer, digest, allow_older)
+            except OSError as exc:
+                path = self.state_dir / versions.VERSION_FILE
+                log.error("signed downloads: %s cannot be written (%s): version %d is not "
+                          "recorded as running", path, exc.strerror or exc, version)
+                return f", version {version} (not recorded: {path} cannot be written)"
 
     def remember(self, body: bytes, signer: str) -> None:
         """Record that `signer` signed `body` (before it is sent: status never finds the

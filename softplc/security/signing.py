@@ -1,11 +1,14 @@
 """Signed programs: an engineer's Ed25519 key pair, the detached signature of the exact bytes
-a download carries (program text or bundle zip), and a PLC's trusted keys.
+a download carries (program text or bundle zip) with the program's version, and a PLC's
+trusted keys.
 
 Owns: the key files (`NAME.key`, PKCS#8 PEM, mode 0600; `NAME.pub`, SubjectPublicKeyInfo
-PEM: what a PLC trusts), the signature line (`ed25519 SHA256:FINGERPRINT BASE64`, the same
-in a `.sig` file and in the `X-Softplc-Signature` header), signing, and `TrustedKeys.verify`
-naming the signer or raising `SignatureRefused` with one line of reason.
-Does not know: HTTP, the scan, where the trusted keys directory is configured.
+PEM: what a PLC trusts), the signature line (`ed25519 SHA256:FINGERPRINT BASE64` and, when
+versioned, ` version=N`; the same in a `.sig` file and in the `X-Softplc-Signature` header),
+the signed message (the version is signed with the bytes), signing, and `TrustedKeys.verify`
+naming the signer and the version or raising `SignatureRefused` with one line of reason.
+Does not know: HTTP, the scan, where the trusted keys directory is configured, which
+version runs (programgate.py, versions.py).
 """
 
 from __future__ import annotations
@@ -33,9 +36,14 @@ from softplc.core.snapshot import DOWNLOAD_REFUSED
 ALGORITHM: Final = "ed25519"
 # Domain separation: a signature made for a softplc download is good for nothing else.
 CONTEXT: Final = b"softplc program signature 1\n"
+# A versioned signature signs CONTEXT_VERSIONED + b"version N\n" + the bytes: the version
+# cannot be edited, added or stripped without breaking it, and neither message is the other's.
+CONTEXT_VERSIONED: Final = b"softplc program signature 2\n"
+MAX_VERSION: Final = 10**18 - 1  # 18 digits, canonical decimal: one text per version
 MAX_KEYS: Final = 256
 _NAME: Final = re.compile(r"[a-z][a-z0-9_-]{0,31}")
-_LINE: Final = re.compile(r"ed25519 (SHA256:[A-Za-z0-9+/]{43}) ([A-Za-z0-9+/]{86}==)")
+_LINE: Final = re.compile(r"ed25519 (SHA256:[A-Za-z0-9+/]{43}) ([A-Za-z0-9+/]{86}==)"
+                          r"(?: version=(0|[1-9][0-9]{0,17}))?")
 
 
 class SigningError(SoftplcError, ValueError):
@@ -110,28 +118,51 @@ def load_public(path: Path) -> Ed25519PublicKey:
     return key
 
 
-def sign(body: bytes, key: Ed25519PrivateKey) -> str:
-    """The signature line of `body`, the exact bytes a download will carry."""
-    signature = base64.b64encode(key.sign(CONTEXT + body)).decode()
-    return f"{ALGORITHM} {fingerprint(key.public_key())} {signature}"
+def message(body: bytes, version: int | None) -> bytes:
+    """What is signed: the bytes behind the context, and the version when there is one."""
+    if version is None:
+        return CONTEXT + body
+    return CONTEXT_VERSIONED + f"version {version}\n".encode() + body
+
+
+def sign(body: bytes, key: Ed25519PrivateKey, version: int | None = None) -> str:
+    """The signature line of `body`, the exact bytes a download will carry; `version` (a
+    whole number, 0 to MAX_VERSION) is signed with them. None: an unversioned line, which a
+    PLC takes as version 0."""
+    if version is not None and not 0 <= version <= MAX_VERSION:
+        raise SigningError(f"version {version}: a whole number from 0 to {MAX_VERSION}")
+    signature = base64.b64encode(key.sign(message(body, version))).decode()
+    line = f"{ALGORITHM} {fingerprint(key.public_key())} {signature}"
+    return line if version is None else f"{line} version={version}"
 
 
 @dataclass(frozen=True, slots=True)
 class Signature:
     key_id: str
     raw: bytes
+    version: int | None = None  # None: an unversioned line (version 0)
 
     @classmethod
     def parse(cls, line: str) -> Signature:
         match = _LINE.fullmatch(line.strip())
         if match is None:
             raise SigningError("not a softplc signature (expected one line "
-                               "'ed25519 SHA256:KEY BASE64', as softplc sign writes)")
+                               "'ed25519 SHA256:KEY BASE64 [version=N]', as softplc sign "
+                               "writes)")
         try:
             raw = base64.b64decode(match.group(2), validate=True)
         except binascii.Error as exc:
             raise SigningError(f"signature not base64 ({exc})") from None
-        return cls(match.group(1), raw)
+        version = match.group(3)
+        return cls(match.group(1), raw, None if version is None else int(version))
+
+
+@dataclass(frozen=True, slots=True)
+class Signed:
+    """Who signed a body, and the version signed with it (0: an unversioned signature)."""
+
+    signer: str
+    version: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -162,8 +193,9 @@ class TrustedKeys:
     def names(self) -> list[str]:
         return [name for name, _, _ in self.keys]
 
-    def verify(self, body: bytes, line: str | None) -> str:
-        """The name of the trusted key that signed `body`; SignatureRefused otherwise."""
+    def verify(self, body: bytes, line: str | None) -> Signed:
+        """The trusted key that signed `body` and the version signed with it;
+        SignatureRefused otherwise."""
         trusted = f"(trusted: {', '.join(self.names)})"
         if not line:
             raise SignatureRefused(f"{DOWNLOAD_REFUSED}: not signed by a trusted key {trusted}")
@@ -175,11 +207,12 @@ class TrustedKeys:
             if key_id != signature.key_id:
                 continue
             try:
-                key.verify(signature.raw, CONTEXT + body)
+                key.verify(signature.raw, message(body, signature.version))
             except InvalidSignature:
                 raise SignatureRefused(
                     f"{DOWNLOAD_REFUSED}: the signature by {name} does not match the bytes "
-                    "sent (changed after signing, or signed for another program)") from None
-            return name
+                    "sent (changed after signing, its version edited, or signed for another "
+                    "program)") from None
+            return Signed(name, signature.version or 0)
         raise SignatureRefused(f"{DOWNLOAD_REFUSED}: signed by key {signature.key_id}, which "
                                f"this PLC does not trust {trusted}")

@@ -1,11 +1,14 @@
 """Signed programs (issue 31, item 4): Ed25519 keys, the signature of the exact bytes sent,
 and a PLC with trusted keys refusing unsigned, wrongly signed and changed downloads before
 they reach the scan process, naming the signer of the running program in status; without
-trusted keys unsigned downloads are taken as before. A real ScanLoop and ApiServer
-(tests/api/conftest.py), downloads sent by the client and the CLI."""
+trusted keys unsigned downloads are taken as before. The rollback rule through the HTTP door
+and the CLI (issue 38, item 6; the gate itself in test_rollback.py): a signed version older
+than the running one refused unless allow_older, which the audit trail names. A real
+ScanLoop and ApiServer (tests/api/conftest.py), downloads sent by the client and the CLI."""
 
 from __future__ import annotations
 
+import hashlib
 import shutil
 import stat
 import subprocess
@@ -52,7 +55,7 @@ def test_only_a_trusted_key_over_the_exact_bytes_verifies(keys: Path, tmp_path: 
     trusted = TrustedKeys.load(trusted_dir)
     body = TRANSPORT.read_bytes()
     line = signing.sign(body, signing.load_private(keys / "alice.key"))
-    assert trusted.verify(body, line) == "alice"
+    assert trusted.verify(body, line) == signing.Signed("alice", 0)
     with pytest.raises(SignatureRefused, match=r"not signed by a trusted key \(trusted: alice\)"):
         trusted.verify(body, None)
     changed = body[:10] + bytes([body[10] ^ 1]) + body[11:]
@@ -146,6 +149,50 @@ def test_the_cli_signs_and_sends_a_signature(plc: tuple[ApiClient, Path], keys: 
     assert sent.returncode == 0, sent.stderr
     assert "signed by alice" in sent.stdout
     eventually(lambda: client.status()["program_signer"] == "alice", 30, "signer in status")
+
+
+def test_an_older_signed_version_is_refused_unless_allowed_and_audited(
+        plc: tuple[ApiClient, Path], keys: Path) -> None:
+    client, state = plc
+    trust(keys, state, "alice")
+    blob, _, _ = download_body(str(TRANSPORT))
+    alice = signing.load_private(keys / "alice.key")
+    v1, v2 = (signing.sign(blob, alice, version) for version in (1, 2))
+    assert client.download_bundle(blob, signature=v2)["message"].endswith(
+        "(signed by alice, version 2)")
+    error = refused(client, blob, v1)  # a captured older program, sent again
+    assert error.message == ("download refused: signed version 1 is older than the running 2 "
+                             "(an engineer may pass --allow-older)")
+    assert client.download_bundle(blob, signature=v2)["signer"] == "alice"  # the same again
+    back = client.download_bundle(blob, signature=v1, allow_older=True)
+    assert back["message"].endswith("(signed by alice, version 1, rolled back from 2 "
+                                    "(allow older))")
+    records = [r for r in _trail(state) if r["action"] == "POST program"]
+    assert [r["outcome"] for r in records] == ["applied", "refused", "applied", "applied"]
+    assert records[-1]["detail"]["allow_older"] == "true"
+    assert records[-1]["detail"]["body_sha256"] == hashlib.sha256(blob).hexdigest()
+    assert "rolled back from 2" in records[-1]["detail"]["message"]
+    assert "older than the running 2" in records[1]["detail"]["message"]
+
+
+def test_the_cli_signs_a_version_and_allows_an_older_one(
+        plc: tuple[ApiClient, Path], keys: Path, tmp_path: Path) -> None:
+    client, state = plc
+    trust(keys, state, "alice")
+    key, sig = str(keys / "alice.key"), str(tmp_path / "t.sig")
+    signed = _cli("sign", str(TRANSPORT), "--key", key, "--version", "7", "-o", sig)
+    assert signed.returncode == 0 and "version 7" in signed.stdout, signed.stderr
+    assert Path(sig).read_text().strip().endswith(" version=7")
+    connect = ("--api", client.url, "--state-dir", str(state))
+    sent = _cli("download", str(TRANSPORT), *connect, "--signature", sig)
+    assert sent.returncode == 0 and "version 7" in sent.stdout, sent.stderr
+    older = ("download", str(TRANSPORT), *connect, "--sign-key", key, "--version", "6")
+    refused_older = _cli(*older)
+    assert refused_older.returncode == 1
+    assert "signed version 6 is older than the running 7" in refused_older.stderr
+    allowed = _cli(*older, "--allow-older")
+    assert allowed.returncode == 0, allowed.stderr
+    assert "rolled back from 7" in allowed.stdout
 
 
 def _cli(*argv: str) -> subprocess.CompletedProcess[str]:
