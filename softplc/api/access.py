@@ -70,7 +70,7 @@ class Gate:
         self.authority = Authority(self.users, lambda: self._owner)
         self.audit = audit or AuditTrail(state_dir)
         self.anonymous = anonymous
-        self.backoff = Backoff()
+        self.backoff = Backoff(state_dir=state_dir)
         self.throttled = 0  # logins refused or failed while backing off
         self.anchor: tuple[int, str] | None = None  # the last record this server wrote
         self._owner = owner_token

@@ -3,7 +3,8 @@
 
 Owns: their arguments, reading passwords (the terminal without echo, or one line of stdin
 when it is not a terminal: never the command line), what a person reads, exit codes (0
-done, 1 refused or a broken audit chain), and the audit records of user changes made here.
+done, 1 refused, a broken audit chain or one that records a break), and the audit records of
+user changes made here.
 They act on the files of --state-dir directly, as the account that owns it; a running PLC
 sees the change at its next request.
 Does not know: HTTP, the PLC.
@@ -60,7 +61,8 @@ def add_admin_commands(subparsers: Any) -> None:
                        help="records at or after TIME: ISO (2025-03-01T08:00Z; UTC without a "
                        "zone) or a duration back from now (2h) (default: all)")
     audit.add_argument("--verify", action="store_true",
-                       help="check the chain: exit 1 naming the first bad record (default: off)")
+                       help="check the chain: exit 1 naming the first bad record, or every "
+                       "break of the trail recorded in it (default: off)")
     audit.add_argument("--json", action="store_true",
                        help="print the records as JSON lines (default: a table)")
     audit.add_argument("--state-dir", metavar="DIR", default="state", help=_STATE_HELP)
@@ -155,15 +157,7 @@ def _audit(args: argparse.Namespace, action: str, target: str,
 def cmd_audit(args: argparse.Namespace) -> int:
     trail = AuditTrail(args.state_dir)
     if args.verify:
-        verdict = trail.verify()
-        if not verdict.ok:
-            print(f"softplc audit: chain BROKEN at {verdict.where} (the record after seq "
-                  f"{verdict.last_seq}, {verdict.records} good before it): {verdict.problem}",
-                  file=sys.stderr)
-            return EXIT_REFUSED
-        print(f"audit trail ok: {verdict.records} record(s), seq {verdict.first_seq}.."
-              f"{verdict.last_seq}, last hash {verdict.last_hash[:16]}")
-        return EXIT_OK
+        return _verify(trail)
     try:
         since = parse_since(args.since) if args.since else None
     except ValueError as exc:
@@ -172,6 +166,27 @@ def cmd_audit(args: argparse.Namespace) -> int:
     for record in trail.records(since):
         print(json.dumps(record, sort_keys=True) if args.json else format_record(record))
     return EXIT_OK
+
+
+def _verify(trail: AuditTrail) -> int:
+    """Exit 1 for a broken chain, and for one that links but records a break: a writer
+    found records gone or changed, so the trail is no longer the whole evidence."""
+    verdict = trail.verify()
+    counts = (f"{verdict.records} record(s), seq {verdict.first_seq}..{verdict.last_seq}, "
+              f"last hash {verdict.last_hash[:16]}")
+    if verdict.ok:
+        print(f"audit trail ok: {counts}")
+        return EXIT_OK
+    if verdict.breaks and verdict.where == verdict.breaks[0][0]:  # it links but for them
+        print(f"softplc audit: the chain links ({counts}), but records {len(verdict.breaks)} "
+              "break(s) of the trail: records before each were cut or rewritten", file=sys.stderr)
+    else:
+        print(f"softplc audit: chain BROKEN at {verdict.where} (the record after seq "
+              f"{verdict.last_seq}, {verdict.records} good before it): {verdict.problem}",
+              file=sys.stderr)
+    for where, what in verdict.breaks:
+        print(f"  break at {where} {what}", file=sys.stderr)
+    return EXIT_REFUSED
 
 
 def format_record(record: dict[str, Any]) -> str:

@@ -93,7 +93,7 @@ class Users(UserManager):
     def __init__(self, state_dir: Path, owner_token: str, anonymous: bool) -> None:
         self.store = UserStore(state_dir)
         self.authority = Authority(self.store, lambda: self._owner)
-        self.backoff = Backoff()
+        self.backoff = Backoff(state_dir=state_dir)
         self.throttled = 0
         self._owner = owner_token
         self._anonymous = anonymous

@@ -6,18 +6,22 @@ record without it), appending from several processes (flock on STATE_DIR/audit.l
 read-last-hash + append + fsync), rotation bounded in size (audit.jsonl -> audit.1.jsonl ->
 ... -> audit.KEEP.jsonl, then dropped; the chain and `seq` go on across files), reading,
 verifying (auditchain.py: any changed byte breaks its record's hash or the next record's
-`prev`; a verification can go on from where the last one ended), and following it as
-records come (`Follower`: for the admin's event stream).
+`prev`; a verification can go on from where the last one ended; the head file and the
+writer's last record must be there), a break record first when an append finds the trail
+cut or rewritten (auditbreak.py), and following it as records come (`Follower`: for the
+admin's event stream).
 Does not know: HTTP, users, who calls it. Every call is blocking file I/O.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime
 import fcntl
 import hashlib
 import json
+import logging
 import os
 import time
 from collections.abc import Iterator
@@ -25,8 +29,16 @@ from pathlib import Path
 from typing import Any, Final
 
 from softplc.core.units import parse_duration_ns
+from softplc.security.auditbreak import (
+    HEAD_FILE,
+    HeadUnreadable,
+    find_break,
+    hash_of,
+    read_head,
+    write_head,
+)
 from softplc.security.auditchain import GENESIS as GENESIS
-from softplc.security.auditchain import Resume, verify_files, verify_tail
+from softplc.security.auditchain import Anchor, Resume, verify_files, verify_tail
 from softplc.security.auditchain import Verdict as Verdict
 from softplc.security.auditchain import canonical as canonical
 
@@ -36,6 +48,8 @@ MAX_BYTES: Final = 1 << 20  # per file; with KEEP old files at most ~9 MiB in al
 KEEP: Final = 8
 _TAIL_BYTES: Final = 65536
 _TEXT_MAX: Final = 300  # a string in a record (a message, a symbol name) is cut here
+
+log = logging.getLogger(__name__)
 
 
 def utc_text(wall_s: float) -> str:
@@ -76,14 +90,18 @@ def _clip(value: Any) -> Any:
 
 
 class AuditTrail:
-    """The trail of one state directory."""
+    """The trail of one state directory, as one writer appends to it: the last record this
+    object wrote (`known`) must still be there at its next append, as must the one the head
+    file names (written by whichever process appended last)."""
 
     def __init__(self, state_dir: Path | str, max_bytes: int = MAX_BYTES,
                  keep: int = KEEP) -> None:
         self.dir = Path(state_dir)
         self.path = self.dir / AUDIT_FILE
+        self.head = self.dir / HEAD_FILE
         self.max_bytes = max_bytes
         self.keep = keep
+        self.known: Anchor | None = None
 
     def files(self) -> list[Path]:
         """Oldest first."""
@@ -94,25 +112,42 @@ class AuditTrail:
         return self.dir / f"audit.{n}.jsonl"
 
     def append(self, entry: dict[str, Any]) -> dict[str, Any]:
-        """Add one record (who, what, outcome: the caller's keys) and return it as written."""
+        """Add one record (who, what, outcome: the caller's keys) and return it as written.
+        When the trail no longer holds what this writer or the head file knows was written,
+        a break record saying so is chained on first (auditbreak.py)."""
         self.dir.mkdir(parents=True, exist_ok=True, mode=0o700)
         lock = os.open(self.dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o600)
         try:
             fcntl.flock(lock, fcntl.LOCK_EX)
-            last_seq, last_hash = self._last()
+            last = self._last()
+            found = find_break(self.known, self.head, last,
+                               lambda seq: hash_of(self.files(), seq), entry.get("iface"))
             if self.path.exists() and self.path.stat().st_size >= self.max_bytes:
                 self._rotate()
-            record = {**_clip(entry), "seq": last_seq + 1, "time": utc_now(), "prev": last_hash}
-            record["hash"] = hashlib.sha256(canonical(record).encode()).hexdigest()
-            fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
+            if found is not None:
+                log.error("audit trail %s: %s; a break record is written", self.path,
+                          found["detail"]["problem"])
+                last = _anchor(self._write(found, last))
+            record = self._write({k: v for k, v in entry.items() if k != "break"}, last)
+            self.known = _anchor(record)
             try:
-                os.write(fd, (canonical(record) + "\n").encode())
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+                write_head(self.head, self.known)
+            except OSError as exc:  # the next append finds an older head: still in the trail
+                log.warning("audit trail head %s not written: %s", self.head, exc)
             return record
         finally:
             os.close(lock)
+
+    def _write(self, entry: dict[str, Any], last: Anchor) -> dict[str, Any]:
+        record = {**_clip(entry), "seq": last[0] + 1, "time": utc_now(), "prev": last[1]}
+        record["hash"] = hashlib.sha256(canonical(record).encode()).hexdigest()
+        fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
+        try:
+            os.write(fd, (canonical(record) + "\n").encode())
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        return record
 
     def _rotate(self) -> None:
         with contextlib.suppress(FileNotFoundError):
@@ -122,7 +157,7 @@ class AuditTrail:
                 self._rotated(n).rename(self._rotated(n + 1))
         self.path.rename(self._rotated(1))
 
-    def _last(self) -> tuple[int, str]:
+    def _last(self) -> Anchor:
         """The newest record's seq and hash, from the tail of the newest non-empty file."""
         for path in reversed(self.files()):
             with path.open("rb") as handle:
@@ -130,9 +165,8 @@ class AuditTrail:
                 handle.seek(max(0, size - _TAIL_BYTES))
                 lines = handle.read().splitlines()
             for raw in reversed(lines):
-                with contextlib.suppress(ValueError, AttributeError, TypeError):
-                    record = json.loads(raw)
-                    return int(record["seq"]), str(record["hash"])
+                with contextlib.suppress(ValueError, AttributeError, TypeError, KeyError):
+                    return _anchor(json.loads(raw))
         return 0, GENESIS
 
     def lines(self) -> Iterator[tuple[str, int, bytes]]:
@@ -159,17 +193,35 @@ class AuditTrail:
                 found.append(record)
         return found[-limit:] if limit else found
 
-    def verify(self, anchor: tuple[int, str] | None = None) -> Verdict:
+    def verify(self, anchor: Anchor | None = None) -> Verdict:
         """Check every record and the links between them (auditchain.py). `anchor` (seq,
         hash), a record known to have been written (a running server keeps its last one),
-        must still be there: a trail rewritten from before it, or cut short, fails."""
-        return verify_files(self.files(), self.keep, anchor, self.path.name)
+        and the record the head file names must still be there: a trail rewritten from
+        before them, or cut short, fails; so does a break record in it."""
+        # The head first: read after the files, it could name a record appended since.
+        try:
+            anchors, unreadable = self._anchors(anchor), None
+        except HeadUnreadable as exc:
+            anchors, unreadable = tuple(a for a in (anchor,) if a is not None), str(exc)
+        verdict = verify_files(self.files(), self.keep, anchors, self.path.name)
+        if unreadable is None or not verdict.ok:
+            return verdict
+        return dataclasses.replace(verdict, ok=False, where=self.head.name, resume=None,
+                                   problem=f"unreadable ({unreadable}): the next record "
+                                   "appended records a break of the trail")
 
-    def verify_tail(self, resume: Resume, anchor: tuple[int, str] | None = None
-                    ) -> Verdict | None:
+    def verify_tail(self, resume: Resume, anchor: Anchor | None = None) -> Verdict | None:
         """Go on from an earlier verdict's `resume`: the bytes verified then hashed again,
         only the records appended since parsed; None when a full verification is due."""
-        return verify_tail(resume, self.files(), anchor, self.path.name)
+        try:
+            anchors = self._anchors(anchor)
+        except HeadUnreadable:
+            return None
+        return verify_tail(resume, self.files(), anchors, self.path.name)
+
+    def _anchors(self, anchor: Anchor | None) -> tuple[Anchor, ...]:
+        head = read_head(self.head)
+        return tuple(a for a in (anchor, head) if a is not None)
 
 
 class Follower:
@@ -240,6 +292,10 @@ class Follower:
         if newest < self.after:  # the trail was cut or replaced: follow the one there is
             self.after = 0
         return lines
+
+
+def _anchor(record: dict[str, Any]) -> Anchor:
+    return int(record["seq"]), str(record["hash"])
 
 
 def _record(raw: bytes) -> dict[str, Any] | None:

@@ -2,13 +2,14 @@
 
 Owns: canonical form, GENESIS, Verdict, the check of one line after the record before it
 (canonical form, its hash, `seq` and `prev`), `verify_files` (every line of the trail's
-files, oldest first; an anchor, a record known to have been written, must be there) and
+files, oldest first; anchors, records known to have been written, must be there; a break
+record, written where a writer found the trail cut or rewritten, keeps the verdict bad) and
 `verify_tail`: from where a verification ended (`Resume`: each file's inode, the bytes and
 lines verified and their SHA-256, the chain after them) it re-hashes those bytes, a few ms
 for a full trail where parsing its records costs ~0.5 s, and checks only the lines appended
 since; None when a file was replaced, cut, rotated or changed in place (a full verification
 is due then).
-Does not know: where the trail is or how it is written (audit.py), HTTP.
+Does not know: where the trail is or how it is written (audit.py, auditbreak.py), HTTP.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ GENESIS: Final = "0" * 64  # `prev` of the first record ever
 RECENT: Final = 256  # (seq, hash) of the newest records verified, for a late anchor
 
 Anchor = tuple[int, str]
+Break = tuple[str, str]  # a break record's FILE:LINE, and what it says
 
 
 def canonical(record: dict[str, Any]) -> str:
@@ -55,13 +57,16 @@ class Resume:
     last: str
     dropped: bool
     recent: tuple[Anchor, ...]
-    anchor: Anchor | None  # the last anchor found where it should be
+    anchors: tuple[Anchor, ...]  # the anchors found where they should be
+    breaks: tuple[Break, ...]
 
 
 @dataclass(frozen=True, slots=True)
 class Verdict:
     """What a verification found: `ok`, how many records, the last seq and hash, and for a
     break the first bad record's position (`where`: FILE:LINE) and what is wrong with it.
+    `breaks`: every break record (FILE:LINE, what was lost): the chain links, but
+    evidence before it was cut or rewritten, so `ok` is false while one is in the trail.
     `parsed`: the lines this verification read as JSON; `resume`: where to go on from."""
 
     ok: bool
@@ -71,22 +76,24 @@ class Verdict:
     where: str | None = None
     problem: str | None = None
     first_seq: int = 0
+    breaks: tuple[Break, ...] = ()
     parsed: int = field(default=0, compare=False)
     resume: Resume | None = field(default=None, compare=False, repr=False)
 
     def as_dict(self) -> dict[str, Any]:
         return {"ok": self.ok, "records": self.records, "first_seq": self.first_seq,
                 "last_seq": self.last_seq, "last_hash": self.last_hash, "where": self.where,
-                "problem": self.problem}
+                "problem": self.problem,
+                "breaks": [{"where": where, "what": what} for where, what in self.breaks]}
 
 
 class _Scan:
     """A verification under way: the chain up to the last line checked."""
 
-    def __init__(self, anchor: Anchor | None, dropped: bool) -> None:
-        self.anchor = anchor
-        self.found: Anchor | None = None
-        self.anchored = anchor is None
+    def __init__(self, anchors: Sequence[Anchor], dropped: bool) -> None:
+        self.missing = list(dict.fromkeys(anchors))
+        self.found: list[Anchor] = []
+        self.breaks: list[Break] = []
         self.dropped = dropped
         self.count, self.first, self.seq, self.last = 0, 0, 0, GENESIS
         self.recent: deque[Anchor] = deque(maxlen=RECENT)
@@ -94,13 +101,19 @@ class _Scan:
         self.broken: Verdict | None = None
 
     @classmethod
-    def resumed(cls, resume: Resume, anchor: Anchor | None) -> _Scan:
-        scan = cls(anchor, resume.dropped)
+    def resumed(cls, resume: Resume, anchors: Sequence[Anchor]) -> _Scan:
+        scan = cls(anchors, resume.dropped)
         scan.count, scan.first, scan.seq, scan.last = (resume.count, resume.first, resume.seq,
                                                        resume.last)
         scan.recent.extend(resume.recent)
-        scan.found = resume.anchor
+        scan.found, scan.breaks = list(resume.anchors), list(resume.breaks)
         return scan
+
+    def met(self, anchor: Anchor) -> None:
+        """`anchor`, already verified before, found again."""
+        if anchor in self.missing:
+            self.missing.remove(anchor)
+            self.found.append(anchor)
 
     def line(self, name: str, number: int, raw: bytes) -> bool:
         """Check one line; False (and `broken`) when it breaks the chain."""
@@ -112,13 +125,15 @@ class _Scan:
         self.count, self.seq, self.last = self.count + 1, record["seq"], record["hash"]
         self.first = self.first or self.seq
         self.recent.append((self.seq, self.last))
-        if self.anchor is not None and self.seq == self.anchor[0]:
-            if self.last != self.anchor[1]:
+        for anchor in [a for a in self.missing if a[0] == self.seq]:
+            if self.last != anchor[1]:
                 self.broken = self._verdict(False, f"{name}:{number}", "this record is not the "
                                             f"one written as seq {self.seq}: the trail was "
                                             "rewritten")
                 return False
-            self.anchored, self.found = True, self.anchor
+            self.met(anchor)
+        if record.get("break") is True:
+            self.breaks.append((f"{name}:{number}", break_text(record)))
         return True
 
     def lines(self, name: str, data: bytes, start: int) -> bool:
@@ -130,27 +145,36 @@ class _Scan:
 
     def resume(self, files: tuple[FileMark, ...]) -> Resume:
         return Resume(files, self.count, self.first, self.seq, self.last, self.dropped,
-                      tuple(self.recent), self.found)
+                      tuple(self.recent), tuple(self.found), tuple(self.breaks))
 
     def end(self, newest: str, resume: Resume | None) -> Verdict:
         if self.broken is not None:
             return self.broken
-        if not self.anchored and self.anchor is not None:
-            return self._verdict(False, newest, f"record {self.anchor[0]} (written while this "
-                                 "server ran) is gone: the trail was cut")
+        # An anchor older than the oldest record kept went with a rotated file.
+        gone = [a for a in self.missing if a[0] >= self.first or not self.dropped]
+        if gone:
+            seq, digest = max(gone)
+            return self._verdict(False, newest, f"record {seq} (hash {digest[:16]}), known to "
+                                 f"have been written, is gone: the trail ends at seq "
+                                 f"{self.seq}, it was cut")
+        if self.breaks:
+            where, text = self.breaks[0]
+            return Verdict(False, self.count, self.seq, self.last, where,
+                           f"a break of the trail is recorded here {text}", self.first,
+                           tuple(self.breaks), parsed=self.parsed, resume=resume)
         return Verdict(True, self.count, self.seq, self.last, first_seq=self.first,
                        parsed=self.parsed, resume=resume)
 
     def _verdict(self, ok: bool, where: str, problem: str) -> Verdict:
         return Verdict(ok, self.count, self.seq, self.last, where, problem, self.first,
-                       parsed=self.parsed)
+                       tuple(self.breaks), parsed=self.parsed)
 
 
-def verify_files(paths: Sequence[Path], keep: int, anchor: Anchor | None = None,
+def verify_files(paths: Sequence[Path], keep: int, anchors: Sequence[Anchor] = (),
                  newest: str = "audit.jsonl") -> Verdict:
     """Check every line of `paths` (oldest first; the last one is the file still written)."""
     # Only when every rotated slot is taken can older records have been dropped.
-    scan = _Scan(anchor, len(paths) > keep)
+    scan = _Scan(anchors, len(paths) > keep)
     marks: list[FileMark] = []
     resume: Resume | None = None
     for index, path in enumerate(paths):
@@ -169,7 +193,7 @@ def verify_files(paths: Sequence[Path], keep: int, anchor: Anchor | None = None,
     return scan.end(newest, resume)
 
 
-def verify_tail(resume: Resume, paths: Sequence[Path], anchor: Anchor | None = None,
+def verify_tail(resume: Resume, paths: Sequence[Path], anchors: Sequence[Anchor] = (),
                 newest: str = "audit.jsonl") -> Verdict | None:
     """Go on from `resume` over the same files: their verified bytes hashed again, the lines
     appended to the last one checked. None: a file is not the one verified (another inode,
@@ -189,11 +213,12 @@ def verify_tail(resume: Resume, paths: Sequence[Path], anchor: Anchor | None = N
         hasher = hashlib.sha256(data[:mark.size])
         if hasher.digest() != mark.digest:
             return None
-    scan = _Scan.resumed(resume, anchor)
-    if anchor is not None and anchor[0] <= resume.seq:  # already verified, or a late anchor
-        if anchor != resume.anchor and anchor not in resume.recent:
-            return None
-        scan.anchored, scan.found = True, anchor
+    scan = _Scan.resumed(resume, anchors)
+    for anchor in anchors:
+        if anchor[0] <= resume.seq:  # already verified, or a late anchor
+            if anchor not in resume.anchors and anchor not in resume.recent:
+                return None
+            scan.met(anchor)
     mark = resume.files[-1]
     tail = data[mark.size:]
     whole = tail.rfind(b"\n") + 1
@@ -206,6 +231,17 @@ def verify_tail(resume: Resume, paths: Sequence[Path], anchor: Anchor | None = N
     after = scan.resume(files)
     scan.lines(mark.name, tail[whole:], files[-1].lines + 1)
     return scan.end(newest, after)
+
+
+def break_text(record: dict[str, Any]) -> str:
+    """What a break record says: (seq N) what was found, the last good record known."""
+    detail = record.get("detail")
+    detail = detail if isinstance(detail, dict) else {}
+    good = str(detail.get("last_good_hash") or "")[:16] or "unknown"
+    found = str(detail.get("found_hash") or "")[:16]
+    return (f"(seq {record.get('seq')}): {detail.get('problem')}; last good seq "
+            f"{detail.get('last_good_seq')} hash {good} (known by {detail.get('known_by')}), "
+            f"found seq {detail.get('found_seq')} hash {found}")
 
 
 def _count_lines(data: bytes) -> int:

@@ -7,7 +7,9 @@ anchor), and at least every REHASH_S while the verdict is good: from where the l
 verification ended (audit.py's `verify_tail`: the verified bytes hashed again, only the
 appended records parsed; measured on a full trail of 9 MiB, ~24,000 records: ~10 ms against
 ~0.55 s for a full verification), or over the whole trail when that cannot be (a rotation,
-a file rewritten, cut or changed in place).
+a file rewritten, cut or changed in place). A break record in the trail (a writer found it
+cut or rewritten, auditbreak.py) keeps `ok` false, named in `breaks`, while the checks still
+go on from where the last one ended.
 Does not know: HTTP, the chain's rules (auditchain.py), who writes the trail.
 """
 
@@ -29,7 +31,8 @@ CHAIN_CHECK_S: Final = 5.0  # a trail that changes is checked again at most this
 # place within the same clock tick as the last append leaves inode, size and ctime alone.
 REHASH_S: Final = 60.0
 UNCHECKED: Final[dict[str, Any]] = {"ok": None, "records": 0, "first_seq": 0, "last_seq": 0,
-                                    "last_hash": None, "where": None, "problem": None}
+                                    "last_hash": None, "where": None, "problem": None,
+                                    "breaks": []}
 
 Anchor = tuple[int, str]
 

@@ -55,7 +55,10 @@ def test_removed_or_reordered_records_are_found(tmp_path: Path) -> None:
     for broken in (lines[1:], lines[:1] + lines[2:], [lines[1], lines[0], *lines[2:]]):
         trail.path.write_bytes(b"".join(broken))
         assert not trail.verify().ok
-    trail.path.write_bytes(b"".join(lines[:3]))  # the tail cut: only an anchor shows it
+    trail.path.write_bytes(b"".join(lines[:3]))  # the tail cut: the head file names it
+    verdict = trail.verify()
+    assert not verdict.ok and "record 4" in str(verdict.problem) and "cut" in str(verdict.problem)
+    trail.head.unlink()  # as a trail written before heads were: only an anchor shows it
     assert trail.verify().ok
     last = json.loads(lines[3])
     verdict = trail.verify(anchor=(last["seq"], last["hash"]))
