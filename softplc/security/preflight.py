@@ -2,12 +2,13 @@
 services (issue 38, item 4): each one that is corrupt, truncated or unreadable gives one line
 naming the file, what is wrong and what to do.
 
-Owns: which files are read (the owner's key, the users file, the trusted keys, the API's and
-the OPC UA server's certificates and keys, the Modbus/TCP Security ones, the OPC UA trust
-list, the audit trail) and which problems refuse the start (a file a service needs to start
-at all: the owner's key, the OPC UA server's key) and which start the service closed with a
-warning (nobody but the owner logs in, every download refused, ...). Expired certificates and
-key files others may read are named here too.
+Owns: which files are read (the owner's key, the users file, the trusted keys and the signed
+version of the running program, the API's and the OPC UA server's certificates and keys, the
+Modbus/TCP Security ones, the trust lists of client certificates, the audit trail) and which
+problems refuse the start (a file a service needs to start at all: the owner's key, the OPC
+UA server's key) and which start the service closed with a warning (nobody but the owner
+logs in, every download refused, ...). Expired certificates and key files others may read
+are named here too.
 Does not know: processes, asyncua, aiohttp; how each service uses the files.
 """
 
@@ -23,7 +24,7 @@ from typing import Final
 from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 
-from softplc.security import auth
+from softplc.security import auth, versions
 from softplc.security.audit import AuditTrail
 from softplc.security.settings import SecuritySettings
 from softplc.security.signing import TrustedKeys
@@ -47,11 +48,17 @@ def check(state_dir: Path, settings: SecuritySettings, *, opcua: bool = False) -
     _token(state_dir / auth.TOKEN_FILE, found)
     _users(state_dir, found)
     _trusted_keys(settings, state_dir, found)
+    if (problem := versions.read(state_dir).problem) is not None:
+        found.warnings.append(problem)
     if opcua:
         _key(state_dir / OPCUA_OWN / "key.pem", found, "the OPC UA server's key",
              refuse=True, remake=True)
         _certificate(state_dir / OPCUA_OWN / "cert.der", found, "the OPC UA server's "
                      "certificate (made again at start)", refuse=False)
+    for trusted in (state_dir / PKI_DIR / "trusted", state_dir / "modbus-tls" / "trusted"):
+        for path in sorted(trusted.glob("*.der")) if trusted.is_dir() else []:
+            _certificate(path, found, "a trusted client certificate (it trusts nobody: "
+                         "remove it, and accept the client's certificate again)", refuse=False)
     for cert, key, what in _tls_pairs(state_dir, settings):
         _certificate(cert, found, what, refuse=False)
         _key(key, found, f"the key of {what}", refuse=False, remake=False)

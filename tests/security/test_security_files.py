@@ -43,6 +43,9 @@ CASES = [
     Case("OPC UA key", "pki/own/key.pem", True, "the OPC UA server's key cannot be used",
          ("--opcua", "127.0.0.1:0")),
     Case("audit trail", "audit.jsonl", False, "the audit trail in"),
+    Case("OPC UA trusted client", "pki/trusted/panel.der", False, "a trusted client "
+         "certificate"),
+    Case("signed version", "signed_version.json", False, "signed_version.json is not JSON"),
     Case("API certificate", "tls/cert.pem", True, "cert.pem", ("--tls", "on")),
 ]
 
