@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import json
+import os
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -110,6 +111,32 @@ def test_opcua_download_needs_a_trusted_signature_as_http_does(signed_plc: Plc,
              if r.get("action") == "Download"]
     assert [r["outcome"] for r in trail] == ["refused", "refused", "applied"]
     assert "not signed by a trusted key" in trail[0]["detail"]["message"]
+
+
+def test_a_trusted_key_replaced_in_place_or_removed_acts_at_the_next_download(
+        signed_plc: Plc, keys: Path) -> None:
+    """`softplc keys trust` over a key of the same name, the directory's mtime as it was: the
+    new key is trusted and the old one not, at once (it took a restart); the directory
+    emptied: every download refused, not every one taken (it let unsigned ones through)."""
+    trusted = signed_plc.state_dir.parent / "trusted"
+    by = {name: signing.sign(DRILLING.encode(), signing.load_private(keys / f"{name}.key"))
+          for name in ("alice", "mallory")}
+
+    async def body() -> None:
+        async with _client(signed_plc, "owner", signed_plc.token) as client:
+            info = trusted.stat()
+            (trusted / "alice.pub").write_bytes((keys / "mallory.pub").read_bytes())
+            os.utime(trusted, ns=(info.st_atime_ns, info.st_mtime_ns))
+            old = await _call(client, "Download", *_download_args(by["alice"]))
+            assert old.StatusCode.value == ua.StatusCodes.BadSecurityChecksFailed
+            new = await _call(client, "Download", *_download_args(by["mallory"]))
+            assert new.StatusCode.is_good(), new.OutputArguments[0].Value
+            (trusted / "alice.pub").unlink()
+            emptied = await _call(client, "Download", *_download_args()[:3])
+            assert emptied.StatusCode.value == ua.StatusCodes.BadSecurityChecksFailed
+            assert "no trusted key can be read" in emptied.OutputArguments[0].Value
+
+    asyncio.run(body())
 
 
 def test_a_removed_or_demoted_users_open_opcua_session_loses_its_rights(
