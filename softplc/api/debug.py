@@ -7,7 +7,8 @@ Owns: explaining a transition of the running program in this (the communication)
 off the scan: the net compiled here once per program hash from the boot program the PLC keeps
 in its state directory (program/boot.py), and the round's state rebuilt from one status board
 document (marking, coloured tokens, symbol values, forces, delays and timed firings in
-progress), so that marking and values belong to the same scan. core/why.py does the rest.
+progress), so that marking and values belong to the same scan, typed and scaled as the scan
+reads them. core/why.py does the rest.
 Does not know: the scan process (nothing is asked of it), the channel.
 
 What the board does not carry is said in the answer's `basis`: the previous scan's values
@@ -31,12 +32,15 @@ from softplc.api.problems import ApiProblem, json_body
 from softplc.api.service import ApiService
 from softplc.core.breakpoints import On, Outputs, spec
 from softplc.core.context import ScanContext
+from softplc.core.datatypes import SymType
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import Command
 from softplc.core.net import Busy, CompiledNet, NetState
+from softplc.core.present import ValueRefused, accepted
 from softplc.core.problems import ProgramError
 from softplc.core.snapshot import CommandReply
-from softplc.core.why import explain
+from softplc.core.symbols import scalings
+from softplc.core.why import Why, explain
 from softplc.program import boot
 from softplc.program import bundle as bundles
 from softplc.program.compiler import compile_file, compile_text
@@ -104,9 +108,35 @@ def state_of(net: CompiledNet, doc: dict[str, Any]) -> tuple[NetState, ScanConte
         if symbol is not None and isinstance(entry, dict):
             with contextlib.suppress(TypeError, ValueError, OverflowError):
                 image.set(symbol.address, entry["raw"] if "raw" in entry  # the bits
-                          else entry.get("value", 0))
-    locations = {s.name: (s.address.attr, s.address.index) for s in net.io.symbols.values()}
-    return state, ScanContext(image, image, locations, frozenset()), now_ns
+                          else accepted(symbol.type.value, entry.get("value", 0), name,
+                                        symbol.scaling))
+    symbols = net.io.symbols.values()
+    locations = {s.name: (s.address.attr, s.address.index) for s in symbols}
+    # As the scan's context (core/plc.py): a real's bits read as a real, a scaled int in
+    # engineering units, so that the guard and the values shown are the program's.
+    typed = {s.name: s.type for s in symbols if s.type not in (SymType.BOOL, SymType.WORD)}
+    ctx = ScanContext(image, image, locations, frozenset(), typed, scalings(net.io))
+    return state, ctx, now_ns
+
+
+def forced_of(net: CompiledNet, doc: dict[str, Any]) -> dict[str, object]:
+    """The board's forces (shown as people read them) as the raw bits the scan keeps; a value
+    that does not convert back (a NaN real, shown as text) stays as shown."""
+    out: dict[str, object] = {}
+    for name, shown_value in (doc.get("forced") or {}).items():
+        sym = net.io.symbols.get(name)
+        try:
+            out[name] = shown_value if sym is None else accepted(
+                sym.type.value, shown_value, name, sym.scaling)
+        except ValueRefused:
+            out[name] = shown_value
+    return out
+
+
+def explain_board(net: CompiledNet, doc: dict[str, Any], name: str) -> Why:
+    """Why transition `name` fires or not in the next round after the board `doc`'s scan."""
+    state, ctx, now_ns = state_of(net, doc)
+    return explain(net, state, ctx, now_ns, name, forced_of(net, doc))
 
 
 class _Routes:
@@ -142,9 +172,7 @@ class _Routes:
         if name not in {t.name for t in net.transitions}:
             raise ApiProblem(404, f"no transition {name!r} in program {net.name}",
                              [f"transitions: {', '.join(t.name for t in net.transitions[:50])}"])
-        state, ctx, now_ns = state_of(net, doc)
-        forced = dict(doc.get("forced") or {})
-        answer = await asyncio.to_thread(explain, net, state, ctx, now_ns, name, forced)
+        answer = await asyncio.to_thread(explain_board, net, doc, name)
         scan = doc.get("scan_count", 0)
         body = {**answer.as_dict(), "program": net.name, "state": doc.get("state"),
                 "scan": scan, "basis": BASIS.format(scan=scan)}

@@ -1,10 +1,11 @@
 """What an operator or a client sees of a symbol's value, and what they may give it.
 
 Owns: the one seam between the raw bits an image area stores and the values people and
-clients read and write: `shown` (status board, API, page, `softplc status`, `simulate`) and
-`accepted` (HMI writes and forces from the API and the CLI), with the refusal's text.
-Scaling (raw counts to engineering units, core/scaling.py) is applied here too: a scaled
-symbol is shown and given in engineering units, wherever it is read or written.
+clients read and write: `value` (what the program reads), `shown` (JSON: status board, API,
+page, `softplc status`, `simulate`), `text` (a value with its unit at the precision its
+scale resolves: `why`), `plotted` (a number for a waveform: the VCD) and `accepted` (HMI
+writes and forces from the API and the CLI), with the refusal's text. Scaling (core/scaling.py)
+is applied here too: a scaled symbol is shown and given in engineering units everywhere.
 Does not know: HTTP, addresses, the scan.
 """
 
@@ -54,28 +55,86 @@ def scaling_of(scale: Scaling | Mapping[str, Any] | None, type_name: str | None
         return None  # not a scale this version knows: shown unscaled, as the bits' type
 
 
-def shown(type_name: str | None, raw: int,
-          scale: Scaling | Mapping[str, Any] | None = None) -> Shown:
-    """The value of the raw bits `raw` of a symbol of type `type_name`: a bool, a signed or
-    unsigned integer, or a real (the shortest decimal that is the stored single, so 0.1
-    written is 0.1 read); with a scale, the engineering value (a double, as the program
-    reads it). An unknown type shows the raw bits."""
+def value(type_name: str | None, raw: int,
+          scale: Scaling | Mapping[str, Any] | None = None) -> bool | int | float:
+    """What the raw bits `raw` of a symbol of type `type_name` hold as the program reads
+    them: a bool, a signed or unsigned integer, a real (the shortest decimal that is the
+    stored single, so 0.1 written is 0.1 read); with a scale, the engineering value (a
+    double). NaN and infinities stay floats. An unknown type: the raw bits."""
     t = sym_type(type_name)
     if t is None:
         return int(raw)
     if t is SymType.BOOL:
         return bool(raw)
-    value = value_of(t, int(raw))
+    number = value_of(t, int(raw))
     scaling = scaling_of(scale, type_name)
     if scaling is not None:
-        value = scaling.to_eng(value)
-        return value if math.isfinite(value) else NOT_FINITE[repr(value)]
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            return NOT_FINITE[repr(value)]
-        if t is SymType.REAL:
-            return float(str(np.float32(value)))
-    return value
+        return scaling.to_eng(number)
+    if t is SymType.REAL and math.isfinite(number):
+        return float(str(np.float32(number)))
+    return number
+
+
+def shown(type_name: str | None, raw: int,
+          scale: Scaling | Mapping[str, Any] | None = None) -> Shown:
+    """`value` for JSON: a NaN or an infinity as its text (NOT_FINITE)."""
+    number = value(type_name, raw, scale)
+    if isinstance(number, float) and not math.isfinite(number):
+        return NOT_FINITE[repr(number)]
+    return number
+
+
+def decimals(scaling: Scaling) -> int | None:
+    """The decimals that tell one raw count from the next in engineering units (the scale's
+    resolution): 1 for raw -500..1500 = -50..150 (0.1 per count), 3 for 0..27648 = 0..100
+    (0.0036 per count). None on a real raw type, which has no counts."""
+    if not scaling.whole:
+        return None
+    (r0, r1), (e0, e1) = scaling.raw, scaling.eng
+    step = abs((e1 - e0) / (r1 - r0))
+    return max(0, math.ceil(-math.log10(step) - 1e-9))  # 1e-9: 0.1 is 1, not 2
+
+
+def plotted(type_name: str | None, raw: int,
+            scale: Scaling | Mapping[str, Any] | None = None) -> bool | int | float:
+    """`value`, a scaled one rounded to its scale's resolution (`decimals`; a real raw type
+    to 7 significant digits): the number a waveform or a text shows."""
+    number = value(type_name, raw, scale)
+    scaling = scaling_of(scale, type_name)
+    if scaling is None or not math.isfinite(number):
+        return number
+    places = decimals(scaling)
+    return round(number, places) if places is not None else float(f"{number:.7g}")
+
+
+def text(type_name: str | None, number: bool | int | float,
+         scale: Scaling | Mapping[str, Any] | None = None) -> str:
+    """`number`, a value as the program reads it (a guard's operand: a scaled symbol's
+    engineering value), as a person reads it: a bool as 0/1, an integer as it is, a real as
+    the shortest decimal of its single, an lreal as its double, NaN and infinities as
+    NOT_FINITE; a scaled value at its scale's resolution with its unit (`4.4 °C`)."""
+    t = sym_type(type_name)
+    scaling = scaling_of(scale, type_name)
+    if isinstance(number, float) and not math.isfinite(number):
+        out = NOT_FINITE[repr(number)]
+    elif t is SymType.BOOL or isinstance(number, bool):
+        out = str(int(number))
+    elif scaling is not None:
+        places = decimals(scaling)
+        out = f"{number:.{places}f}" if places is not None else str(float(f"{number:.7g}"))
+        out = out.lstrip("-") if float(out) == 0 else out  # no "-0.0"
+    elif t is SymType.REAL:
+        out = str(np.float32(number))
+    else:
+        out = repr(number)
+    unit = scaling.unit if scaling is not None else ""
+    return f"{out} {unit}" if unit else out
+
+
+def raw_text(type_name: str | None, raw: int,
+             scale: Scaling | Mapping[str, Any] | None = None) -> str:
+    """The raw bits `raw` as `text` shows their value (a force, a board entry)."""
+    return text(type_name, value(type_name, raw, scale), scale)
 
 
 def shown_number(type_name: str | None, raw: int,

@@ -4,7 +4,8 @@ Owns: the explanation of a transition at one round, as the round itself decides 
 round is run again on a copy of the state by the engine (core/engine/), so what this says
 fires is what the round fires; the reasons (a place short of tokens, a test or inhibitor arc,
 a capacity, a timed firing in progress, the guard with the values it read, an enabling delay,
-a conflict lost, forced values) are read off the same net, marking and context.
+a conflict lost, forced values) are read off the same net, marking and context; values are
+written by core/present.py (a real as a real, a scaled symbol in engineering units).
 Does not know: where the state comes from (a running PLC's board, a replayed trace), clocks,
 HTTP. Costs nothing to a scan: it is only called when someone asks.
 """
@@ -19,6 +20,7 @@ from softplc.core.engine import Engine
 from softplc.core.engine.step import Step
 from softplc.core.expr import EvalContext
 from softplc.core.net import CompiledNet, NetState, Transition
+from softplc.core.present import raw_text
 from softplc.core.problems import PlcFault
 from softplc.core.whyguard import guard_reasons
 
@@ -78,7 +80,7 @@ class Round:
     state: NetState  # the marking M_k the round starts from (not modified)
     ctx: EvalContext
     now_ns: int
-    forced: Mapping[str, object]
+    forced: Mapping[str, object]  # symbol -> the forced raw bits (core/forcing.py `values`)
     candidates: frozenset[int]
     since: Mapping[int, int]
     step: Step | None
@@ -206,7 +208,11 @@ def _forced(rnd: Round, t: Transition) -> list[Reason]:
     out = []
     for symbol in sorted((read | driven) & set(rnd.forced)):
         role = "read by its guard" if symbol in read else "driven by it: the force wins"
-        out.append(Reason("forced", f"{symbol} is forced to {rnd.forced[symbol]} ({role})",
+        value = rnd.forced[symbol]
+        sym = rnd.net.io.symbols.get(symbol)
+        if sym is not None and isinstance(value, int) and not isinstance(value, bool):
+            value = raw_text(sym.type.value, value, sym.scaling)
+        out.append(Reason("forced", f"{symbol} is forced to {value} ({role})",
                           symbols=(symbol,)))
     return out
 

@@ -2,7 +2,8 @@
 
 Owns: evaluating a transition's guard off the round (core/why.py asks), splitting a guard
 `a and b and c` into the parts that are false, and the values each part read (symbols with
-their previous value where it takes an edge, events, token fields, forced symbols marked).
+their previous value where it takes an edge, events, token fields, forced symbols marked),
+each symbol's value as core/present.py writes it (a real as a real, a scaled one with its unit).
 Does not know: the firing round (core/why.py runs it), where the values come from.
 """
 
@@ -15,6 +16,7 @@ from collections.abc import Mapping
 from softplc.core.engine.bindings import Bound
 from softplc.core.expr import Compiled, EvalContext, ExprError, NameKind, compile_expr, parse
 from softplc.core.net import CompiledNet, NetState, Token, Transition
+from softplc.core.present import text as value_text
 
 MAX_TRIES = 200  # token combinations tried for a coloured guard (the round's own bound: 1000)
 
@@ -95,9 +97,11 @@ def _values(net: CompiledNet, expr: Compiled, ctx: EvalContext, env: Mapping[str
         if kinds.get(name) is NameKind.EVENT or name not in net.io.symbols:
             shown.append(f"event {name} {'occurred' if ctx.event(name) else 'did not occur'}")
             continue
-        text = f"{name} = {ctx.symbol(name)}"
+        sym = net.io.symbols[name]
+        kind = sym.type.value
+        text = f"{name} = {value_text(kind, ctx.symbol(name), sym.scaling)}"
         if name in expr.edges:
-            text += f" (previous scan {ctx.previous(name)})"
+            text += f" (previous scan {value_text(kind, ctx.previous(name), sym.scaling)})"
         if name in forced:
             text += " (forced)"
         shown.append(text)

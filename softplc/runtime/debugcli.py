@@ -115,7 +115,8 @@ def cmd_vcd(args: argparse.Namespace) -> int:
     if net is None:
         return EXIT_REFUSED
     try:
-        with open(args.output, "w", encoding="ascii") as out:
+        # UTF-8: a unit in the header's $comment may be `°C`; all else the VCD writes is ASCII.
+        with open(args.output, "w", encoding="utf-8") as out:
             scans = write_vcd(args.trace, net, out)
     except OSError as exc:
         print(f"softplc vcd: {exc.filename}: {exc.strerror}", file=sys.stderr)

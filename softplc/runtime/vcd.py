@@ -1,10 +1,11 @@
 """A trace as a VCD file (IEEE 1364 value change dump) that GTKWave and other waveform
 viewers open (issue 32, item 4).
 
-Owns: the VCD text: one scope per program with its symbols (bools as 1-bit wires, words as
-16-bit vectors, other numeric types as 32-bit vectors or reals), a `places` scope with each
-place's marking as an integer (subnet instances as nested scopes), the time in nanoseconds
-from the trace's first scan, values as they stand after each scan.
+Owns: the VCD text: one scope per program with its symbols (bools as 1-bit wires, integer
+types as vectors of their width, reals and scaled symbols as `real` variables holding the value
+core/present.py gives them, a scaled symbol's raw count beside it as NAME_raw), a `places`
+scope with each place's marking as an integer (subnet instances as nested scopes), the time in
+nanoseconds from the trace's first scan, values as they stand after each scan, to the run's end.
 Does not know: how the trace is replayed (runtime/tracewalk.py), what the values mean.
 """
 
@@ -15,13 +16,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
+from softplc.core.datatypes import INFO, SymType
 from softplc.core.net import CompiledNet
+from softplc.core.present import plotted
 from softplc.core.scan import Plc
 from softplc.core.symbols import Symbol
 from softplc.runtime.tracewalk import walk
 
 _FIRST, _LAST = 33, 126  # identifier codes: printable ASCII (IEEE 1364 section 18.2)
-_REAL_TYPES = frozenset({"real", "lreal", "float", "double"})
+_REALS = frozenset({SymType.REAL, SymType.LREAL})
+RAW_SUFFIX = "_raw"  # a scaled symbol's raw count, beside its engineering value
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,17 +51,19 @@ def _code(n: int) -> str:
 
 
 def signals(net: CompiledNet) -> tuple[list[tuple[Symbol, Signal]], list[Signal]]:
-    """The symbols' signals (declaration order) and the places' (net order)."""
-    syms = []
-    for i, sym in enumerate(net.io.symbols.values()):
-        kind = sym.type.value
-        if kind == "bool":
-            sig = Signal(_code(i), "wire", 1, (), sym.name)
-        elif kind in _REAL_TYPES:
-            sig = Signal(_code(i), "real", 64, (), sym.name)
-        else:
-            sig = Signal(_code(i), "wire", 16 if kind == "word" else 32, (), sym.name)
-        syms.append((sym, sig))
+    """The symbols' signals (declaration order; a scaled symbol's raw count right after it)
+    and the places' (net order)."""
+    syms: list[tuple[Symbol, Signal]] = []
+    for sym in net.io.symbols.values():
+        bits = INFO[sym.type].bits
+        if sym.type is SymType.BOOL:
+            syms.append((sym, Signal(_code(len(syms)), "wire", 1, (), sym.name)))
+        elif sym.type in _REALS or sym.scaling is not None:
+            syms.append((sym, Signal(_code(len(syms)), "real", 64, (), sym.name)))
+        if sym.scaling is not None:
+            syms.append((sym, Signal(_code(len(syms)), "wire", bits, (), sym.name + RAW_SUFFIX)))
+        elif sym.type not in _REALS and sym.type is not SymType.BOOL:
+            syms.append((sym, Signal(_code(len(syms)), "wire", bits, (), sym.name)))
     first = len(syms)
     places = [Signal(_code(first + p), "integer", 32, ("places", *name.split(".")[:-1]),
                      name.split(".")[-1]) for p, name in enumerate(net.place_names)]
@@ -65,7 +71,7 @@ def signals(net: CompiledNet) -> tuple[list[tuple[Symbol, Signal]], list[Signal]
 
 
 def _value(sig: Signal, value: object) -> str:
-    if sig.kind == "real" or isinstance(value, float):
+    if sig.kind == "real":
         return f"r{float(value)!r} {sig.code}"  # type: ignore[arg-type]
     number = int(value)  # type: ignore[call-overload]
     if sig.width == 1:
@@ -76,7 +82,7 @@ def _value(sig: Signal, value: object) -> str:
 def header(net: CompiledNet, syms: list[Signal], places: list[Signal], first_t: int) -> str:
     lines = ["$version softplc $end",
              f"$comment program {net.name} {net.program_hash[:12]}; time 0 is the trace's "
-             f"first scan, t = {first_t} ns $end",
+             f"first scan, t = {first_t} ns{_units(net)} $end",
              "$timescale 1 ns $end", f"$scope module {net.name} $end"]
     lines += [f"$var {s.kind} {s.width} {s.code} {s.name} $end" for s in syms]
     scope: tuple[str, ...] = ()
@@ -93,10 +99,19 @@ def header(net: CompiledNet, syms: list[Signal], places: list[Signal], first_t: 
     return "\n".join(lines) + "\n"
 
 
+def _units(net: CompiledNet) -> str:
+    """`; units: level %, temperature °C` for the scaled symbols (VCD has no unit field)."""
+    units = [f"{s.name} {s.scaling.unit}" for s in net.io.symbols.values()
+             if s.scaling is not None and s.scaling.unit]
+    return f"; units: {', '.join(units)}" if units else ""
+
+
 def _sample(plc: Plc, syms: list[tuple[Symbol, Signal]], places: list[Signal]) -> list[str]:
     marking = plc.engine.state.marking if plc.engine is not None and plc.net is not None \
         else None
-    out = [_value(sig, plc.image.get(sym.address)) for sym, sig in syms]
+    out = [_value(sig, plotted(sym.type.value, raw, sym.scaling) if sig.kind == "real"
+                  else raw)
+           for sym, sig in syms for raw in (plc.image.get(sym.address),)]
     out += [_value(sig, int(marking[p]) if marking is not None and p < len(marking) else 0)
             for p, sig in enumerate(places)]
     return out
@@ -118,10 +133,11 @@ def _code_of(line: str) -> str:
 
 
 def write_vcd(trace_path: str | Path, net: CompiledNet, out: IO[str]) -> int:
-    """Write the trace replayed with `net` as VCD to `out`; returns the scans written.
-    Raises TraceDiverges (a ValueError) when the trace does not replay with `net`."""
+    """Write the trace replayed with `net` as VCD to `out`; returns the scans written. The
+    dump ends at the run's end: the last scan's values hold for one period (the time between
+    the last two scans). Raises TraceDiverges (a ValueError) when the trace does not replay."""
     syms, places = signals(net)
-    scans = first_t = 0
+    scans = first_t = last_t = period = 0
     for t, changed in changes(trace_path, net):
         if scans == 0:
             first_t = t
@@ -129,5 +145,8 @@ def write_vcd(trace_path: str | Path, net: CompiledNet, out: IO[str]) -> int:
             out.write("#0\n$dumpvars\n" + "".join(v + "\n" for v in changed) + "$end\n")
         elif changed:
             out.write(f"#{t - first_t}\n" + "".join(v + "\n" for v in changed))
-        scans += 1
+        period = t - last_t if scans else 0
+        scans, last_t = scans + 1, t
+    if period > 0:
+        out.write(f"#{last_t + period - first_t}\n")
     return scans

@@ -14,7 +14,16 @@ from hypothesis import strategies as st
 
 from softplc.core.datatypes import SymType
 from softplc.core.lifecycle import Command, PlcState
-from softplc.core.present import ValueRefused, accepted, shown, shown_number
+from softplc.core.present import (
+    ValueRefused,
+    accepted,
+    decimals,
+    plotted,
+    raw_text,
+    shown,
+    shown_number,
+)
+from softplc.core.scaling import Scaling
 from softplc.core.scan import ProgramCommand
 from tests.core.helpers import Bench, compile_program
 
@@ -55,6 +64,27 @@ def test_raw_bits_show_as_their_type_reads_them() -> None:
     assert shown("real", 0xFF800000) == "-Infinity"
     assert shown("lreal", 0x7FF0000000000000) == "Infinity"
     assert shown(None, 42) == 42 and shown("float", 42) == 42  # unknown: the bits
+
+
+LEVEL = Scaling((0, 27648), (0.0, 100.0), "%", clamp=True)
+TEMP = Scaling((-500, 1500), (-50.0, 150.0), "°C")
+
+
+def test_text_is_a_value_with_its_unit_at_the_scales_resolution() -> None:
+    """What `why` and other texts show (issue 39): a real as a real, never its bits; a scaled
+    symbol in engineering units with as many decimals as one raw count needs."""
+    assert raw_text("real", f32(80.0)) == "80.0" and raw_text("real", f32(0.1)) == "0.1"
+    assert raw_text("real", 0x7FC00000) == "NaN"
+    assert decimals(LEVEL) == 3 and decimals(TEMP) == 1  # 0.0036 and 0.1 per count
+    assert decimals(Scaling((0, 10), (0.0, 100.0))) == 0
+    assert decimals(Scaling((0.0, 1.0), (0.0, 100.0), whole=False)) is None  # a real: no count
+    assert raw_text("int", 23500, LEVEL) == "84.997 %"
+    assert raw_text("int", 44, TEMP) == "4.4 °C"
+    assert raw_text("int", 0xFFFF, TEMP) == "-0.1 °C"  # raw -1, signed
+    assert raw_text("int", 0, Scaling((-10, 10), (-1.0, 1.0))) == "0.0"  # never "-0.0"
+    assert raw_text("int", 0xFFFD) == "-3" and raw_text("bool", 1) == "1"
+    assert plotted("int", 23500, LEVEL) == 84.997 and plotted("int", 44, TEMP) == 4.4
+    assert plotted("real", f32(80.0)) == 80.0 and plotted("int", 0xFFFD) == -3
 
 
 def test_typed_values_become_the_bits_a_program_write_stores() -> None:

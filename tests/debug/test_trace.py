@@ -1,6 +1,7 @@
 """Why at a scan of a trace and the VCD export (issue 32, items 1 and 4): a simulated run of
 the transport program recorded as a trace, explained scan by scan against what it fired, and
-read back from VCD by a parser from PyPI (vcdvcd) with the trace's own values."""
+read back from VCD by a parser from PyPI (vcdvcd) with the trace's own values; the tank's VCD
+with its reals and scaled symbols as values, to the run's end (issue 39, item 1)."""
 
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from softplc.runtime.tracewalk import walk
 
 ROOT = Path(__file__).resolve().parents[2]
 PROGRAM = ROOT / "programs/transport.yaml"
+TANK = ROOT / "programs/tank.yaml"
 PERIOD_NS = 10_000_000
 
 
@@ -142,3 +144,37 @@ def test_vcd_refuses_a_trace_of_another_program(trace: Path, tmp_path: Path) -> 
     code, _, err = cli("vcd", str(trace), str(ROOT / "programs/drilling.yaml"),
                        "-o", str(tmp_path / "x.vcd"))
     assert code == 1 and "does not replay with program" in err
+
+
+def test_the_tanks_vcd_carries_reals_and_engineering_units_to_the_runs_end(
+        tmp_path: Path) -> None:
+    trace, out = tmp_path / "tank.jsonl", tmp_path / "tank.vcd"
+    simulate(compile_file(TANK), 25_000_000_000, PERIOD_NS, trace_path=trace)
+    code, _, err = cli("vcd", str(trace), str(TANK), "-o", str(out))
+    assert (code, err) == (0, "")
+    records = list(read_trace(trace))
+    assert "; units: level %, temperature °C $end" in out.read_text(encoding="utf-8")
+    vcd = read_vcd(out)
+    for name in ("fill_to", "min_temp", "level", "temperature"):
+        assert vcd[f"tank.{name}"].var_type == "real", name
+    assert vcd["tank.fill_to"].tv == [(0, "80.0")]  # init: 80.0, not its bits 1117782016
+    assert vcd["tank.min_temp"].tv == [(0, "2.0")]
+    compared = 0
+    for record in records:
+        t = int(record["t"])
+        for index, raw in record.get("in", {}).get("iw", {}).items():
+            name, eng = (("level", round(raw * 100 / 27648, 3)) if index == "0"
+                         else ("temperature", round(raw / 10, 1)))  # 0..27648 = 0..100 %
+            at = [float(v) for time, v in vcd[f"tank.{name}"].tv if time == t]
+            assert at == [eng], (record["k"], name, raw)
+            assert value_at(vcd[f"tank.{name}_raw"].tv, t) == raw
+            compared += 1
+    assert compared > 2000
+    reached = next(int(r["t"]) for r in records if "reached" in r.get("fired", []))
+    assert value_at(vcd["tank.places.run_on"].tv, reached) == 1
+    assert float(value_at_text(vcd["tank.level"].tv, reached)) >= 80.0
+    assert vcd.endtime == int(records[-1]["t"]) + PERIOD_NS  # the run's end, not its last change
+
+
+def value_at_text(tv: list[tuple[int, str]], t: int) -> str:
+    return [value for time, value in tv if time <= t][-1]
