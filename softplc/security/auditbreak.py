@@ -17,13 +17,14 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Final
 
+from softplc.core.errors import SoftplcError
 from softplc.security.auditchain import Anchor, canonical
 
 HEAD_FILE: Final = "audit.head"
 BREAK_ACTION: Final = "audit trail break"
 
 
-class HeadUnreadable(ValueError):
+class HeadUnreadable(SoftplcError, ValueError):
     """The head file is there but holds no head: why."""
 
 
