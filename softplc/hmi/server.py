@@ -29,7 +29,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 from pymodbus.transport import CommParams, CommType, ModbusProtocol
 
 from softplc.core.image import ImageSizes
-from softplc.core.snapshot import HmiWrite, SnapshotSource
+from softplc.core.snapshot import ChannelFull, HmiWrite, SnapshotSource
 from softplc.hmi.admission import (
     DEFAULT_IDLE_TIMEOUT_S,
     DEFAULT_LIVE_WINDOW_S,
@@ -61,19 +61,21 @@ ERROR_LOG_INTERVAL_S = 10.0
 
 
 class _RateLimitedErrors:
-    """Logs an unexpected failure at most once per interval, with how many were skipped."""
+    """Logs a failure at most once per interval, with how many were skipped; `trace`: with
+    the traceback (an unexpected failure), else one line (an expected refusal)."""
 
     def __init__(self, interval_s: float = ERROR_LOG_INTERVAL_S) -> None:
         self._interval_s = interval_s
         self._next_s = 0.0
         self._skipped = 0
 
-    def report(self, what: str) -> None:
+    def report(self, what: str, *, trace: bool = True) -> None:
         now_s = time.monotonic()
         if now_s < self._next_s:
             self._skipped += 1
             return
-        log.exception("%s (%d similar errors not logged)", what, self._skipped)
+        (log.exception if trace else log.warning)("%s (%d similar not logged)", what,
+                                                  self._skipped)
         self._skipped = 0
         self._next_s = now_s + self._interval_s
 
@@ -201,11 +203,13 @@ class _Connection(ModbusProtocol):
     def _respond(self, adu: Adu) -> bytes | None:
         try:
             return self._responder.answer(adu)
-        except Exception:
-            # The snapshot source or the write sink failed: the Modbus answer is 04.
+        except ChannelFull as exc:  # the scan does not drain HMI writes: busy, retry (HTTP 503)
+            self._owner.busy.report(f"HMI write answered 06 (busy): {exc}", trace=False)
+            code = ExceptionCode.SERVER_DEVICE_BUSY
+        except Exception:  # the snapshot source or the write sink failed: a bug, 04
             self._errors.report("HMI request failed")
-            pdu = exception_pdu(adu.pdu[0], ExceptionCode.SERVER_DEVICE_FAILURE)
-            return encode_adu(adu.transaction_id, adu.unit_id, pdu)
+            code = ExceptionCode.SERVER_DEVICE_FAILURE
+        return encode_adu(adu.transaction_id, adu.unit_id, exception_pdu(adu.pdu[0], code))
 
     def _check_idle(self) -> None:
         idle_s = self.loop.time() - self.slot().last_active_s
@@ -239,7 +243,7 @@ class _Listener(ModbusTcpServer):
                  make_connection: ConnectionFactory = _Connection) -> None:
         super().__init__(_placeholder_device(), address=address)
         self.responder = responder
-        self.errors = _RateLimitedErrors()
+        self.errors, self.busy = _RateLimitedErrors(), _RateLimitedErrors()  # busy hides no bug
         self.limits = limits
         self.stats = ConnectionStats()
         self.audit: WriteAudit | None = None

@@ -65,7 +65,8 @@ class Mirror:
         await notifier_chain(self._server, self.space.plc, self.space.program)
         transitions = await self._server.get_event_generator(
             ua.ObjectIds.ProgramTransitionEventType, self.space.program.nodeid)
-        self.part10 = Part10(self._server, self.space.program, transitions)
+        self.part10 = Part10(self._server, self.space.program, transitions,
+                             above=(self.space.plc.nodeid,))  # PLC -HasNotifier-> Program
         if snapshot is not None:
             self._state = snapshot.status.state
             await self.maybe_rebuild(snapshot.status.program_hash, document)
@@ -166,8 +167,8 @@ class Mirror:
         events = [e for e in document.get("events") or []
                   if isinstance(e, dict) and isinstance(e.get("seq"), int)]
         newest = newest_seq(document)
-        if newest < self._event_seq:  # the scan process restarted: its seq starts again
-            self._event_seq = 0
+        if events and newest < self._event_seq:  # numbers start again: the supervisor lost
+            self._event_seq = 0  # the dead scan process's (its board unreadable at the restart)
         for event in events:
             if event["seq"] > self._event_seq:
                 name = str(event.get("name"))

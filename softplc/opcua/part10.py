@@ -3,8 +3,9 @@
 Owns: which methods each state accepts (Executable
 and UserExecutable of the method nodes, and the check before a call is sent), the standard
 transitions (LastTransition with Id, Number and TransitionTime), ProgramTransitionEventType
-events, and raising events both on their source and on the Server object (i=2253, where
-generic clients subscribe; asyncua delivers an event only to the node it is triggered on).
+events, and raising events on their source and on every notifier above it up to the Server
+object (i=2253, where generic clients subscribe): Program -> PLC -> Server (asyncua delivers
+an event only to the node it is triggered on).
 Does not know: the channel, sessions, the scan, when the PLC changes (mirror.py says).
 """
 
@@ -69,10 +70,12 @@ def refusal(method: str, state: PartState) -> str | None:
 class Part10:
     """The Program object's Part 10 behaviour; `set` is told every state the PLC is in."""
 
-    def __init__(self, server: Server, program: Node, transition_events: Any) -> None:
+    def __init__(self, server: Server, program: Node, transition_events: Any,
+                 above: tuple[ua.NodeId, ...] = ()) -> None:
         self._server = server
         self._program = program
         self._events = transition_events
+        self._above = above  # the notifiers between the Program and the Server object
         self.state: PartState | None = None
 
     async def set(self, state: PartState) -> None:
@@ -116,21 +119,26 @@ class Part10:
         setattr(event, "ToState/Id", _node_variant(state.node))
         event.Severity = 500
         await trigger_everywhere(self._events, f"{transition[0]}: {before.text} -> {state.text}",
-                                 now)
+                                 now, self._above)
 
 
 def _node_variant(node: ua.NodeId) -> ua.Variant:
     return ua.Variant(node, ua.VariantType.NodeId)
 
 
-async def trigger_everywhere(generator: Any, message: str, when: datetime | None = None) -> None:
-    """Trigger the event of `generator` on its source, then the same event (same EventId) on
-    the Server object, which is the notifier above every softplc node (HasNotifier)."""
+async def trigger_everywhere(generator: Any, message: str, when: datetime | None = None,
+                             above: tuple[ua.NodeId, ...] = ()) -> None:
+    """Trigger the event of `generator` on its source, then the same event (same EventId,
+    SourceNode still the source) on each notifier `above` it and on the Server object, the
+    top of every softplc node's notifier chain (HasNotifier, Part 3): a subscription on any
+    node of the chain receives what happens below it."""
     await generator.trigger(time_attr=when, message=message)
     event = generator.event
-    source, event.emitting_node = event.emitting_node, numeric_id(ua.ObjectIds.Server)
+    source = event.emitting_node
     try:
-        await generator.isession.subscription_service.trigger_event(event)
+        for notifier in (*above, numeric_id(ua.ObjectIds.Server)):
+            event.emitting_node = notifier
+            await generator.isession.subscription_service.trigger_event(event)
     finally:
         event.emitting_node = source
 

@@ -5,7 +5,8 @@ Owns: the method table (Part 10 name -> softplc Command), input/output arguments
 Download's arguments, asking the program gate (security/programgate.py: the signature and
 its version, AllowOlder, as for HTTP) before a download is sent and telling it what the PLC
 took, sending the command over the channel off the event loop, and mapping a refusal onto an
-OPC UA status code with its reason (Bad status + the reason as output).
+OPC UA status code with its reason (Bad status + the reason as output); Part 4's answer to a
+call that names no object or no method (`misnamed`: asyncua's is BadNodeIdInvalid for both).
 Does not know: sessions and who may call (server.py guards that), the address space layout.
 """
 
@@ -18,7 +19,7 @@ import re
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import Final, Protocol
+from typing import Any, Final, Protocol
 
 from asyncua import ua
 
@@ -185,6 +186,22 @@ class ProgramHandling:
         except ChannelFull as exc:  # the scan process is not draining its commands
             return Outcome(ua.StatusCodes.BadResourceUnavailable, str(exc))
         return _reply_outcome(reply)
+
+
+def misnamed(request: ua.CallMethodRequest, aspace: Any) -> ua.CallMethodResult | None:
+    """Part 4's answer to a call whose ObjectId names no node (BadNodeIdUnknown, as a Write
+    to it) or whose MethodId names no Method (BadMethodInvalid); None: asyncua may run it.
+    `aspace`: asyncua's address space (`in`, and `[id].attributes`)."""
+    if request.ObjectId not in aspace:
+        return Outcome(ua.StatusCodes.BadNodeIdUnknown,
+                       f"no object {request.ObjectId.to_string()}").result()
+    method_id = request.MethodId
+    node_class = aspace[method_id].attributes[ua.AttributeIds.NodeClass].value.Value.Value \
+        if method_id in aspace else None
+    if node_class != ua.NodeClass.Method:
+        return Outcome(ua.StatusCodes.BadMethodInvalid,
+                       f"{method_id.to_string()} is not a method").result()
+    return None
 
 
 def _download_args(values: list[object]

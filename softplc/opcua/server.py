@@ -52,7 +52,7 @@ from softplc.opcua.door import DoorServer
 from softplc.opcua.ids import numeric_id, status_code, string_id
 from softplc.opcua.limits import DoorStats, OpcUaLimits
 from softplc.opcua.mirror import Mirror
-from softplc.opcua.program import CommandChannel, Outcome, ProgramHandling, arguments
+from softplc.opcua.program import CommandChannel, Outcome, ProgramHandling, arguments, misnamed
 from softplc.opcua.secure import Security, application_uri
 from softplc.opcua.sessions import hook
 from softplc.opcua.space import METHODS, NAMESPACE_URI, PROGRAM, Space, SymbolNode
@@ -265,8 +265,8 @@ class OpcUaServer:
         results: list[ua.CallMethodResult] = []
         for request in params:
             method = self._handling.method_of(request)  # type's ids too (issue 29)
-            if method is None:
-                results.extend(await inner([request]))
+            if (refused := misnamed(request, session.iserver.aspace)) or method is None:
+                results.extend([refused] if refused else await inner([request]))  # Part 4
                 continue
             decision = decide(session, METHOD_ACTS[method])
             if not decision.allowed:

@@ -50,6 +50,7 @@ class LoopConfig:
     stall_fault_ns: int = 3_000_000_000
     restarts: int = 0  # how often the supervisor restarted the scan process before this one
     restart_reason: str = ""  # why it restarted it last
+    first_event_seq: int = 0  # event numbers go on after this one (a restart: the dead one's)
     # The dead scan process was paused at a breakpoint (or stepping): what the pause was.
     # Not empty: the restart does not run on; the PLC waits STOPPED, outputs safe, the net
     # as it was paused (docs/debug.md, a pause and a restart).

@@ -18,9 +18,10 @@ DIAGNOSTICS_PER_SCAN = 3
 
 
 class EventLog:
-    def __init__(self) -> None:
+    def __init__(self, seq: int = 0) -> None:
         self.events: deque[dict[str, Any]] = deque(maxlen=256)
-        self.seq = 0
+        self.seq = seq  # the last number given: a restarted scan process goes on from its
+        # predecessor's, so a client's "events since N" holds (docs/opcua.md, LastEventSeq)
         self._engine: Engine | None = None  # the engine whose diagnostics are counted
         self._seen = 0
 
@@ -38,3 +39,9 @@ class EventLog:
             for message in engine.diagnostics[self._seen:self._seen + DIAGNOSTICS_PER_SCAN]:
                 self.add(f"diagnostic:{message}", scan, now_ns)
             self._seen = engine.diagnostic_count
+
+
+def newest_seq(document: dict[str, Any]) -> int:
+    """The highest event number a status board `document` shows (0: none)."""
+    return max((int(e["seq"]) for e in document.get("events") or []
+                if isinstance(e, dict) and isinstance(e.get("seq"), int)), default=0)

@@ -62,7 +62,7 @@ class ScanLoop:
             config.stall_fault_ns if config.on_stall == "fault" else 0)
         self.hang = HangWatch(self.watchdog.hard_ns, self._hung,  # started on a real clock
                               lambda: self.clock.now_ns())  # the loop's, warm start included
-        self.log = EventLog()
+        self.log = EventLog(config.first_event_seq)
         self.events = self.log.events  # what the board shows (statusdoc.py)
         self.start_mode = "cold"
         self.start_reason = "retain off (no state directory)"

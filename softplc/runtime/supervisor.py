@@ -35,6 +35,7 @@ from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.comm import CommConfig, comm_process_main, modbus_limits, service_groups
 from softplc.runtime.config import LoopConfig
+from softplc.runtime.eventlog import newest_seq
 from softplc.runtime.leftovers import SHM_PREFIX, record_semaphores
 from softplc.runtime.procs import ReadySignal, StopFlag
 from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
@@ -106,6 +107,7 @@ class Supervisor:
         self.restarts = 0  # scan process restarts in this run, for status
         self.restart_reason = ""
         self.paused_at_restart = ""  # the pause a dead scan process was in (docs/debug.md)
+        self.event_seq = 0  # the last event number a dead scan process showed on the board
         self._restart_due: float | None = None
         self.final: dict[str, Any] = {}
         self.segment: SnapshotWriter | None = None
@@ -292,9 +294,11 @@ class Supervisor:
     def _restart_scan(self) -> str:
         self.scan_restarts.append(self.clock())
         self.restarts += 1
+        # Event numbers go on: HTTP's Last-Event-ID and OPC UA's LastEventSeq hold across it
+        self.event_seq = max(self.event_seq, newest_seq(self.status()))
         config = dataclasses.replace(
             self.loop_config, restarts=self.restarts, restart_reason=self.restart_reason,
-            paused_at_restart=self.paused_at_restart,
+            paused_at_restart=self.paused_at_restart, first_event_seq=self.event_seq,
             # The boot program (the last one accepted) and the newest snapshot: warm.
             program=None if self.loop_config.state_dir else self.loop_config.program,
             start=True)

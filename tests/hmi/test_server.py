@@ -19,7 +19,7 @@ from pymodbus.client import AsyncModbusTcpClient, ModbusTcpClient
 
 from softplc.core.image import ImageSizes, parse_address
 from softplc.core.lifecycle import PlcState
-from softplc.core.snapshot import HmiWrite, Status
+from softplc.core.snapshot import ChannelFull, HmiWrite, Status
 from softplc.hmi.map import STATUS_WORDS, status_registers
 from softplc.hmi.server import ModbusSlave
 from tests import support
@@ -259,6 +259,33 @@ def test_a_failing_sink_answers_04_and_the_slave_keeps_serving(source: ImageSour
         assert request(sock, bytes.fromhex("0600000001")) == bytes.fromhex("8604")
         assert request(sock, VALID_READ) == bytes.fromhex("04020000")
 
+
+
+def test_a_full_write_queue_answers_06_busy_in_one_log_line(
+    source: ImageSource, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The scan process does not drain HMI writes (overloaded, not running): the channel
+    refuses at once. Modbus' answer is 06 (busy, retry), as HTTP's 503 and OPC UA's
+    BadResourceUnavailable: not 04 with a traceback per write (issue 39 item 4)."""
+
+    def full_queue(write: HmiWrite) -> None:
+        raise ChannelFull(f"HMI write to {write.address} refused: queue full")
+
+    slave = ModbusSlave(source, full_queue, sizes=source.image.sizes, port=0)
+    with caplog.at_level(logging.INFO, logger="softplc.hmi"), run_in_thread(slave) as handle:
+        c = client(handle)
+        try:
+            answers = [c.write_register(0, 1), c.write_coil(5, True),
+                       c.write_registers(1023, [1, 2]), c.write_coils(0, [True, False])]
+            answers += [c.write_register(7, n) for n in range(20)]
+            assert [(a.isError(), getattr(a, "exception_code", None)) for a in answers] \
+                == [(True, 6)] * len(answers)
+            assert c.read_input_registers(0, count=1).registers == [0]  # reads go on
+        finally:
+            c.close()
+    logged = [r for r in caplog.records if r.name.startswith("softplc.hmi")]
+    assert len(logged) == 1, [r.getMessage() for r in logged]
+    assert logged[0].exc_info is None and "06 (busy)" in logged[0].getMessage()
 
 # --- connections ------------------------------------------------------------------------
 

@@ -138,3 +138,43 @@ async def _named(seen: Collector, name: str) -> bool:
     return name in seen.names()
 
 
+
+
+def test_program_transitions_reach_a_subscription_on_plc(transport_plc: Plc) -> None:
+    """PLC -HasNotifier-> PLC.Program (Part 3): a subscription on PLC receives what its
+    Program raises, SourceNode still the Program (issue 39 item 8; it reached Server only)."""
+    async def body() -> None:
+        async with _client(transport_plc, transport_plc.token) as client:
+            ns = await client.get_namespace_index(NS_URI)
+            program = _node(client, ns, "PLC.Program")
+            seen = Collector()
+            sub = await client.create_subscription(20, seen)
+            await sub.subscribe_events(_node(client, ns, "PLC"), client.get_node(
+                ua.ObjectIds.ProgramTransitionEventType))
+            await _until(lambda: _current(client, ns, "Running"))
+            await program.call_method("0:Suspend")
+            await _until(lambda: _has_all(seen, ["RunningToSuspended"]))
+            event = next(e for e in seen.events if e.Transition.Text == "RunningToSuspended")
+            assert event.SourceNode == program.nodeid
+            await sub.delete()
+
+    asyncio.run(body())
+
+
+def test_a_call_naming_no_method_or_no_object_gets_part4_codes(transport_plc: Plc) -> None:
+    """Part 4 (Call): a MethodId that names no Method is BadMethodInvalid (asyncua answered
+    BadNodeIdInvalid), an ObjectId that names no node BadNodeIdUnknown; nothing changes."""
+    async def body() -> None:
+        async with _client(transport_plc, transport_plc.token) as client:
+            ns = await client.get_namespace_index(NS_URI)
+            program, plc = _node(client, ns, "PLC.Program"), _node(client, ns, "PLC")
+            with pytest.raises(ua.uaerrors.BadMethodInvalid):
+                await program.call_method(string_id("PLC.Program.Explode", ns))
+            with pytest.raises(ua.uaerrors.BadMethodInvalid):  # a variable, not a method
+                await plc.call_method(string_id("PLC.Status.State", ns))
+            with pytest.raises(ua.uaerrors.BadNodeIdUnknown):
+                await _node(client, ns, "PLC.Nowhere").call_method(
+                    string_id("PLC.Program.Suspend", ns))
+            assert await _node(client, ns, "PLC.Status.State").read_value() == "RUNNING"
+
+    asyncio.run(body())
