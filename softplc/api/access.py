@@ -16,11 +16,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import binascii
-import hashlib
 import logging
-import secrets
-import time
-from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
@@ -33,16 +29,21 @@ from softplc.security.backoff import Backoff
 from softplc.security.chainwatch import ChainWatch
 from softplc.security.decide import Authority, Decision, Identity, anonymous
 from softplc.security.refusals import RefusalAudit
+from softplc.security.remembered import (
+    PAIRS_KEPT,
+    PAIRS_S,
+    SESSION_S,
+    SESSIONS_KEPT,
+    Remembered,
+    new_session,
+    pair,
+)
 from softplc.security.roles import Act, Role
 from softplc.security.users import UserStore
 
 log = logging.getLogger(__name__)
 
 COOKIE: Final = "softplc_session"
-SESSION_S: Final = 8 * 3600.0  # a shift
-MAX_SESSIONS: Final = 256
-BASIC_CACHE: Final = 64  # verified user:password pairs kept, so scripts pay scrypt once
-BASIC_CACHE_S: Final = 300.0
 CHALLENGE: Final = {"WWW-Authenticate": 'Bearer realm="softplc"'}
 
 
@@ -75,9 +76,8 @@ class Gate:
         self.anchor: tuple[int, str] | None = None  # the last record this server wrote
         self._owner = owner_token
         self._kdf = asyncio.Semaphore(1)  # one scrypt at a time: 32 MiB and ~0.3 s each
-        self._pepper = secrets.token_bytes(32)
-        self._basic: OrderedDict[bytes, tuple[Identity, float]] = OrderedDict()
-        self._sessions: OrderedDict[str, tuple[Identity, float]] = OrderedDict()
+        self._pairs = Remembered(self.authority, PAIRS_KEPT, PAIRS_S)
+        self._sessions = Remembered(self.authority, SESSIONS_KEPT, SESSION_S)
         self.watch = ChainWatch(self.audit)
         self.refusals = RefusalAudit(self._append)
 
@@ -137,12 +137,8 @@ class Gate:
         hash it was verified with (a changed password is verified again, and fails);
         backing off per user and per peer, every failure audited."""
         keys = (("user", name[:64]), ("peer", request.remote or "?"))
-        stamp = hashlib.sha256(self._pepper + f"{name}\0{password}".encode()).digest()
-        cached = self._basic.pop(stamp, None)
-        if cached is not None and cached[1] > time.monotonic() and \
-                self.authority.role_now(cached[0])[0] is not None:
-            self._basic[stamp] = cached
-            return cached[0]
+        if (known := self._pairs.find(pair(name, password))) is not None:
+            return known
         if (wait_s := self.backoff.wait_s(*keys)) > 0:
             raise await self.throttle(request, name[:32], wait_s)
         async with self._kdf:
@@ -151,9 +147,7 @@ class Gate:
         if who is None:
             raise await self.failure(request, name[:32], "a wrong user name or password", keys)
         self.backoff.succeeded(*keys)
-        self._basic[stamp] = (who, time.monotonic() + BASIC_CACHE_S)
-        while len(self._basic) > BASIC_CACHE:
-            self._basic.popitem(last=False)
+        self._pairs.keep(pair(name, password), who)
         return who
 
     async def throttle(self, request: web.Request, name: str, wait_s: float) -> ApiProblem:
@@ -180,33 +174,19 @@ class Gate:
     # -- sessions (the page's login) ----------------------------------------------------------
 
     def open_session(self, who: Identity) -> str:
-        session = secrets.token_urlsafe(32)
-        self._sessions[hashlib.sha256(session.encode()).hexdigest()] = (
-            who, time.monotonic() + SESSION_S)
-        while len(self._sessions) > MAX_SESSIONS:
-            self._sessions.popitem(last=False)
+        session = new_session()
+        self._sessions.keep(session, who)
         return session
 
     def close_session(self, session: str | None) -> str | None:
-        if not session:
-            return None
-        entry = self._sessions.pop(hashlib.sha256(session.encode()).hexdigest(), None)
-        return entry[0].user if entry else None
+        found = self._sessions.forget(session) if session else None
+        return found.user if found else None
 
     def _session(self, session: str | None) -> Principal | None:
         """A live session's user with their role now: a session whose user was removed or
         whose password (or, for the owner, key) changed is over, at its next request."""
-        if not session:
-            return None
-        digest = hashlib.sha256(session.encode()).hexdigest()
-        entry = self._sessions.get(digest)
-        if entry is None or entry[1] < time.monotonic():
-            return None
-        found = self.principal(entry[0], "session")
-        if found.role is None:
-            del self._sessions[digest]
-            return None
-        return found
+        found = self._sessions.find(session) if session else None
+        return self.principal(found, "session") if found is not None else None
 
     # -- the audit trail ----------------------------------------------------------------------
 

@@ -21,12 +21,13 @@ from typing import Any, Final
 
 from aiohttp import web
 
-from softplc.api.access import COOKIE, SESSION_S, Gate, Principal
+from softplc.api.access import COOKIE, Gate, Principal
 from softplc.api.auditstream import AuditStreams
 from softplc.api.openapi import API_PREFIX
 from softplc.api.problems import ApiProblem, json_body
 from softplc.api.roles import changes_state, route_act
 from softplc.security.audit import parse_since
+from softplc.security.remembered import SESSION_S
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 # Who the guard admitted, for the handler it then runs (the same task).
@@ -165,7 +166,8 @@ class _Routes:
         if name is None or role is None or who.identity is None:
             raise ApiProblem(401, "authentication failed: no user")
         response = web.json_response({"user": name, "role": role.label})
-        response.set_cookie(COOKIE, self._gate.open_session(who.identity), max_age=int(SESSION_S),
+        response.set_cookie(COOKIE, self._gate.open_session(who.identity),
+                            max_age=int(SESSION_S),
                             path="/", httponly=True, samesite="Strict", secure=request.secure)
         await self._gate.record(request, Principal(name, role, "session"), "login", "applied",
                                 200)

@@ -17,11 +17,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import enum
-import hashlib
 import logging
-import secrets
-import time
-from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
@@ -35,6 +31,7 @@ from softplc.opcua.ids import numeric_id
 from softplc.security.audit import AuditTrail
 from softplc.security.backoff import Backoff
 from softplc.security.decide import Authority, Decision, Identity, anonymous
+from softplc.security.remembered import PAIRS_KEPT, PAIRS_S, Remembered, pair
 from softplc.security.roles import Act, Role
 from softplc.security.users import UserStore
 
@@ -44,8 +41,6 @@ log = logging.getLogger(__name__)
 # the role each needs is security/roles.py's COMMAND_ROLES, as for HTTP.
 METHOD_ACTS: Final = {"Start": Act.START, "Suspend": Act.STOP, "Resume": Act.RESUME,
                       "Halt": Act.KILL, "Reset": Act.RESET, "Download": Act.DOWNLOAD}
-VERIFIED_KEPT: Final = 64  # verified name:password pairs: a reconnecting client pays scrypt once
-VERIFIED_S: Final = 300.0
 
 
 @dataclass
@@ -97,8 +92,7 @@ class Users(UserManager):
         self.throttled = 0
         self._owner = owner_token
         self._anonymous = anonymous
-        self._pepper = secrets.token_bytes(32)
-        self._verified: OrderedDict[bytes, tuple[Identity, float]] = OrderedDict()
+        self._verified = Remembered(self.authority, PAIRS_KEPT, PAIRS_S)
         self._kdf: asyncio.Semaphore | None = None
 
     def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
@@ -116,17 +110,10 @@ class Users(UserManager):
     def _user(self, role: UserRole, name: str | None, who: Identity) -> PlcUser:
         return PlcUser(role, name, identity=who, authority=self.authority)
 
-    def _stamp(self, name: str, password: str) -> bytes:
-        return hashlib.sha256(self._pepper + f"{name}\0{password}".encode()).digest()
-
     def _known(self, name: str, password: str) -> Identity | None:
         """The identity of a pair `login` verified lately, while it still holds a role (a
         changed password, a removed user end it)."""
-        entry = self._verified.get(self._stamp(name, password))
-        if entry is None or entry[1] < time.monotonic() or \
-                self.authority.role_now(entry[0])[0] is None:
-            return None
-        return entry[0]
+        return self._verified.find(pair(name, password))
 
     async def login(self, name: str, password: str, peer: str) -> Login:
         """Check `name`/`password` before asyncua activates the session with them."""
@@ -146,9 +133,7 @@ class Users(UserManager):
             self.backoff.failed(*keys)
             return Login.FAILED
         self.backoff.succeeded(*keys)
-        self._verified[self._stamp(name, password)] = (who, time.monotonic() + VERIFIED_S)
-        while len(self._verified) > VERIFIED_KEPT:
-            self._verified.popitem(last=False)
+        self._verified.keep(pair(name, password), who)
         return Login.OK
 
 

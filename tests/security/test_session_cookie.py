@@ -13,8 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from softplc.api.access import COOKIE, SESSION_S
+from softplc.api.access import COOKIE
 from softplc.security.audit import AuditTrail
+from softplc.security.remembered import SESSION_S
 from softplc.security.roles import Role
 from softplc.security.users import UserStore
 from tests.api.conftest import (  # noqa: F401 - plc_parts and scan are pytest fixtures
