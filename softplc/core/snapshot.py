@@ -149,7 +149,8 @@ class SnapshotUnavailable(SoftplcError, RuntimeError):
 class ChannelFull(SoftplcError):
     """A command or HMI write was refused at once because the scan process has not drained its
     queue (the scan is overloaded or not running), or no reply lane is free. Nothing of it is
-    applied. The HTTP API answers 503; the Modbus slave answers 06, busy; OPC UA BadResourceUnavailable."""
+    applied. The HTTP API answers 503, the Modbus slave 06 (busy), OPC UA
+    BadResourceUnavailable."""
 
 
 class NotQueued(SoftplcError, TimeoutError):
