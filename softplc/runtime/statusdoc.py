@@ -110,8 +110,11 @@ def document(loop: LoopView) -> dict[str, Any]:
         "forced": plc.forces.shown(),  # forcing (docs/design.md section 10), typed
         # The operator's page (docs/web.md): structure cached per program, live state.
         "net": netview.structure(net) if net else None,
+        # The net's clock (docs/debug.md, the time rule): while paused it stands at the next
+        # scan's net time, so countdowns and live `why` stand still and agree with a step.
         "net_live": netview.live(net, plc.engine.state if plc.engine else None,
-                                 loop.clock.now_ns(), loop.runner.fired_counts),
+                                 net_now_ns(plc.debug, loop.clock.now_ns()),
+                                 loop.runner.fired_counts),
         # Start-up (docs/faults.md): devices whose first input image has not arrived; while
         # any has not, a RUNNING PLC runs no firing round and its outputs stay safe.
         "waiting_for_io": bool(plc.waiting_io), "waiting_for_devices": list(plc.waiting_io),
@@ -150,3 +153,13 @@ def _records(net: CompiledNet | None, state: NetState | None) -> dict[str, list[
         return {}
     return {net.place_names[p]: [dict(t) for t in records[:20]]
             for p, records in sorted(state.tokens.items()) if records}
+
+
+class _Frozen(Protocol):
+    def frozen_shift(self, now_ns: int) -> int: ...
+
+
+def net_now_ns(debug: _Frozen, now_ns: int) -> int:
+    """The net's time at the clock's `now_ns`: the clock less how far a pause would shift the
+    net's timers were it to end now (0 while not paused)."""
+    return now_ns - debug.frozen_shift(now_ns)
