@@ -14,7 +14,6 @@ import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 from softplc.analysis.analyze import DEFAULT_MAX_STATES, SEMANTICS, analyze
 from softplc.analysis.gate import GATE_MAX_STATES, Verdict, verdict_of, verify
@@ -25,9 +24,8 @@ from softplc.core.symbols import IoImage
 from softplc.program.compiler import compile_file, summarize
 
 
-def add_commands(sub: Any) -> None:
-    an = sub.add_parser("analyze", help="state-space and structural analysis of a program "
-                        "(YAML) or a PNML net")
+def add_analyze(an: argparse.ArgumentParser) -> None:
+    """Each add_* adds a command's arguments to the parser cli/table.py made for it."""
     an.add_argument("net", help="program .yaml or net .pnml")
     an.add_argument("--json", action="store_true", help="print one JSON object")
     an.add_argument("--max-states", type=int, default=DEFAULT_MAX_STATES,
@@ -37,7 +35,9 @@ def add_commands(sub: Any) -> None:
                     help="scan (the PLC's: default for programs) or interleaving (classical "
                     "P/T reachability graph: default for bare PNML nets)")
     an.set_defaults(func=cmd_analyze)
-    ex = sub.add_parser("export", help="write a program as PNML (ISO/IEC 15909-2)")
+
+
+def add_export(ex: argparse.ArgumentParser) -> None:
     ex.add_argument("program", help="program file (YAML) to export")
     ex.add_argument("-o", "--output", required=True, help="the .pnml file to write")
     ex.set_defaults(func=cmd_export)

@@ -29,9 +29,8 @@ _NAME_HELP: Final = "the user's name: 1 to 32 of a-z 0-9 _ -, starting with a le
 _STATE_HELP: Final = "the PLC's state directory, as given to softplc run (default: %(default)s)"
 
 
-def add_admin_commands(subparsers: Any) -> None:
-    users = subparsers.add_parser("users", help="named users with roles (viewer, operator, "
-                                  "engineer, admin) and their API keys, in STATE_DIR/users")
+def add_users(users: argparse.ArgumentParser) -> None:
+    """Each add_* adds a command's arguments to the parser cli/table.py made for it."""
     verbs = users.add_subparsers(dest="verb", required=True, metavar="VERB",
                                  help="add, list, passwd, role, key or remove")
     add = verbs.add_parser("add", help="add a user; the password is read from the terminal "
@@ -55,8 +54,8 @@ def add_admin_commands(subparsers: Any) -> None:
         parser.add_argument("--state-dir", metavar="DIR", default="state", help=_STATE_HELP)
     users.set_defaults(func=cmd_users)
 
-    audit = subparsers.add_parser("audit", help="show the audit trail of STATE_DIR, or check "
-                                  "its hash chain (--verify)")
+
+def add_audit(audit: argparse.ArgumentParser) -> None:
     audit.add_argument("--since", metavar="TIME", default=None,
                        help="records at or after TIME: ISO (2025-03-01T08:00Z; UTC without a "
                        "zone) or a duration back from now (2h) (default: all)")

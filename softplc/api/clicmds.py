@@ -14,35 +14,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Final
 
-from softplc.api.admincmds import add_admin_commands, read_password
 from softplc.api.client import DEFAULT_URL, ApiClient, ApiError, ApiUnreachable
-from softplc.api.openapi import LIFECYCLE_COMMANDS
-from softplc.api.signcmds import add_download_options, add_signing_commands, download_body
-from softplc.api.signcmds import signature_for as signature_of
-from softplc.api.trustcmds import add_trust_commands
-from softplc.core.lifecycle import Command, accepting
-from softplc.program import bundle as bundles
 from softplc.security.auth import TOKEN_ENV
 
 EXIT_OK: Final = 0
 EXIT_REFUSED: Final = 1
 EXIT_UNREACHABLE: Final = 2
 
-_HELP: Final = {
-    "start": "start a downloaded or reset program from its initial marking (after a stop: "
-             "resume, or reset then start)",
-    "stop": "stop the program: outputs safe, marking frozen",
-    "resume": "resume a program stopped while running, with its marking (warm)",
-    "reset": "back to the initial marking, stopped",
-    "kill": "stop at once without committing the scan's outputs",
-}
-
-
-def add_client_commands(subparsers: Any) -> None:
-    """Add the client commands to `subparsers` (from ArgumentParser.add_subparsers())."""
-    download = subparsers.add_parser(
-        "download", help="download a program to a running softplc: the program, its io image "
-        "and subnets in one bundle (docs/programs.md, program bundles)")
+def add_download(download: argparse.ArgumentParser) -> None:
+    """Each add_* adds a command's arguments to the parser cli/table.py made for it."""
     download.add_argument("program", help="program file (YAML); the files it references go "
                           "along; or a bundle (.zip) sent as it is")
     download.add_argument("--online", action="store_true",
@@ -57,40 +37,46 @@ def add_client_commands(subparsers: Any) -> None:
                           help="show what the download would do against the running state "
                           "(kept, new and dropped places with tokens, outputs changing hands, "
                           "accepted or not) and apply nothing (default: off)")
+    from softplc.api.signcmds import add_download_options
     add_download_options(download)  # --sign-key, --version, --signature, --allow-older
     _connection_options(download)
     download.set_defaults(func=cmd_download)
-    upload = subparsers.add_parser(
-        "upload", help="get the running program back as files, byte for byte as downloaded")
+
+
+def add_upload(upload: argparse.ArgumentParser) -> None:
     upload.add_argument("-o", "--output", metavar="DIR", default=".",
                         help="write the files under DIR at their bundle paths, overwriting "
                         "(default: the current directory)")
     _connection_options(upload)
     upload.set_defaults(func=cmd_upload)
-    for command in LIFECYCLE_COMMANDS:
-        parser = subparsers.add_parser(command, help=f"{_HELP[command]} (accepted in "
-                                       f"{accepting(Command(command))})")
-        _connection_options(parser)
-        parser.set_defaults(func=cmd_lifecycle, api_command=command)
-    force = subparsers.add_parser("force", help="force a symbol (input or output) to a value")
+
+
+def add_lifecycle(parser: argparse.ArgumentParser) -> None:
+    """start, stop, resume, reset, kill: the command is the parser's name (args.command)."""
+    _connection_options(parser)
+    parser.set_defaults(func=cmd_lifecycle)
+
+
+def add_force(force: argparse.ArgumentParser) -> None:
     force.add_argument("symbol", help="an input, output or memory symbol of the program")
     force.add_argument("value", help="as the symbol's type takes it: 0/1 or true/false, an "
                        "integer (-3), a decimal (12.5)")
     _connection_options(force)
     force.set_defaults(func=cmd_force)
-    unforce = subparsers.add_parser("unforce", help="release a forced symbol (all without one)")
+
+
+def add_unforce(unforce: argparse.ArgumentParser) -> None:
     unforce.add_argument("symbol", nargs="?", default=None,
                          help="the forced symbol to release (default: every forced symbol)")
     _connection_options(unforce)
     unforce.set_defaults(func=cmd_unforce)
-    status = subparsers.add_parser("status", help="state, program, scans, timing, marking")
+
+
+def add_status(status: argparse.ArgumentParser) -> None:
     status.add_argument("--json", action="store_true",
                         help="print the status as JSON (default: off, a summary)")
     _connection_options(status)
     status.set_defaults(func=cmd_status)
-    add_admin_commands(subparsers)  # users, audit (local files)
-    add_signing_commands(subparsers)  # keys, sign
-    add_trust_commands(subparsers)  # the OPC UA trust list (STATE_DIR/pki)
 
 
 def _connection_options(parser: argparse.ArgumentParser) -> None:
@@ -118,7 +104,7 @@ def _call(args: argparse.Namespace, what: str,
           action: Callable[[ApiClient], dict[str, Any]]) -> tuple[int, dict[str, Any]]:
     """Run `action`, turning failures into a message on stderr and an exit code."""
     try:
-        password = read_password(confirm=False) if args.user else None
+        password = _password() if args.user else None
         client = ApiClient(args.api, args.token, args.timeout, state_dir=args.state_dir,
                            user=args.user, password=password, ca=args.ca)
         return EXIT_OK, action(client)
@@ -138,7 +124,16 @@ def _call(args: argparse.Namespace, what: str,
         return EXIT_UNREACHABLE, {}
 
 
+def _password() -> str:
+    from softplc.api.admincmds import read_password  # users, audit: not every command's cost
+    return read_password(confirm=False)
+
+
 def cmd_download(args: argparse.Namespace) -> int:
+    from softplc.api.signcmds import download_body
+    from softplc.api.signcmds import signature_for as signature_of
+    from softplc.program import bundle as bundles
+
     try:
         blob, _, absent = download_body(args.program)  # a program's bundle, or a bundle zip
         signature = signature_of(args, blob)  # --sign-key [--version], --signature
@@ -190,6 +185,8 @@ def format_plan(plan: dict[str, Any]) -> str:
 
 
 def cmd_upload(args: argparse.Namespace) -> int:
+    from softplc.program import bundle as bundles
+
     code, blob = _call_bytes(args, "upload", lambda client: client.upload())
     if code != EXIT_OK:
         return code
@@ -231,7 +228,7 @@ def said(command: str, reply: dict[str, Any]) -> str:
 
 
 def cmd_lifecycle(args: argparse.Namespace) -> int:
-    command: str = args.api_command
+    command: str = args.command
     code, reply = _call(args, command, lambda client: client.command(command))
     if code == EXIT_OK:
         print(said(command, reply))

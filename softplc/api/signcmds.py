@@ -16,7 +16,7 @@ import os
 import shutil
 import sys
 from pathlib import Path
-from typing import Any, Final
+from typing import Final
 
 from softplc.api.secopts import TRUSTED_DIR
 from softplc.program import bundle as bundles
@@ -31,9 +31,8 @@ def keys_dir() -> Path:
     return Path(base) / "softplc" / "keys"
 
 
-def add_signing_commands(subparsers: Any) -> None:
-    keys = subparsers.add_parser("keys", help="an engineer's Ed25519 keys for signing "
-                                 "programs, and a PLC's trusted keys")
+def add_keys(keys: argparse.ArgumentParser) -> None:
+    """Each add_* adds a command's arguments to the parser cli/table.py made for it."""
     verbs = keys.add_subparsers(dest="verb", required=True, metavar="VERB",
                                 help="new, list or trust")
     new = verbs.add_parser("new", help="make a key pair NAME.key (private, 0600) and NAME.pub "
@@ -51,8 +50,9 @@ def add_signing_commands(subparsers: Any) -> None:
     trust.add_argument("--trusted-keys", metavar="DIR", default=None,
                        help=f"the PLC's --trusted-keys (default: STATE_DIR/{TRUSTED_DIR})")
     keys.set_defaults(func=cmd_keys)
-    sign = subparsers.add_parser("sign", help="sign a program (the bundle softplc download "
-                                 "sends) or a bundle zip with an engineer's key: FILE.sig")
+
+
+def add_sign(sign: argparse.ArgumentParser) -> None:
     sign.add_argument("program", help="a program file (YAML) or a bundle (.zip)")
     sign.add_argument("--key", required=True, help="a private key file, or the NAME of one in "
                       f"{keys_dir()} (required)")

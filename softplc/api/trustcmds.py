@@ -13,7 +13,7 @@ import argparse
 import getpass
 import os
 import sys
-from typing import Any, Final
+from typing import Final
 
 from softplc.security.audit import AuditTrail
 from softplc.security.roles import Role
@@ -27,10 +27,8 @@ EXIT_REFUSED: Final = 1
 _STATE_HELP: Final = "the PLC's state directory, as given to softplc run (default: %(default)s)"
 
 
-def add_trust_commands(subparsers: Any) -> None:
-    trust = subparsers.add_parser(
-        "trust", help="client certificates the OPC UA server (STATE_DIR/pki) or, with --modbus, "
-        "the Modbus/TCP Security port trusts: a refused one waits in rejected/ until accepted")
+def add_trust(trust: argparse.ArgumentParser) -> None:
+    """Add `trust`'s verbs to the parser cli/table.py made for it."""
     verbs = trust.add_subparsers(dest="verb", required=True, metavar="VERB",
                                  help="list, accept or remove")
     verbs.add_parser("list", help="trusted and rejected certificates")

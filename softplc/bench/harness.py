@@ -26,7 +26,7 @@ from typing import Any
 from softplc.bench.measure import Progress
 
 SECTIONS = ("engine", "scan", "simulate", "modbus", "online_change", "restart", "memory",
-            "web", "analysis", "opcua", "isolation")
+            "web", "analysis", "opcua", "isolation", "cli")
 # Run only when named (--only): the watchdog section takes 30 minutes (--quick: 3).
 ON_REQUEST = ("watchdog",)
 
@@ -118,6 +118,11 @@ TARGETS = (
     Target("isolation.scan_p99_ratio_max", "<=", 2,
            "scan p99 lateness under the worst OPC UA or HTTP abuse / without abuse",
            period="1 ms"),
+    Target("cli.status_json_over_bare", "<=", 5,
+           "wall time of `softplc status --json` against a running PLC / the same venv's "
+           "`python -c pass`, medians, same run"),
+    Target("cli.help_over_bare", "<=", 5,
+           "wall time of `softplc --help` / the same venv's `python -c pass`, medians, same run"),
 )
 HEADLINE = (*(t.key for t in TARGETS), "memory.rss_mb")
 
@@ -128,7 +133,7 @@ _MODULES = {"engine": "engine", "scan": "scanbench", "simulate": "simbench",
             "modbus": "modbusbench", "web": "webbench", "opcua": "opcuabench",
             "analysis": "analysisbench", "restart": "restartbench",
             "online_change": "onlinebench", "memory": "memorybench",
-            "watchdog": "watchdogbench", "isolation": "isolationbench"}
+            "watchdog": "watchdogbench", "isolation": "isolationbench", "cli": "clibench"}
 
 
 def _section_runner(name: str) -> Callable[[bool, Progress], dict[str, Any]]:

@@ -1,6 +1,6 @@
 """The CLI of breakpoints and single scans (docs/debug.md): `softplc break add|list|remove|
 clear`, `softplc step [N]`, `softplc continue`, and `softplc simulate --break SPEC [--step N]`;
-`softplc dap` is registered here, its own in runtime/dapserve.py.
+`softplc dap` has its own module, runtime/dapserve.py.
 
 Owns: their arguments, what a person reads, exit codes (0 done, 1 refused, 2 no API).
 Does not know: HTTP (api/client.py), how a pause works (core/breakpoints.py).
@@ -17,11 +17,8 @@ from typing import Any
 from softplc.api.clicmds import EXIT_OK, EXIT_REFUSED, _call, _connection_options, said
 
 
-def add_break_commands(subparsers: Any) -> None:
-    """`break`, `step` and `continue`; `--break` and `--step` on `simulate` when present."""
-    brk = subparsers.add_parser(
-        "break", help="breakpoints: pause the running PLC at the end of the scan in which a "
-        "transition fires or becomes enabled, or a condition becomes true (docs/debug.md)")
+def add_break(brk: argparse.ArgumentParser) -> None:
+    """Each add_* adds a command's arguments to the parser cli/table.py made for it."""
     sub = brk.add_subparsers(dest="break_command", required=True, metavar="VERB",
                              help="add, list, remove or clear")
     add = sub.add_parser("add", help="add a breakpoint")
@@ -48,18 +45,17 @@ def add_break_commands(subparsers: Any) -> None:
     remove.add_argument("id", help="its id (b2 or 2)")
     _connection_options(remove)
     remove.set_defaults(func=cmd_break_remove)
-    step = subparsers.add_parser("step", help="while paused: run exactly N scans, then pause "
-                                 "again (scan count + N)")
+
+
+def add_step(step: argparse.ArgumentParser) -> None:
     step.add_argument("scans", nargs="?", type=int, default=1, help="N (default: 1)")
     _connection_options(step)
     step.set_defaults(func=cmd_step)
-    cont = subparsers.add_parser("continue", help="while paused: run on until a breakpoint "
-                                 "hits")
+
+
+def add_continue(cont: argparse.ArgumentParser) -> None:
     _connection_options(cont)
     cont.set_defaults(func=cmd_continue)
-    _extend_simulate(subparsers)
-    from softplc.runtime.dapserve import add_dap_command
-    add_dap_command(subparsers)  # the same breakpoints from an editor (runtime/dap.py)
 
 
 def _done(args: argparse.Namespace, what: str,
@@ -116,11 +112,9 @@ def cmd_continue(args: argparse.Namespace) -> int:
 
 # -- simulate --break ----------------------------------------------------------------------------
 
-def _extend_simulate(subparsers: Any) -> None:
-    """simulate's debugging options: its parser is cli.py's, the options and their run here."""
-    sim = getattr(subparsers, "choices", {}).get("simulate")
-    if sim is None:
-        return
+def add_simulate_options(sim: argparse.ArgumentParser) -> None:
+    """simulate's debugging options: its parser is cli/local.py's, the options and their run
+    here."""
     sim.add_argument("--break", dest="breaks", action="append", default=[], metavar="SPEC",
                      help="a breakpoint: transition:T (T fires), enabled:T, when:EXPR; the "
                      "simulation ends when the PLC pauses and reports the scan (repeatable; "

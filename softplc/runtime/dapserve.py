@@ -22,11 +22,8 @@ from softplc.runtime.dap import DapSession
 from softplc.runtime.dapwire import WireError, encode, read_message
 
 
-def add_dap_command(subparsers: Any) -> None:
-    dap = subparsers.add_parser(
-        "dap", help="a Debug Adapter Protocol adapter for editors (VS Code): breakpoints on "
-        "the lines of the program's YAML, step a scan, continue, the marking, symbols and why "
-        "of the running PLC at --api (docs/debug.md)")
+def add_dap(dap: argparse.ArgumentParser) -> None:
+    """Add `dap`'s arguments to the parser cli/table.py made for it."""
     dap.add_argument("--port", metavar="N", type=int, default=None,
                      help="serve DAP over TCP on 127.0.0.1:N, one session at a time (0: a free "
                      "port, said on stderr) (default: over stdin and stdout)")

@@ -14,23 +14,17 @@ import argparse
 import json
 import sys
 import urllib.parse
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from softplc.api.clicmds import EXIT_OK, EXIT_REFUSED, _call, _connection_options
-from softplc.core.net import CompiledNet
 from softplc.core.problems import ProgramError
-from softplc.core.why import format_why
-from softplc.program.compiler import compile_file
-from softplc.runtime.tracewalk import why_at
-from softplc.runtime.vcd import write_vcd
+
+if TYPE_CHECKING:
+    from softplc.core.net import CompiledNet
 
 
-def add_commands(subparsers: Any) -> None:
-    """Add `why` and `vcd` to `subparsers` (from ArgumentParser.add_subparsers())."""
-    why = subparsers.add_parser(
-        "why", help="why a transition fires or not: the places short of tokens, the guard "
-        "with the values it read, a delay, a conflict, forces; on a running softplc, or at "
-        "a scan of a trace (docs/debug.md)")
+def add_why(why: argparse.ArgumentParser) -> None:
+    """Each add_* adds a command's arguments to the parser cli/table.py made for it."""
     why.add_argument("transition", help="the transition's name (a subnet's: c1.start)")
     why.add_argument("--trace", metavar="FILE", help="explain a scan of this trace (written "
                      "by run or simulate --trace) instead of the running PLC (default: none)")
@@ -42,18 +36,20 @@ def add_commands(subparsers: Any) -> None:
                      help="print the answer as JSON (default: off, one line per reason)")
     _connection_options(why)
     why.set_defaults(func=cmd_why)
-    vcd = subparsers.add_parser(
-        "vcd", help="export a trace as a VCD file (IEEE 1364 value change dump) for GTKWave "
-        "and other waveform viewers: every symbol and every place's marking, scan by scan")
+
+
+def add_vcd(vcd: argparse.ArgumentParser) -> None:
     vcd.add_argument("trace", help="a JSON Lines trace written by run or simulate --trace")
     vcd.add_argument("program", help="the program the trace was recorded with")
     vcd.add_argument("-o", "--output", metavar="FILE", required=True, help="the VCD file")
     vcd.set_defaults(func=cmd_vcd)
-    from softplc.runtime.breakcli import add_break_commands
-    add_break_commands(subparsers)
 
 
 def _compile(path: str, what: str) -> CompiledNet | None:
+    # Imported here: `why` on a running PLC is a client command and starts without numpy
+    # and the compiler (issue 40).
+    from softplc.program.compiler import compile_file
+
     try:
         return compile_file(path)
     except ProgramError as exc:
@@ -69,6 +65,8 @@ def _show(answer: dict[str, Any], as_json: bool, when: str) -> None:
     if as_json:
         print(json.dumps(answer, sort_keys=True))
         return
+    from softplc.core.why import format_why  # numpy comes with core.why's engine
+
     lines = format_why(answer)
     lines[0] += f" ({when})"
     for line in lines:
@@ -93,6 +91,8 @@ def cmd_why(args: argparse.Namespace) -> int:
     net = _compile(args.program, "why")
     if net is None:
         return EXIT_REFUSED
+    from softplc.runtime.tracewalk import why_at
+
     try:
         why = why_at(args.trace, net, args.transition, args.at_scan)
     except KeyError:
@@ -111,6 +111,8 @@ def cmd_why(args: argparse.Namespace) -> int:
 
 
 def cmd_vcd(args: argparse.Namespace) -> int:
+    from softplc.runtime.vcd import write_vcd
+
     net = _compile(args.program, "vcd")
     if net is None:
         return EXIT_REFUSED

@@ -14,10 +14,10 @@ from softplc.api.clicmds import (
     EXIT_OK,
     EXIT_REFUSED,
     EXIT_UNREACHABLE,
-    add_client_commands,
     format_status,
 )
 from softplc.api.client import ApiClient, ApiError, ApiUnreachable
+from softplc.cli import build_parser
 from softplc.core.lifecycle import PlcState
 from softplc.devices.driver import DeviceUnavailable, ProgramHandlingError
 from softplc.interface.remote import RemoteProgramRefused, RemoteSoftplc
@@ -120,9 +120,7 @@ def test_client_token_from_argument_env_or_state_dir(plc_parts: Plc, scan: ScanT
 
 
 def run_cli(*argv: str) -> int:
-    parser = argparse.ArgumentParser(prog="softplc")
-    add_client_commands(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     code: int = args.func(args)
     return code
 
@@ -199,9 +197,8 @@ def test_cli_token_options(plc_parts: Plc, scan: ScanThread, tmp_path: Path,
 
 
 def test_cli_default_api_url_is_documented() -> None:
-    parser = argparse.ArgumentParser(prog="softplc")
-    sub = parser.add_subparsers(dest="command")
-    add_client_commands(sub)
+    parser = build_parser()
+    (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
     help_text = sub.choices["status"].format_help()
     assert "http://127.0.0.1:8080" in help_text
     assert parser.parse_args(["kill"]).api == "http://127.0.0.1:8080"
