@@ -54,9 +54,9 @@ TARGETS: dict[str, tuple[str, ...]] = {
                                         "tests/runtime/test_retain.py", "-k", "not softplc_run"),
     "softplc/program/bundle.py": ("tests/program/test_limits_download.py", "-k", "bundle"),
     "softplc/security/signing.py": SIGNED,
-    "softplc/security/decide.py": ("tests/security/test_doors.py",),
+    "softplc/security/decide.py": ("tests/security/test_decide.py",),
     "softplc/security/programgate.py": SIGNED[:2],
-    "softplc/security/roles.py": ("tests/security/test_doors.py",),
+    "softplc/security/roles.py": ("tests/security/test_decide.py", "tests/security/test_doors.py"),
 }
 # What a copy of the tree leaves out (the .gitignore's caches, the venv, a run's state).
 IGNORED = (".git", ".venv", "__pycache__", ".hypothesis", ".mypy_cache", ".ruff_cache",

@@ -71,7 +71,7 @@ def anonymous(role: Role | None) -> Identity:
 def granted(who: Identity, act: Act) -> Decision:
     """The decision for an identity whose door grants its role, with no users file to ask
     (a Modbus/TCP Security certificate's role, a Modbus write policy, no credentials);
-    Authority.decide comes here for them too. A proven identity holds nothing here."""
+    Authority.decide holds them to the same rule. A proven identity holds nothing here."""
     if who.via not in GRANTED:
         return Decision(who, act, needs(act), None, "no users file at this door")
     return Decision(who, act, needs(act), who.granted)
@@ -105,9 +105,12 @@ class Authority:
 
     def by_password(self, name: str, password: str) -> Identity | None:
         """The identity of `name` if `password` is theirs. Blocking (scrypt): in a thread."""
-        users = self.known()
-        user = users.get(name)
-        if self.users.verify(name, password) is None or user is None:
+        user = self.known().get(name)
+        try:
+            verified = self.users.verify(name, password)
+        except UserError:  # unusable (logged by known()): nobody but the owner gets in
+            return None
+        if verified is None or user is None:
             return None
         # the hash verified, as read before it: a change in between is caught at the decision
         return Identity(user.name, "password", user.password)
@@ -142,8 +145,6 @@ class Authority:
         return None, f"unknown proof {who.via!r}"
 
     def decide(self, who: Identity, act: Act) -> Decision:
-        if who.via in GRANTED:
-            return granted(who, act)
         role, why = self.role_now(who)
         return Decision(who, act, needs(act), role, why)
 
