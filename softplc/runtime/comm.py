@@ -310,8 +310,9 @@ async def _start_opcua(config: CommConfig, channel: Channel, reader: SnapshotSou
 
 def comm_process_main(config: CommConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: Event, stop: Event) -> None:
-    from softplc.runtime.procs import die_with_parent, exit_now, once
+    from softplc.runtime.procs import die_with_parent, exit_now, name_process, once
 
+    name_process()  # softplc-http, softplc-modbus, ... (supervisor._TITLES)
     serving = _Serving(ready)
 
     def on_stop() -> None:

@@ -55,8 +55,9 @@ def compile_main(config: LoopConfig, conn: Connection,
                  memory_bytes: int = COMPILE_MEMORY_BYTES, cpu_s: float = COMPILE_CPU_S) -> None:
     """Entry point of the compile process: a request in, a Built or an error out, until the
     scan process closes the pipe. A download over the memory or CPU budget is refused."""
-    from softplc.runtime.procs import die_with_parent
+    from softplc.runtime.procs import die_with_parent, name_process
 
+    name_process()  # softplc-compile (CompileProcess.start)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the supervisor's business
     die_with_parent()
     teardown.piecewise(False)  # no scan thread here: temporaries are freed at once

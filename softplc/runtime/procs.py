@@ -1,9 +1,9 @@
 """Helpers every child process of `softplc run` uses.
 
-Owns: ending a child when its supervisor ends (PR_SET_PDEATHSIG), the stop signal and the
-words a child says to the supervisor ("ready", "safe"; safe against a child killed at any
-moment), ending a child at once when its work is done (exit_now), and finding a process's
-children.
+Owns: ending a child when its supervisor ends (PR_SET_PDEATHSIG), each process's name in
+process lists (PR_SET_NAME), the stop signal and the words a child says to the supervisor
+("ready", "safe"; safe against a child killed at any moment), ending a child at once when
+its work is done (exit_now), and finding a process's children.
 Does not know: what the child does.
 """
 
@@ -19,7 +19,11 @@ import time
 from collections.abc import Callable
 from multiprocessing.context import BaseContext
 from pathlib import Path
-from typing import NoReturn, Protocol
+from typing import Final, NoReturn, Protocol
+
+log = logging.getLogger(__name__)
+PR_SET_NAME: Final = 15  # <linux/prctl.h>
+COMM_BYTES: Final = 15  # Linux's comm: 16 bytes with the final NUL
 
 
 def die_with_parent() -> None:
@@ -32,6 +36,25 @@ def die_with_parent() -> None:
         libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
+
+
+def name_process(name: str | None = None) -> None:
+    """Show this process as `name` (at most COMM_BYTES; default: the name it was started
+    under, multiprocessing's Process(name=), which names it for Python only) in `ps -o comm`,
+    `top` and /proc/PID/comm, where every softplc process showed as `python`. A process that
+    cannot be named works the same: logged at debug level, never an error."""
+    if name is None:
+        import multiprocessing
+
+        name = multiprocessing.current_process().name
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_NAME, ctypes.c_char_p(name.encode()[:COMM_BYTES]), 0, 0, 0):
+            raise OSError(ctypes.get_errno(), os.strerror(ctypes.get_errno()))
+    except (OSError, AttributeError) as exc:  # not Linux, no libc, refused
+        log.debug("process name %r not set: %s", name, exc)
 
 
 def children(pid: int) -> list[int]:

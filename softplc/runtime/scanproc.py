@@ -32,8 +32,15 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
                       ready: ReadySignal, stop: Event) -> None:
     """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`.
     Exit codes: 0 stopped, 3 state directory busy, 4 cannot start (program, devices)."""
-    from softplc.runtime.procs import die_with_parent, exit_now, once, supervisor_pid
+    from softplc.runtime.procs import (
+        die_with_parent,
+        exit_now,
+        name_process,
+        once,
+        supervisor_pid,
+    )
 
+    name_process()  # softplc-scan (Supervisor.start_scan)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, once(stop.set))
     die_with_parent()

@@ -58,9 +58,10 @@ class GaveUp(SoftplcError, RuntimeError):
     """The scan process died too often: the supervisor stops instead of looping."""
 
 
-# What each service process is called in process lists and in what the supervisor says.
+# What each service process is called in process lists (at most procs.COMM_BYTES) and in
+# what the supervisor says.
 _TITLES: Final = {"modbus": ("softplc-modbus", "Modbus process"),
-                  "modbus-tls": ("softplc-modbustls", "Modbus/TCP Security process"),
+                  "modbus-tls": ("softplc-mbtls", "Modbus/TCP Security process"),
                   "http": ("softplc-http", "HTTP process"),
                   "opcua": ("softplc-opcua", "OPC UA process")}
 
