@@ -12,6 +12,12 @@ DEV_STAMP := $(VENV)/.installed-dev
 BENCH_STAMP := $(VENV)/.installed-bench
 PROGRAM ?= programs/transport.yaml
 PLANT ?= transport
+# `make run`'s endpoints (HOST:PORT, IPv6 in brackets: API=[::1]:8080; off turns one off),
+# and ARGS for any other `softplc run` flag (ARGS='--tls on --period 1ms').
+MODBUS ?= 127.0.0.1:5020
+API ?= 127.0.0.1:8080
+OPCUA ?= 127.0.0.1:4840
+ARGS ?=
 
 .PHONY: setup run test lint bench fuzz mutate shell clean
 
@@ -36,7 +42,8 @@ $(BENCH_STAMP): pyproject.toml $(RUN_STAMP)
 # The simulated plant restarts with the PLC, so the demo resumes warm after a Ctrl-C; a PLC
 # next to a real machine keeps the default boot policy, stop (docs/retain.md).
 run: $(RUN_STAMP)
-	$(VENV)/bin/softplc run $(PROGRAM) --plant $(PLANT) --start --boot-policy warm
+	$(VENV)/bin/softplc run $(PROGRAM) --plant $(PLANT) --start --boot-policy warm \
+		--modbus '$(MODBUS)' --api '$(API)' --opcua '$(OPCUA)' $(ARGS)
 
 # The suite starts a few hundred interpreters (softplc run: supervisor, scan, service and
 # compile processes). Their bytecode compiled once here (incremental: changed files only) is

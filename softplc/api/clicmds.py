@@ -14,7 +14,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Final
 
-from softplc.api.client import DEFAULT_URL, ApiClient, ApiError, ApiUnreachable
+from softplc.api.client import (
+    DEFAULT_URL,
+    URL_ENV,
+    ApiClient,
+    ApiError,
+    ApiUnreachable,
+    default_url,
+)
 from softplc.security.auth import TOKEN_ENV
 
 EXIT_OK: Final = 0
@@ -80,8 +87,9 @@ def add_status(status: argparse.ArgumentParser) -> None:
 
 
 def _connection_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--api", metavar="URL", default=DEFAULT_URL,
-                        help="the softplc's HTTP API (default: %(default)s)")
+    parser.add_argument("--api", metavar="URL", default=default_url(),
+                        help=f"the softplc's HTTP API (default: ${URL_ENV}, else "
+                        f"{DEFAULT_URL})")
     parser.add_argument("--token", default=None,
                         help=f"an API key (softplc users key NAME) (default: ${TOKEN_ENV}, "
                         "else --state-dir's api_token, else that of this account's server at "

@@ -29,6 +29,7 @@ from softplc.core.errors import SoftplcError
 from softplc.security import auth, tls
 
 DEFAULT_URL: Final = "http://127.0.0.1:8080"
+URL_ENV: Final = "SOFTPLC_API"  # every client command's --api default (docs/api.md)
 API: Final = "/api/v1"
 _SILENCE_S: Final = 30.0  # two server heartbeats
 DOWNLOAD_TIMEOUT_S: Final = 65.0  # the server waits up to 60 s for a big compile
@@ -39,6 +40,11 @@ NOT_SENT_WINDOW_S: Final = 1.0
 NOT_SENT_RETRY_S: Final = 0.1
 CA_ENV: Final = "SOFTPLC_API_CA"
 SIGNATURE_HEADER: Final = "X-Softplc-Signature"  # api/signed.py reads it
+
+
+def default_url() -> str:
+    """The API a client command talks to without --api: $SOFTPLC_API, else DEFAULT_URL."""
+    return os.environ.get(URL_ENV) or DEFAULT_URL
 
 
 class ApiError(SoftplcError):

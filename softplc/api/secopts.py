@@ -52,7 +52,8 @@ def _modbus_tls(text: str) -> tuple[str, int] | None:
 def prepare(args: argparse.Namespace) -> str | None:
     """Check the options, make the certificate when TLS is on and none is there, and write
     them for the HTTP service; the first problem as one line, or None. Sets `args.api_scheme`
-    (http or https) and `args.api_tls` (the certificate in words) for the banner."""
+    (http or https), `args.api_tls` (the certificate in words) and `args.api_cert` (its
+    absolute path, "" without TLS) for the banner."""
     cert, key = getattr(args, "tls_cert", None), getattr(args, "tls_key", None)
     if bool(cert) != bool(key):
         return "--tls-cert and --tls-key go together"
@@ -65,12 +66,12 @@ def prepare(args: argparse.Namespace) -> str | None:
     tls = TlsSettings(getattr(args, "tls", "auto"), _absolute(cert), _absolute(key))
     settings = SecuritySettings(tls, _absolute(trusted))
     api = getattr(args, "api", None)
-    args.api_scheme, args.api_tls = "http", ""
+    args.api_scheme, args.api_tls, args.api_cert = "http", "", ""
     try:
         if api and tls.wanted(api[0]):  # made and checked here: a bad file stops the start
             cert_path, key_path, made = certificate(tls, Path(args.state_dir), api[0])
             server_context(cert_path, key_path)
-            args.api_scheme = "https"
+            args.api_scheme, args.api_cert = "https", str(cert_path.resolve())
             args.api_tls = (f"{'new ' if made else ''}certificate {cert_path}, SHA-256 "
                             f"{fingerprint(cert_path)}")
         save(Path(args.state_dir), settings)

@@ -147,7 +147,8 @@ class ApiServer:
             self._indexed = auth.register_server(self.bound_port, self.state_dir)
         await self.gate.chain()  # the first check of the audit chain starts now, in a thread
         log.info("HTTP API on %s://%s:%d (without credentials: %s)",
-                 "https" if self.tls_cert else "http", self.host, self.bound_port,
+                 "https" if self.tls_cert else "http",
+                 f"[{self.host}]" if ":" in self.host else self.host, self.bound_port,
                  "nothing" if self.token_required else "read only")
 
     async def stop(self) -> None:

@@ -31,9 +31,14 @@ def count(text: str) -> int:
 
 
 def endpoint(text: str) -> tuple[str, int] | None:
+    """HOST:PORT, the host as a socket takes it: an IPv6 address is written in brackets
+    ([::1]:8080, RFC 3986) and bound without them."""
     if text in ("off", "none"):
         return None
     host, _, port = text.rpartition(":")
-    if not port.isdigit():
-        raise argparse.ArgumentTypeError(f"expected HOST:PORT or off, got {text!r}")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    if not port.isdigit() or "[" in host or "]" in host:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT ([::1]:PORT for IPv6) or off, "
+                                         f"got {text!r}")
     return (host or "127.0.0.1", int(port))

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import shlex
 import signal
 import socket
 import sys
@@ -27,6 +28,7 @@ from softplc.api import secopts
 from softplc.core.problems import ProgramError
 from softplc.program.compiler import compile_file
 from softplc.runtime.leftovers import remove_stale_segments
+from softplc.runtime.procs import name_process
 from softplc.runtime.retain import StateDirBusy, check_state_dir
 from softplc.runtime.runner import plant_conflict
 from softplc.runtime.sdnotify import Notifier
@@ -38,6 +40,7 @@ from softplc.runtime.supervisor import (
     Supervisor,
 )
 from softplc.security import preflight
+from softplc.security.auth import TOKEN_FILE, is_loopback
 
 EXIT_OK, EXIT_START, EXIT_USAGE, EXIT_GAVE_UP = 0, 1, 2, 3
 BOOT_POLICIES = ("stop", "warm", "cold")  # docs/retain.md, boot policy
@@ -53,16 +56,42 @@ def status_line(doc: dict[str, Any]) -> str:
             f"overruns={timing.get('overruns', 0)} marked={marked}")
 
 
+def host_port(host: str, port: int) -> str:
+    """HOST:PORT as URLs and `--api` write it: an IPv6 address in brackets ([::1]:8080)."""
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
 def _port_in_use(endpoint: tuple[str, int] | None) -> str | None:
     if endpoint is None or endpoint[1] == 0:
         return None
-    with socket.socket() as probe:
+    with socket.socket(socket.AF_INET6 if ":" in endpoint[0] else socket.AF_INET) as probe:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind(endpoint)
         except OSError as exc:
-            return f"{endpoint[0]}:{endpoint[1]}: {exc.strerror}"
+            return f"{host_port(*endpoint)}: {exc.strerror}"
     return None
+
+
+def try_api(args: argparse.Namespace) -> list[str]:
+    """A curl command for the API's status that works as printed, on this machine: a
+    wildcard bind asked on loopback, an https one verified against the PLC's certificate,
+    the owner's key sent where a key is needed (a bind that is not loopback: auth.py)."""
+    host, port = args.api
+    host = {"": "127.0.0.1", "0.0.0.0": "127.0.0.1", "::": "::1"}.get(host, host)
+    scheme = getattr(args, "api_scheme", "http")
+    command = ["curl", "-sS"]
+    if cert := getattr(args, "api_cert", ""):
+        command += ["--cacert", cert]
+    if not is_loopback(args.api[0]):
+        token = (Path(args.state_dir) / TOKEN_FILE).resolve()
+        command += ["-H", f"Authorization: Bearer $(cat {shlex.quote(str(token))})"]
+    return [*command, f"{scheme}://{host_port(host, port)}/api/v1/status"]
+
+
+def _shell_words(command: list[str]) -> str:
+    """`command` to paste into a shell: a header that reads a file stays in double quotes."""
+    return " ".join(f'"{word}"' if "$(" in word else shlex.quote(word) for word in command)
 
 
 def _startup_problem(args: argparse.Namespace) -> str | None:
@@ -167,6 +196,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:  # --rt-priority or --scan-cpu out of range
         print(f"softplc: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    name_process("softplc")  # `python` in ps when started as `python -m softplc`
     stopping = False
 
     def on_signal(signum: int, frame: object) -> None:
@@ -249,12 +279,10 @@ def _banner(args: argparse.Namespace, doc: dict[str, Any]) -> None:
         print(f"  Modbus TCP slave on {host}:{port}; try: "
               f"mbpoll -m tcp -p {port} -a 1 -0 -1 -t 0 -r 0 -c 8 {host}")
     if args.api:
-        host, port = args.api
-        url = f"{getattr(args, 'api_scheme', 'http')}://{host}:{port}"
-        print(f"  HTTP API on {url}; try: curl -s {url}/api/v1/status"
-              + (f"\n  TLS: {args.api_tls} (curl --cacert it)" if getattr(args, "api_tls", "")
-                 else ""))
+        print(f"  HTTP API on {getattr(args, 'api_scheme', 'http')}://{host_port(*args.api)}; "
+              f"try: {_shell_words(try_api(args))}"
+              + (f"\n  TLS: {args.api_tls}" if getattr(args, "api_tls", "") else ""))
     if getattr(args, "opcua", None):
-        host, port = args.opcua
-        print(f"  OPC UA server on opc.tcp://{host}:{port} (writes and methods: user token)")
+        print(f"  OPC UA server on opc.tcp://{host_port(*args.opcua)} (writes and methods: "
+              "user token)")
     print("  Ctrl-C stops (outputs to their safe values first)", flush=True)
