@@ -154,14 +154,12 @@ def compile_condition(text: str, net: CompiledNet) -> tuple[Compiled, dict[str, 
                 return node
             arg = node.args[0] if len(node.args) == 1 and not node.keywords else None
             if not (isinstance(arg, ast.Constant) and isinstance(arg.value, str)):
-                raise ExprError('m() takes one place name in quotes: m("c1.full")',
-                                node.col_offset)
+                raise ExprError('m() takes one place name in quotes: m("c1.full")')
             place = arg.value
             if place not in net.place_index:
                 near = difflib.get_close_matches(place, net.place_names, 1)
                 raise ExprError(f"unknown place {place!r} in program {net.name}"
-                                + (f" (did you mean {near[0]!r}?)" if near else ""),
-                                node.col_offset)
+                                + (f" (did you mean {near[0]!r}?)" if near else ""))
             if place not in by_place:
                 n = len(by_place)
                 while f"m{n}" in taken:

@@ -32,12 +32,13 @@ MAX_STR = 256  # characters of a text value (core/values.py MAX_TEXT: the same l
 
 
 class ExprError(SoftplcError, ValueError):
-    """An expression that is not in the language. `col` is 0-based within the text."""
+    """An expression that is not in the language. The message names what is wrong (the name,
+    operator or constant), and the problem that reports it quotes the expression: a column
+    would add nothing there (issue 43), so none is kept."""
 
-    def __init__(self, message: str, col: int = 0) -> None:
+    def __init__(self, message: str) -> None:
         super().__init__(message)
         self.message = message
-        self.col = col
 
 
 class NameKind(enum.Enum):
@@ -112,35 +113,32 @@ class _Compiler:
         self.edges: set[str] = set()
         self.tokens: set[str] = set()
 
-    def fail(self, node: ast.AST, message: str) -> ExprError:
-        return ExprError(message, getattr(node, "col_offset", 0))
-
     def build(self, node: ast.AST) -> Thunk:
         method: Callable[[Any], Thunk] | None = getattr(self, "on_" + type(node).__name__, None)
         if method is None:
-            raise self.fail(node, f"{_describe(node)} is not allowed in an expression")
+            raise ExprError(f"{_describe(node)} is not allowed in an expression")
         return method(node)
 
     def on_Constant(self, node: ast.Constant) -> Thunk:
         value = node.value
         if isinstance(value, float):
             if not math.isfinite(value):
-                raise self.fail(node, f"constant {value!r} is not a finite number")
+                raise ExprError(f"constant {value!r} is not a finite number")
             return lambda ctx: value
         if isinstance(value, bool | int | str) and not isinstance(value, bytes):
             if isinstance(value, int) and not isinstance(value, bool) and not (
                     -INT_LIMIT < value < INT_LIMIT):
-                raise self.fail(node, f"integer {value} is out of range (at most 2**63 - 1)")
+                raise ExprError(f"integer {value} is out of range (at most 2**63 - 1)")
             if isinstance(value, str) and len(value) > MAX_STR:
-                raise self.fail(node, f"text of {len(value)} characters (at most {MAX_STR})")
+                raise ExprError(f"text of {len(value)} characters (at most {MAX_STR})")
             return lambda ctx: value
-        raise self.fail(node, f"constant {value!r} is not allowed: "
+        raise ExprError(f"constant {value!r} is not allowed: "
                               "use numbers, true/false or 'text'")
 
     def on_Name(self, node: ast.Name) -> Thunk:
         name = node.id
         if name.startswith("_"):
-            raise self.fail(node, f"name {name!r} is not allowed (no leading underscore)")
+            raise ExprError(f"name {name!r} is not allowed (no leading underscore)")
         if name in self.scope.consts:
             const = self.scope.consts[name]
             return lambda ctx: const
@@ -149,9 +147,9 @@ class _Compiler:
             if name in _CONSTS:
                 literal = _CONSTS[name]
                 return lambda ctx: literal
-            raise self.fail(node, f"unknown name {name!r}: not a symbol, event or token variable")
+            raise ExprError(f"unknown name {name!r}: not a symbol, event or token variable")
         if kind is NameKind.TOKEN:
-            raise self.fail(node, f"token variable {name!r} needs a field, e.g. {name}.id")
+            raise ExprError(f"token variable {name!r} needs a field, e.g. {name}.id")
         self.reads.add(name)
         if kind is NameKind.EVENT:
             return lambda ctx: ctx.event(name)
@@ -162,13 +160,13 @@ class _Compiler:
     def on_Attribute(self, node: ast.Attribute) -> Thunk:
         base = node.value
         if not isinstance(base, ast.Name) or self.scope.names.get(base.id) is not NameKind.TOKEN:
-            raise self.fail(node, "attribute access is only allowed as <token variable>.<field>")
+            raise ExprError("attribute access is only allowed as <token variable>.<field>")
         var, attr = base.id, node.attr
         if attr.startswith("_"):
-            raise self.fail(node, f"field {attr!r} is not allowed (no leading underscore)")
+            raise ExprError(f"field {attr!r} is not allowed (no leading underscore)")
         allowed = (self.scope.token_fields or {}).get(var)
         if self.scope.token_fields is not None and allowed is not None and attr not in allowed:
-            raise self.fail(node, f"token variable {var!r} has no field {attr!r}")
+            raise ExprError(f"token variable {var!r} has no field {attr!r}")
         self.tokens.add(var)
 
         def field_of(ctx: EvalContext) -> Value:
@@ -193,7 +191,7 @@ class _Compiler:
             return lambda ctx: checked(-as_number(inner(ctx)))
         if isinstance(node.op, ast.UAdd):
             return lambda ctx: as_number(inner(ctx))
-        raise self.fail(node, "operator ~ is not allowed; use 'not' or arithmetic")
+        raise ExprError("operator ~ is not allowed; use 'not' or arithmetic")
 
     def on_BinOp(self, node: ast.BinOp) -> Thunk:
         op = BINOPS.get(type(node.op))
@@ -201,7 +199,7 @@ class _Compiler:
             symbol = {ast.Pow: "**", ast.LShift: "<<", ast.RShift: ">>"}.get(
                 type(node.op), type(node.op).__name__
             )
-            raise self.fail(node, f"operator {symbol} is not allowed")
+            raise ExprError(f"operator {symbol} is not allowed")
         left, right = self.build(node.left), self.build(node.right)
         return lambda ctx: checked(op(as_number(left(ctx)), as_number(right(ctx))))
 
@@ -210,7 +208,7 @@ class _Compiler:
         for op in node.ops:
             fn = _CMPOPS.get(type(op))
             if fn is None:
-                raise self.fail(node, f"comparison {type(op).__name__} is not allowed")
+                raise ExprError(f"comparison {type(op).__name__} is not allowed")
             ops.append(fn)
         operands = [self.build(node.left), *(self.build(c) for c in node.comparators)]
 
@@ -227,10 +225,10 @@ class _Compiler:
     def on_Call(self, node: ast.Call) -> Thunk:
         if not isinstance(node.func, ast.Name) or node.func.id not in _FUNCS:
             allowed = ", ".join(sorted(_FUNCS))
-            raise self.fail(node, f"only these functions may be called: {allowed}")
+            raise ExprError(f"only these functions may be called: {allowed}")
         name = node.func.id
         if node.keywords or len(node.args) != _FUNCS[name]:
-            raise self.fail(node, f"{name}() takes {_FUNCS[name]} positional argument(s)")
+            raise ExprError(f"{name}() takes {_FUNCS[name]} positional argument(s)")
         if name in ("rising", "falling"):
             return self._edge(node, name == "rising")
         args = [self.build(a) for a in node.args]
@@ -245,7 +243,7 @@ class _Compiler:
     def _edge(self, node: ast.Call, rising: bool) -> Thunk:
         arg = node.args[0]
         if not isinstance(arg, ast.Name) or self.scope.names.get(arg.id) is not NameKind.BOOL:
-            raise self.fail(node, "rising()/falling() take the name of a bool symbol")
+            raise ExprError("rising()/falling() take the name of a bool symbol")
         name = arg.id
         self.reads.add(name)
         self.edges.add(name)
@@ -282,7 +280,7 @@ def parse(text: str) -> ast.expr:
     try:
         tree = ast.parse(text.strip(), mode="eval")
     except SyntaxError as exc:
-        raise ExprError(f"syntax error: {exc.msg}", max((exc.offset or 1) - 1, 0)) from None
+        raise ExprError(f"syntax error: {exc.msg}") from None
     count = sum(1 for _ in ast.walk(tree))
     if count > MAX_NODES:
         raise ExprError(f"expression too complex ({count} nodes, at most {MAX_NODES})")

@@ -157,7 +157,4 @@ def accepting(command: Command) -> str:
         names = [PlcState.STOPPED.name]
     else:
         names = []
-    names = sorted(names + [s.label for s in stages])
-    if command is Command.DOWNLOAD and "RUNNING" not in names:
-        names.append("RUNNING (online change)")
-    return ", ".join(names) or "no state"
+    return ", ".join(sorted(names + [s.label for s in stages])) or "no state"

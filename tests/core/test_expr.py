@@ -137,8 +137,15 @@ def test_token_fields() -> None:
 
 def test_token_field_missing_at_run_time_is_an_error_not_a_value() -> None:
     compiled = compile_expr("tok.weight > 1", SCOPE)
-    with pytest.raises(KeyError):
+    with pytest.raises(KeyError, match="token bound to 'tok' has no field 'weight'"):
         compiled(CTX)
+
+
+def test_a_text_constant_is_at_most_256_characters() -> None:
+    """Written out, not from MAX_STR: the same bound as a text value (core/values.py)."""
+    assert run(f"tok.name != '{'x' * 256}'") is True
+    with pytest.raises(ExprError, match=r"^text of 257 characters \(at most 256\)$"):
+        compile_expr(f"tok.name == '{'x' * 257}'", SCOPE)
 
 
 def test_token_fields_can_be_restricted_at_compile_time() -> None:

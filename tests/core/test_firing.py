@@ -952,6 +952,46 @@ transitions:
     assert tokens[net.place_index["right"]] == [{"id": 1}]
 
 
+def test_a_token_a_higher_priority_transition_bound_is_not_bound_again(tmp_path: Path) -> None:
+    """Issue 43: both transitions would bind the oldest part (no guard picks another); the
+    first one's binding reserves it, so the second takes the next part: no token is
+    consumed twice in one round."""
+    net = compile_program(tmp_path, """
+places:
+  parts: {tokens: [{id: 1}, {id: 2}]}
+  left: {coloured: true}
+  right: {coloured: true}
+transitions:
+  pick_first: {from: [{place: parts, var: k}], to: [{place: left, token: k}], priority: 1}
+  pick_any: {from: [{place: parts, var: k}], to: [{place: right, token: k}]}
+""")
+    engine = Engine(net)
+    assert fired_names(net, engine.fire_round(Ctx(), 0)) == ["pick_first", "pick_any"]
+    tokens, at = engine.state.tokens, net.place_index
+    assert (tokens[at["left"]], tokens[at["right"]]) == ([{"id": 1}], [{"id": 2}])
+    assert tokens.get(at["parts"], []) == []
+
+
+def test_a_plain_arc_from_a_coloured_place_reserves_the_oldest_free_token(tmp_path: Path) -> None:
+    """A coloured transition with a plain arc from a coloured place takes its oldest free
+    token: a lower-priority transition binding from that place gets the next one."""
+    net = compile_program(tmp_path, """
+places:
+  parts: {tokens: [{id: 1}]}
+  lids: {tokens: [{id: 10}, {id: 20}]}
+  done: {coloured: true}
+  spare: {coloured: true}
+transitions:
+  close: {from: [{place: parts, var: k}, lids], to: [{place: done, token: k}], priority: 1}
+  grab: {from: [{place: lids, var: l}], to: [{place: spare, token: l}]}
+""")
+    engine = Engine(net)
+    assert fired_names(net, engine.fire_round(Ctx(), 0)) == ["close", "grab"]
+    tokens, at = engine.state.tokens, net.place_index
+    assert (tokens[at["done"]], tokens[at["spare"]]) == ([{"id": 1}], [{"id": 20}])
+    assert tokens.get(at["lids"], []) == []
+
+
 def test_guard_on_a_bit_the_program_sets_fires(tmp_path: Path) -> None:
     net = compile_program(tmp_path, """
 places:

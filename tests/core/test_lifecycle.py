@@ -191,3 +191,44 @@ def test_every_way_out_of_running_but_stop_forgets_it_was_suspended(net: Compile
         assert bench.plc.stage is S.READY
         (reply,) = bench.scan(1010, [ProgramCommand(C.START, id=1)]).replies
         assert reply.ok and bench.plc.state is PlcState.RUNNING
+
+
+@pytest.mark.parametrize("cmd", [C.STEP, C.CONTINUE], ids=lambda c: c.value)
+def test_step_and_continue_while_running_but_not_paused_are_refused_naming_the_pause(
+        net: CompiledNet, cmd: Command) -> None:
+    """Issue 43: the refusal's text was untested. The state stays RUNNING, nothing paused."""
+    bench = bench_at(S.RUNNING, net)
+    (reply,) = bench.scan(1000, [ProgramCommand(cmd, id=7)]).replies
+    assert (reply.ok, reply.state, bench.plc.stage) == (False, PlcState.RUNNING, S.RUNNING)
+    assert reply.message == (
+        f"{cmd.value} is not accepted in state RUNNING (not paused) (accepted in RUNNING "
+        "(paused at a breakpoint)): set a breakpoint (softplc break add)")
+
+
+@pytest.mark.parametrize("stage", [S.EMPTY, S.READY, S.KILLED], ids=lambda s: s.name)
+def test_step_outside_running_is_refused_as_no_pause(net: CompiledNet, stage: Stage) -> None:
+    bench = bench_at(stage, net)
+    (reply,) = bench.scan(1000, [ProgramCommand(C.STEP, id=8)]).replies
+    assert not reply.ok and bench.plc.stage is stage
+    assert reply.message.startswith(
+        f"step is not accepted in state {stage.state.name} (no pause) (accepted in RUNNING "
+        "(paused at a breakpoint))")
+
+
+def test_the_states_each_command_is_accepted_in_as_refusals_name_them() -> None:
+    """Written out, so that a change to the table shows in the refusals people read. A
+    download is accepted in every state (RUNNING: an online change), so nothing names it."""
+    assert {c.value: accepting(c) for c in Command} == {
+        "download": "EMPTY, FAULTED, KILLED, RUNNING, STOPPED",
+        "start": "STOPPED (ready: initial marking)",
+        "stop": "RUNNING",
+        "resume": "STOPPED (stopped while running: marking kept)",
+        "reset": "FAULTED, KILLED, STOPPED",
+        "kill": "FAULTED, RUNNING, STOPPED",
+        "force": "FAULTED, KILLED, RUNNING, STOPPED (any state with a program loaded)",
+        "unforce": "every state",
+        "break": "FAULTED, KILLED, RUNNING, STOPPED (any state with a program loaded)",
+        "unbreak": "every state",
+        "step": "RUNNING (paused at a breakpoint)",
+        "continue": "RUNNING (paused at a breakpoint)",
+    }

@@ -7,7 +7,6 @@ import pytest
 from softplc.core.image import Area, parse_address
 from softplc.core.snapshot import HmiWrite
 from softplc.hmi.frames import (
-    MAX_LENGTH,
     Adu,
     FramingError,
     Responder,
@@ -83,7 +82,30 @@ def test_split_adu_waits_for_whole_frames_and_walks_a_pipeline() -> None:
     assert split_adu(two, end2) == (None, end2)
 
 
-@pytest.mark.parametrize("length", [0, 1, MAX_LENGTH + 1, 0xFFFF])
+# Written out, not from the constants: a bound that moves with its constant tests nothing.
+@pytest.mark.parametrize("length", [0, 1, 255, 0xFFFF])
 def test_split_adu_rejects_impossible_lengths(length: int) -> None:
-    with pytest.raises(FramingError):
+    with pytest.raises(FramingError, match=f"MBAP length {length} is not in 2..254"):
         split_adu(b"\x00\x01\x00\x00" + length.to_bytes(2, "big") + b"\x01\x03")
+
+
+def test_the_smallest_legal_frame_unit_id_and_function_code_is_answered(
+        source: ImageSource) -> None:
+    """MBAP length 2: a unit id and a function code, no data. A gateway may send it; the
+    slave answers it with an exception (03: the request's data is missing), never a close."""
+    frame = bytes.fromhex("0007 0000 0002 11 03")
+    request, end = split_adu(frame + frame)
+    assert request == Adu(7, 0, 0x11, b"\x03") and end == 8
+    assert split_adu(frame + frame, end) == (request, 16)
+    r = responder(source)
+    assert r.answer(request) == bytes.fromhex("0007 0000 0003 11 8303")
+    assert r.answer(Adu(8, 0, 1, b"\x2b")) == bytes.fromhex("0008 0000 0003 01 ab01")
+
+
+def test_the_largest_legal_frame_253_bytes_of_pdu_is_split() -> None:
+    """MBAP length 254: a unit id and a PDU of 253 bytes (ADU 260 bytes, the spec's bound)."""
+    pdu = bytes([0x10]) + bytes(252)
+    frame = bytes.fromhex("0001 0000 00fe 01") + pdu
+    assert len(frame) == 260
+    assert split_adu(frame) == (Adu(1, 0, 1, pdu), 260)
+    assert split_adu(frame[:-1]) == (None, 0)  # one byte short: wait for it
