@@ -30,7 +30,7 @@ from pathlib import Path
 from softplc.bench.mutants import Mutant, mutated, sample, unmutated
 
 LIFECYCLE = ("tests/core/test_lifecycle.py", "tests/core/test_scan.py",
-             "tests/core/test_startup.py", "tests/core/test_faults.py")
+             "tests/core/test_startup.py", "tests/core/test_faults.py", "tests/test_contracts.py")
 ENGINE = ("tests/core/test_steps.py", "tests/core/test_limits.py",
           "tests/core/test_firing.py", "tests/core/test_engine_oracle.py")
 SIGNED = ("tests/security/test_programgate.py", "tests/security/test_rollback.py",
@@ -47,7 +47,8 @@ TARGETS: dict[str, tuple[str, ...]] = {
                              "tests/program/test_wire.py"),
     "softplc/hmi/frames.py": ("tests/hmi/test_frames.py",),
     "softplc/hmi/map.py": ("tests/hmi/test_map.py", "tests/hmi/test_frames.py",
-                           "tests/hmi/test_eng_registers.py", "tests/hmi/test_long_registers.py"),
+                           "tests/hmi/test_eng_registers.py", "tests/hmi/test_long_registers.py",
+                           "tests/test_contracts.py"),
     "softplc/runtime/retain_codec.py": ("tests/runtime/test_typed_hold.py",
                                         "tests/runtime/test_retain_store.py",
                                         "tests/runtime/test_retain_per_variable.py",
