@@ -4,4 +4,5 @@ import sys
 
 from softplc.cli import main
 
-sys.exit(main())
+if __name__ == "__main__":  # imported (tests walk every module): nothing runs
+    sys.exit(main())
