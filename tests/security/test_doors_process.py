@@ -28,7 +28,13 @@ from softplc.security.audit import AuditTrail
 from softplc.security.roles import Role
 from softplc.security.users import UserStore
 from tests.api.helpers import call
-from tests.opcua.conftest import Plc, patient_client, start_plc, stop_plc
+from tests.opcua.conftest import (  # noqa: F401 - transport_plc is a pytest fixture
+    Plc,
+    patient_client,
+    start_plc,
+    stop_plc,
+    transport_plc,
+)
 from tests.support import free_port, softplc_run
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -63,14 +69,6 @@ def _text(value: str) -> ua.Variant:
 def _download_args(signature: str = "") -> list[ua.Variant]:
     return [_text(DRILLING), ua.Variant(True, ua.VariantType.Boolean), _text("drilling.yaml"),
             _text(signature)]
-
-
-@pytest.fixture
-def keys(tmp_path: Path) -> Path:
-    directory = tmp_path / "keys"
-    for name in ("alice", "mallory"):
-        signing.new_key_pair(directory, name)
-    return directory
 
 
 @pytest.fixture
@@ -173,20 +171,11 @@ def test_a_removed_or_demoted_users_open_opcua_session_loses_its_rights(
         stop_plc(plc.proc)
 
 
-@pytest.fixture
-def plain_plc(tmp_path: Path) -> Iterator[Plc]:
-    plc = start_plc("programs/transport.yaml", tmp_path)
-    try:
-        yield plc
-    finally:
-        stop_plc(plc.proc)
-
-
-def test_a_password_sent_in_clear_on_the_none_endpoint_is_refused(plain_plc: Plc) -> None:
+def test_a_password_sent_in_clear_on_the_none_endpoint_is_refused(transport_plc: Plc) -> None:  # noqa: F811
     """The token policy names Basic256Sha256: a client that ignores it and sends the owner's
     key in clear over security None is refused, as the policy says (it was accepted)."""
     async def body() -> None:
-        client = _client(plain_plc, "owner", plain_plc.token)
+        client = _client(transport_plc, "owner", transport_plc.token)
         own = client.server_policy
 
         def clear(token_type: ua.UserTokenType) -> ua.UserTokenPolicy:
@@ -198,11 +187,11 @@ def test_a_password_sent_in_clear_on_the_none_endpoint_is_refused(plain_plc: Plc
             async with client:
                 pass
         assert caught.value.code == ua.StatusCodes.BadIdentityTokenRejected
-        async with _client(plain_plc, "owner", plain_plc.token) as good:
+        async with _client(transport_plc, "owner", transport_plc.token) as good:
             assert (await _call(good, "Suspend")).StatusCode.is_good()  # encrypted: taken
 
     asyncio.run(body())
-    failed = [r for r in AuditTrail(plain_plc.state_dir).records()
+    failed = [r for r in AuditTrail(transport_plc.state_dir).records()
               if r.get("action") == "login" and r.get("iface") == "opcua"]
     assert failed and "unencrypted" in failed[-1]["detail"]["reason"]
 

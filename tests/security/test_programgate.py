@@ -15,14 +15,6 @@ from softplc.security.programgate import ProgramGate, ProgramRefused
 BODY = b"places: {p: 1}\n"
 
 
-@pytest.fixture
-def keys(tmp_path: Path) -> Path:
-    directory = tmp_path / "keys"
-    for name in ("alice", "bob"):
-        signing.new_key_pair(directory, name)
-    return directory
-
-
 def signed(keys: Path, name: str) -> str:
     return signing.sign(BODY, signing.load_private(keys / f"{name}.key"))
 

@@ -25,13 +25,6 @@ BODY = b"places: {p: 1}\n"
 
 
 @pytest.fixture
-def keys(tmp_path: Path) -> Path:
-    directory = tmp_path / "keys"
-    signing.new_key_pair(directory, "alice")
-    return directory
-
-
-@pytest.fixture
 def gate(keys: Path, tmp_path: Path) -> ProgramGate:
     trusted = tmp_path / "trusted"
     trusted.mkdir()

@@ -31,14 +31,6 @@ from tests.support import eventually
 TRANSPORT = ROOT / "programs" / "transport.yaml"
 
 
-@pytest.fixture
-def keys(tmp_path: Path) -> Path:
-    directory = tmp_path / "keys"
-    for name in ("alice", "mallory"):
-        signing.new_key_pair(directory, name)
-    return directory
-
-
 def test_a_key_pair_is_private_and_never_overwritten(keys: Path) -> None:
     assert stat.S_IMODE((keys / "alice.key").stat().st_mode) == 0o600
     with pytest.raises(SigningError, match="exists already"):
