@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import binascii
+import contextvars
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -60,6 +61,12 @@ class Principal:
     def audit(self) -> dict[str, Any]:
         return {"user": self.user, "role": self.role.label if self.role else None,
                 "via": self.via}
+
+
+# Who the guard admitted, for the handler it then runs (the same task): routes and streams
+# read it instead of identifying the request again.
+PRINCIPAL: Final[contextvars.ContextVar[Principal | None]] = contextvars.ContextVar(
+    "softplc_principal", default=None)
 
 
 class Gate:

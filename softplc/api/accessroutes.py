@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import contextvars
 import hashlib
 import json
 from collections.abc import Awaitable, Callable
@@ -21,7 +20,7 @@ from typing import Any, Final
 
 from aiohttp import web
 
-from softplc.api.access import COOKIE, Gate, Principal
+from softplc.api.access import COOKIE, PRINCIPAL, Gate, Principal
 from softplc.api.auditstream import AuditStreams
 from softplc.api.openapi import API_PREFIX
 from softplc.api.problems import ApiProblem, json_body
@@ -30,9 +29,6 @@ from softplc.security.audit import parse_since
 from softplc.security.remembered import SESSION_S
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
-# Who the guard admitted, for the handler it then runs (the same task).
-PRINCIPAL: Final[contextvars.ContextVar[Principal | None]] = contextvars.ContextVar(
-    "softplc_principal", default=None)
 MAX_LIMIT: Final = 10_000
 
 

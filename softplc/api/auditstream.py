@@ -20,7 +20,7 @@ from typing import Final
 
 from aiohttp import web
 
-from softplc.api.access import Gate, Principal
+from softplc.api.access import PRINCIPAL, Gate, Principal
 from softplc.api.events import sse
 from softplc.api.problems import ApiProblem
 from softplc.security.audit import Follower
@@ -47,7 +47,8 @@ class AuditStreams:
         if last_id is not None and not last_id.strip().isdigit():
             raise ApiProblem(400, "Last-Event-ID must be an audit record's seq (a number)")
         after = None if last_id is None else int(last_id)
-        who = await self._gate.identify(request)  # kept: decided again at every poll
+        # who the guard admitted, kept: decided again at every poll
+        who = PRINCIPAL.get() or await self._gate.identify(request)
         follower = await asyncio.to_thread(Follower, self._gate.audit, after)
         response = web.StreamResponse(headers={
             "Content-Type": "text/event-stream", "Cache-Control": "no-cache",

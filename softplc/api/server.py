@@ -29,7 +29,7 @@ from aiohttp import web
 
 from softplc.api import accessroutes, debug, history, programs, secopts, symbols
 from softplc.api import web as web_page
-from softplc.api.access import Gate
+from softplc.api.access import PRINCIPAL, Gate
 from softplc.api.commands import (
     DOWNLOAD_DEADLINE_S,
     KEEP,
@@ -214,7 +214,7 @@ class ApiServer:
                                 "https" if request.secure else "http"):
             raise ApiProblem(403, "cross-origin requests are refused")
         who = await accessroutes.admit(self.gate, request)  # 401, 403 (roles.py), 429
-        accessroutes.PRINCIPAL.set(who)
+        PRINCIPAL.set(who)
         if (request.content_length or 0) > MAX_BODY_BYTES:
             raise ApiProblem(413, f"request body larger than {MAX_BODY_BYTES} bytes")
         if request.method == "PUT" and (request.content_length or 0) > MAX_JSON_BYTES:
@@ -355,7 +355,7 @@ class ApiServer:
         return self.answer(await self.command(command, key=idempotency_key(request)))
 
     async def _events(self, request: web.Request) -> web.StreamResponse:
-        who = accessroutes.PRINCIPAL.get()
+        who = PRINCIPAL.get()
 
         def revoked() -> str | None:
             decision = self.gate.decide(who, Act.READ) if who is not None else None

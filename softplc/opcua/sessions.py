@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Awaitable, Callable
-from functools import partial
+from functools import cache, partial
 from typing import Final
 
 from asyncua import ua
@@ -45,11 +45,13 @@ async def read(session: InternalSession, inner: Reader, method_of: MethodOf,
                params: ua.ReadParameters) -> list[ua.DataValue]:
     results = await inner(params)
     wanted = params.TimestampsToReturn
-    return [_told(item, value, session, method_of, wanted)
+    # Each act decided once per Read (the users file looked at once), not once per node.
+    allowed = cache(lambda act: decide(session, act).allowed)
+    return [_told(item, value, allowed, method_of, wanted)
             for item, value in zip(params.NodesToRead, results, strict=True)]
 
 
-def _told(item: ua.ReadValueId, value: ua.DataValue, session: InternalSession,
+def _told(item: ua.ReadValueId, value: ua.DataValue, allowed: Callable[[Act], bool],
           method_of: MethodOf, wanted: ua.TimestampsToReturn) -> ua.DataValue:
     attribute = item.AttributeId
     if attribute == ua.AttributeIds.Value:
@@ -57,12 +59,12 @@ def _told(item: ua.ReadValueId, value: ua.DataValue, session: InternalSession,
     if value.Value is None:
         return value
     if attribute == ua.AttributeIds.UserAccessLevel and isinstance(value.Value.Value, int) \
-            and not decide(session, Act.WRITE).allowed:
+            and not allowed(Act.WRITE):
         level = value.Value.Value & ~_WRITE_BITS
         return dataclasses.replace(value, Value=ua.Variant(level, ua.VariantType.Byte))
     if attribute == ua.AttributeIds.UserExecutable and value.Value.Value is True:
         method = method_of(item.NodeId)
-        if not decide(session, METHOD_ACTS.get(method or "", Act.ADMINISTER)).allowed:
+        if not allowed(METHOD_ACTS.get(method or "", Act.ADMINISTER)):
             return dataclasses.replace(value, Value=ua.Variant(False, ua.VariantType.Boolean))
     return value
 

@@ -78,6 +78,10 @@ def document(loop: LoopView) -> dict[str, Any]:
     timing["stalls"] = loop.stalls
     timing["longest_gap_us"] = loop.longest_gap_ns // 1000
     net = plc.net
+    # The net's clock (docs/debug.md, the time rule): while paused it stands at the next
+    # scan's net time, so countdowns and live `why` stand still and agree with a step.
+    now_ns = loop.clock.now_ns()
+    net_now_ns = now_ns - plc.debug.frozen_shift(now_ns)
     symbols = {} if net is None else {s.name: _symbol(s, plc.image.get(s.address))
                                       for s in net.io.symbols.values()}
     return {
@@ -110,10 +114,7 @@ def document(loop: LoopView) -> dict[str, Any]:
         "forced": plc.forces.shown(),  # forcing (docs/design.md section 10), typed
         # The operator's page (docs/web.md): structure cached per program, live state.
         "net": netview.structure(net) if net else None,
-        # The net's clock (docs/debug.md, the time rule): while paused it stands at the next
-        # scan's net time, so countdowns and live `why` stand still and agree with a step.
-        "net_live": netview.live(net, plc.engine.state if plc.engine else None,
-                                 net_now_ns(plc.debug, loop.clock.now_ns()),
+        "net_live": netview.live(net, plc.engine.state if plc.engine else None, net_now_ns,
                                  loop.runner.fired_counts),
         # Start-up (docs/faults.md): devices whose first input image has not arrived; while
         # any has not, a RUNNING PLC runs no firing round and its outputs stay safe.
@@ -153,13 +154,3 @@ def _records(net: CompiledNet | None, state: NetState | None) -> dict[str, list[
         return {}
     return {net.place_names[p]: [dict(t) for t in records[:20]]
             for p, records in sorted(state.tokens.items()) if records}
-
-
-class _Frozen(Protocol):
-    def frozen_shift(self, now_ns: int) -> int: ...
-
-
-def net_now_ns(debug: _Frozen, now_ns: int) -> int:
-    """The net's time at the clock's `now_ns`: the clock less how far a pause would shift the
-    net's timers were it to end now (0 while not paused)."""
-    return now_ns - debug.frozen_shift(now_ns)
