@@ -10,7 +10,6 @@ from __future__ import annotations
 import compileall
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -19,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from softplc.api.client import ApiClient, ApiError, ApiUnreachable
-from softplc.bench.live import ROOT, free_port
+from softplc.bench.live import ROOT, end_run, free_port
 from softplc.bench.measure import Progress, figures
 
 
@@ -54,17 +53,8 @@ def _start_plc(state: str) -> tuple[subprocess.Popen[bytes], str]:
         except (ApiError, ApiUnreachable):
             pass
         time.sleep(0.05)
-    _end(proc)
+    end_run(proc)
     raise RuntimeError("softplc run did not answer RUNNING within 60 s")
-
-
-def _end(proc: subprocess.Popen[bytes]) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
 
 
 def _summary(samples: list[float]) -> dict[str, float]:
@@ -92,7 +82,7 @@ def run(quick: bool, progress: Progress, runs: int | None = None) -> dict[str, A
             for name, argv in commands.items():
                 samples[name].append(_wall_ms(argv))
     finally:
-        _end(proc)
+        end_run(proc)
         shutil.rmtree(state, ignore_errors=True)
     shown = {name: _summary(values) for name, values in samples.items()}
     bare = shown["bare"]["median_ms"]

@@ -21,7 +21,7 @@ from typing import Any
 from pymodbus.client import ModbusTcpClient
 
 from softplc.api.client import ApiClient, ApiError, ApiUnreachable
-from softplc.bench.live import ROOT
+from softplc.bench.live import ROOT, end_run
 from softplc.bench.measure import Progress, figures
 
 CLIENTS = 4
@@ -113,12 +113,7 @@ def run(quick: bool, progress: Progress, kills: int | None = None) -> dict[str, 
                              "delivered_after": _delivered(api)})
     finally:
         stop.set()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
+        end_run(proc)
     times = figures([r["answered_s"] for r in restarts])
     rollback = [max(r["delivered_before"] - r["delivered_after"], 0) for r in restarts]
     return {
