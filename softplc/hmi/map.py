@@ -188,7 +188,6 @@ class RegisterMap:
         presentation: Presentation | None = None,
     ) -> None:
         self.sizes = sizes
-        self.read_only = read_only
         self._policy = Identity(None, "policy",
                                 granted=Role.VIEWER if read_only else needs(Act.WRITE))
         self._writable = writable

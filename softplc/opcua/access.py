@@ -77,10 +77,6 @@ def decide(session: InternalSession, act: Act) -> Decision:
     return Decision(anonymous(None), act, Role.ADMIN, None, "not a softplc session")
 
 
-def role_of(session: InternalSession) -> Role | None:
-    return decide(session, Act.READ).role
-
-
 class Users(UserManager):
     """asyncua's UserManager over STATE_DIR/users. `login` (async) checks a password first;
     `get_user` (asyncua, synchronous) then only looks the verified pair up."""

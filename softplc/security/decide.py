@@ -20,15 +20,15 @@ from dataclasses import dataclass
 from typing import Final
 
 from softplc.security.roles import Act, Role, needs
-from softplc.security.users import OWNER, User, UserError, UserStore, key_digest
+from softplc.security.users import OWNER, User, UserError, UserStore
 
 log = logging.getLogger(__name__)
 
-# How an identity was proven. PROVEN ones name a user of the users file (or the owner) and
-# are checked against it at every decision; GRANTED ones carry the role their door's own
-# rule gives (no credentials on loopback, a client certificate's role, a Modbus write policy).
+# How an identity was proven. Proven ones (the owner's key, an API key, a password) name a
+# user of the users file (or the owner) and are checked against it at every decision; GRANTED
+# ones carry the role their door's own rule gives (no credentials on loopback, a client
+# certificate's role, a Modbus write policy).
 OWNER_VIA: Final = "owner"
-PROVEN: Final = frozenset({OWNER_VIA, "key", "password"})
 GRANTED: Final = frozenset({"anonymous", "certificate", "policy"})
 
 
@@ -147,6 +147,3 @@ class Authority:
     def decide(self, who: Identity, act: Act) -> Decision:
         role, why = self.role_now(who)
         return Decision(who, act, needs(act), role, why)
-
-
-__all__ = ["Authority", "Decision", "Identity", "anonymous", "granted", "key_digest"]
