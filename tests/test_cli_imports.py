@@ -61,7 +61,7 @@ def test_a_client_command_imports_no_numpy_compiler_or_server(argv: tuple[str, .
 
 def test_only_the_command_run_is_imported() -> None:
     _, modules = imported_by("status", "--help")
-    others = {"softplc.analysis.cli", "softplc.runtime.debugcli", "softplc.runtime.breakcli",
+    others = {"softplc.analysis.cli", "softplc.debug.debugcli", "softplc.debug.breakcli",
               "softplc.api.admincmds", "softplc.api.signcmds", "softplc.api.trustcmds",
               "softplc.cli.local", "softplc.cli.runargs"}
     assert not modules & others, sorted(modules & others)

@@ -46,7 +46,7 @@ def add_download(download: argparse.ArgumentParser) -> None:
                           "accepted or not) and apply nothing (default: off)")
     from softplc.api.signcmds import add_download_options
     add_download_options(download)  # --sign-key, --version, --signature, --allow-older
-    _connection_options(download)
+    connection_options(download)
     download.set_defaults(func=cmd_download)
 
 
@@ -54,13 +54,13 @@ def add_upload(upload: argparse.ArgumentParser) -> None:
     upload.add_argument("-o", "--output", metavar="DIR", default=".",
                         help="write the files under DIR at their bundle paths, overwriting "
                         "(default: the current directory)")
-    _connection_options(upload)
+    connection_options(upload)
     upload.set_defaults(func=cmd_upload)
 
 
 def add_lifecycle(parser: argparse.ArgumentParser) -> None:
     """start, stop, resume, reset, kill: the command is the parser's name (args.command)."""
-    _connection_options(parser)
+    connection_options(parser)
     parser.set_defaults(func=cmd_lifecycle)
 
 
@@ -68,25 +68,25 @@ def add_force(force: argparse.ArgumentParser) -> None:
     force.add_argument("symbol", help="an input, output or memory symbol of the program")
     force.add_argument("value", help="as the symbol's type takes it: 0/1 or true/false, an "
                        "integer (-3), a decimal (12.5)")
-    _connection_options(force)
+    connection_options(force)
     force.set_defaults(func=cmd_force)
 
 
 def add_unforce(unforce: argparse.ArgumentParser) -> None:
     unforce.add_argument("symbol", nargs="?", default=None,
                          help="the forced symbol to release (default: every forced symbol)")
-    _connection_options(unforce)
+    connection_options(unforce)
     unforce.set_defaults(func=cmd_unforce)
 
 
 def add_status(status: argparse.ArgumentParser) -> None:
     status.add_argument("--json", action="store_true",
                         help="print the status as JSON (default: off, a summary)")
-    _connection_options(status)
+    connection_options(status)
     status.set_defaults(func=cmd_status)
 
 
-def _connection_options(parser: argparse.ArgumentParser) -> None:
+def connection_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--api", metavar="URL", default=default_url(),
                         help=f"the softplc's HTTP API (default: ${URL_ENV}, else "
                         f"{DEFAULT_URL})")
@@ -108,7 +108,7 @@ def _connection_options(parser: argparse.ArgumentParser) -> None:
                         "certificate, else the system's CAs)")
 
 
-def _call(args: argparse.Namespace, what: str,
+def call(args: argparse.Namespace, what: str,
           action: Callable[[ApiClient], dict[str, Any]]) -> tuple[int, dict[str, Any]]:
     """Run `action`, turning failures into a message on stderr and an exit code."""
     try:
@@ -153,11 +153,11 @@ def cmd_download(args: argparse.Namespace) -> int:
               "program as plain text (the server looks for them in its programs directory)",
               file=sys.stderr)
         name = Path(args.program).name
-        code, reply = _call(args, "download", lambda client: client.download_text(
+        code, reply = call(args, "download", lambda client: client.download_text(
             blob.decode(), args.online, name, args.replace, args.dry_run, signature,
             args.allow_older))
     else:
-        code, reply = _call(args, "download", lambda client: client.download_bundle(
+        code, reply = call(args, "download", lambda client: client.download_bundle(
             blob, args.online, args.replace, args.dry_run, signature, args.allow_older))
     if code != EXIT_OK:
         return code
@@ -218,7 +218,7 @@ def _call_bytes(args: argparse.Namespace, what: str,
         got.append(action(client))
         return {}
 
-    code, _ = _call(args, what, run)
+    code, _ = call(args, what, run)
     return code, got[0] if got else b""
 
 
@@ -237,7 +237,7 @@ def said(command: str, reply: dict[str, Any]) -> str:
 
 def cmd_lifecycle(args: argparse.Namespace) -> int:
     command: str = args.command
-    code, reply = _call(args, command, lambda client: client.command(command))
+    code, reply = call(args, command, lambda client: client.command(command))
     if code == EXIT_OK:
         print(said(command, reply))
     return code
@@ -266,21 +266,21 @@ def cmd_force(args: argparse.Namespace) -> int:
         print(f"softplc force: value {args.value!r} is not true/false or a number",
               file=sys.stderr)
         return EXIT_REFUSED
-    code, reply = _call(args, "force", lambda client: client.force(args.symbol, value))
+    code, reply = call(args, "force", lambda client: client.force(args.symbol, value))
     if code == EXIT_OK:
         print(said("force", reply))
     return code
 
 
 def cmd_unforce(args: argparse.Namespace) -> int:
-    code, reply = _call(args, "unforce", lambda client: client.unforce(args.symbol))
+    code, reply = call(args, "unforce", lambda client: client.unforce(args.symbol))
     if code == EXIT_OK:
         print(said("unforce", reply))
     return code
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    code, status = _call(args, "status", lambda client: client.status())
+    code, status = call(args, "status", lambda client: client.status())
     if code == EXIT_OK:
         print(json.dumps(status, indent=2, sort_keys=True) if args.json else format_status(status))
     return code

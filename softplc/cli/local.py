@@ -193,7 +193,7 @@ def add_simulate(sim: argparse.ArgumentParser) -> None:
                      help="list the scans where outputs, memory, marking or events changed "
                      "(default: off)")
     sim.set_defaults(func=cmd_simulate)
-    from softplc.runtime.breakcli import add_simulate_options
+    from softplc.debug.breakcli import add_simulate_options
     add_simulate_options(sim)  # --break, --step (docs/debug.md)
 
 

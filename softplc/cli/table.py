@@ -29,8 +29,8 @@ def _lifecycle(command: str, what: str) -> Entry:
 
 _LOCAL: Final = "softplc.cli.local"
 _CLIENT: Final = "softplc.api.clicmds"
-_DEBUG: Final = "softplc.runtime.debugcli"
-_BREAK: Final = "softplc.runtime.breakcli"
+_DEBUG: Final = "softplc.debug.debugcli"
+_BREAK: Final = "softplc.debug.breakcli"
 
 COMMANDS: Final[dict[str, Entry]] = {
     "check": Entry(_LOCAL, "add_check", "validate and compile a program (or check a symbols "
@@ -58,7 +58,7 @@ COMMANDS: Final[dict[str, Entry]] = {
     "step": Entry(_BREAK, "add_step",
                   "while paused: run exactly N scans, then pause again (scan count + N)"),
     "continue": Entry(_BREAK, "add_continue", "while paused: run on until a breakpoint hits"),
-    "dap": Entry("softplc.runtime.dapserve", "add_dap", "a Debug Adapter Protocol adapter for "
+    "dap": Entry("softplc.debug.dapserve", "add_dap", "a Debug Adapter Protocol adapter for "
                  "editors (VS Code): breakpoints on the lines of the program's YAML, step a "
                  "scan, continue, the marking, symbols and why of the running PLC at --api "
                  "(docs/debug.md)"),

@@ -1,6 +1,6 @@
 """The CLI of breakpoints and single scans (docs/debug.md): `softplc break add|list|remove|
 clear`, `softplc step [N]`, `softplc continue`, and `softplc simulate --break SPEC [--step N]`;
-`softplc dap` has its own module, runtime/dapserve.py.
+`softplc dap` has its own module, debug/dapserve.py.
 
 Owns: their arguments, what a person reads, exit codes (0 done, 1 refused, 2 no API).
 Does not know: HTTP (api/client.py), how a pause works (core/breakpoints.py).
@@ -14,7 +14,7 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
-from softplc.api.clicmds import EXIT_OK, EXIT_REFUSED, _call, _connection_options, said
+from softplc.api.clicmds import EXIT_OK, EXIT_REFUSED, call, connection_options, said
 
 
 def add_break(brk: argparse.ArgumentParser) -> None:
@@ -34,33 +34,33 @@ def add_break(brk: argparse.ArgumentParser) -> None:
     for parser in (on_t, on_w):
         parser.add_argument("--outputs", choices=["hold", "safe"], default="hold",
                             help="what the devices get while paused (default: %(default)s)")
-        _connection_options(parser)
+        connection_options(parser)
         parser.set_defaults(func=cmd_break_add)
     for name, helptext in (("list", "list the breakpoints and the pause"),
                            ("clear", "remove every breakpoint")):
         cmd = sub.add_parser(name, help=helptext)
-        _connection_options(cmd)
+        connection_options(cmd)
         cmd.set_defaults(func=cmd_break_list if name == "list" else cmd_break_remove, id=None)
     remove = sub.add_parser("remove", help="remove one breakpoint")
     remove.add_argument("id", help="its id (b2 or 2)")
-    _connection_options(remove)
+    connection_options(remove)
     remove.set_defaults(func=cmd_break_remove)
 
 
 def add_step(step: argparse.ArgumentParser) -> None:
     step.add_argument("scans", nargs="?", type=int, default=1, help="N (default: 1)")
-    _connection_options(step)
+    connection_options(step)
     step.set_defaults(func=cmd_step)
 
 
 def add_continue(cont: argparse.ArgumentParser) -> None:
-    _connection_options(cont)
+    connection_options(cont)
     cont.set_defaults(func=cmd_continue)
 
 
 def _done(args: argparse.Namespace, what: str,
           action: Callable[[Any], dict[str, Any]]) -> int:
-    code, reply = _call(args, what, action)
+    code, reply = call(args, what, action)
     if code == EXIT_OK:
         print(said(what, reply))
     return code
@@ -77,7 +77,7 @@ def cmd_break_remove(args: argparse.Namespace) -> int:
 
 
 def cmd_break_list(args: argparse.Namespace) -> int:
-    code, answer = _call(args, "break", lambda c: c.breakpoints())
+    code, answer = call(args, "break", lambda c: c.breakpoints())
     if code == EXIT_OK:
         for line in format_breakpoints(answer):
             print(line)

@@ -5,7 +5,7 @@ Owns: the requests and their responses, the events, the breakpoints this session
 of the program's YAML -> the transitions of its block -> PLC breakpoints, removed again at
 the end), the poll of status (every 100 ms) that turns a pause into a `stopped` event.
 Does not know: how a pause, a step or `why` works (the PLC does; api/client.py asks it),
-the framing and the servers (runtime/dapwire.py, runtime/dapserve.py).
+the framing and the servers (debug/dapwire.py, debug/dapserve.py).
 """
 
 from __future__ import annotations
@@ -21,10 +21,10 @@ from softplc.api.client import ApiClient, ApiError, ApiUnreachable
 from softplc.core.errors import SoftplcError
 from softplc.core.net import CompiledNet
 from softplc.core.problems import ProgramError
+from softplc.debug.dapbreaks import VERB, BreakBook
+from softplc.debug.dapsource import Block, LineMap
+from softplc.debug.dapvars import Var, marking_vars, symbol_vars, value_text, why_vars
 from softplc.program.compiler import compile_file
-from softplc.runtime.dapbreaks import VERB, BreakBook
-from softplc.runtime.dapsource import Block, LineMap
-from softplc.runtime.dapvars import Var, marking_vars, symbol_vars, value_text, why_vars
 
 Send = Callable[[dict[str, Any]], None]
 POLL_S: Final = 0.1

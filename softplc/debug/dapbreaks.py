@@ -1,4 +1,4 @@
-"""The breakpoints one debug adapter session set on the PLC (runtime/dap.py): a line of the
+"""The breakpoints one debug adapter session set on the PLC (debug/dap.py): a line of the
 program's YAML -> the transitions of its block -> one PLC breakpoint each (a subnet's line:
 one per instance), and function breakpoints `fire:T`, `enabled:T`, `when:EXPR` (or just T).
 
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import Any, Final
 
 from softplc.api.client import ApiClient, ApiError, ApiUnreachable
-from softplc.runtime.dapsource import LineMap
+from softplc.debug.dapsource import LineMap
 
 KINDS: Final = ("fire", "enabled", "when")
 VERB: Final = {"fire": "fires", "enabled": "becomes enabled", "when": "becomes true"}

@@ -4,7 +4,7 @@ attached to the PLC at `--api` (docs/debug.md, a debugger in the editor).
 
 Owns: the command's arguments, the streams and the listening socket, a session's end (the
 stream closed: its breakpoints removed, the PLC running on).
-Does not know: what the messages mean (runtime/dap.py), HTTP (api/client.py).
+Does not know: what the messages mean (debug/dap.py), HTTP (api/client.py).
 """
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ import threading
 from typing import IO, Any
 
 from softplc.api.admincmds import read_password
-from softplc.api.clicmds import EXIT_OK, EXIT_REFUSED, EXIT_UNREACHABLE, _connection_options
+from softplc.api.clicmds import EXIT_OK, EXIT_REFUSED, EXIT_UNREACHABLE, connection_options
 from softplc.api.client import ApiClient
-from softplc.runtime.dap import DapSession
-from softplc.runtime.dapwire import WireError, encode, read_message
+from softplc.debug.dap import DapSession
+from softplc.debug.dapwire import WireError, encode, read_message
 
 
 def add_dap(dap: argparse.ArgumentParser) -> None:
@@ -27,7 +27,7 @@ def add_dap(dap: argparse.ArgumentParser) -> None:
     dap.add_argument("--port", metavar="N", type=int, default=None,
                      help="serve DAP over TCP on 127.0.0.1:N, one session at a time (0: a free "
                      "port, said on stderr) (default: over stdin and stdout)")
-    _connection_options(dap)
+    connection_options(dap)
     dap.set_defaults(func=cmd_dap)
 
 

@@ -1,5 +1,5 @@
 """Where a program's transitions are written: the debug adapter's map from a line of a YAML
-file to the transitions whose block holds it (runtime/dap.py).
+file to the transitions whose block holds it (debug/dap.py).
 
 Owns: a transition's block (its key line and the lines under it, indented deeper, up to the
 next line indented as little as the key; trailing blank lines left out), one file's lines to

@@ -1,5 +1,5 @@
 """What the debug adapter shows in its scopes, as trees of named values built from the API's
-answers (runtime/dap.py turns them into DAP variables with references).
+answers (debug/dap.py turns them into DAP variables with references).
 
 Owns: the Marking scope (every place's token count, a coloured place's records under it), the
 Symbols scope (typed values as status shows them, unit and force noted), the Why scope (the

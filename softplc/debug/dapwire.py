@@ -3,7 +3,7 @@ headers), a blank line, then N bytes of UTF-8 JSON (the base protocol of the DAP
 specification).
 
 Owns: reading one message from a byte stream, encoding one.
-Does not know: what the messages mean (runtime/dap.py), sockets.
+Does not know: what the messages mean (debug/dap.py), sockets.
 """
 
 from __future__ import annotations

@@ -13,10 +13,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import urllib.parse
 from typing import TYPE_CHECKING, Any
 
-from softplc.api.clicmds import EXIT_OK, EXIT_REFUSED, _call, _connection_options
+from softplc.api.clicmds import EXIT_OK, EXIT_REFUSED, call, connection_options
 from softplc.core.problems import ProgramError
 
 if TYPE_CHECKING:
@@ -34,7 +33,7 @@ def add_why(why: argparse.ArgumentParser) -> None:
                      "number (k in the trace, the timeline and the VCD)")
     why.add_argument("--json", action="store_true",
                      help="print the answer as JSON (default: off, one line per reason)")
-    _connection_options(why)
+    connection_options(why)
     why.set_defaults(func=cmd_why)
 
 
@@ -80,8 +79,7 @@ def cmd_why(args: argparse.Namespace) -> int:
         if args.program is not None or args.at_scan is not None:
             print("softplc why: --program and --at-scan go with --trace", file=sys.stderr)
             return EXIT_REFUSED
-        path = f"/why/{urllib.parse.quote(args.transition, safe='')}"
-        code, answer = _call(args, "why", lambda client: client._json("GET", path))
+        code, answer = call(args, "why", lambda client: client.why(args.transition))
         if code == EXIT_OK:
             _show(answer, args.json, f"the next round, after scan {answer.get('scan')}")
         return code

@@ -1,4 +1,4 @@
-"""The debug adapter's pure parts (runtime/dapsource.py, dapvars.py, dapwire.py): a line of
+"""The debug adapter's pure parts (debug/dapsource.py, dapvars.py, dapwire.py): a line of
 the YAML to the transitions of its block (a subnet's line: every instance), the scopes' trees,
 the framing's refusals. No socket, no PLC."""
 
@@ -8,10 +8,10 @@ import io
 
 import pytest
 
+from softplc.debug.dapsource import LineMap, block_end
+from softplc.debug.dapvars import marking_vars, symbol_vars, why_vars
+from softplc.debug.dapwire import WireError, encode, read_message
 from softplc.program.compiler import compile_file
-from softplc.runtime.dapsource import LineMap, block_end
-from softplc.runtime.dapvars import marking_vars, symbol_vars, why_vars
-from softplc.runtime.dapwire import WireError, encode, read_message
 from tests.support import ROOT
 
 PROGRAM = ROOT / "programs" / "transport.yaml"
