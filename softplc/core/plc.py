@@ -104,6 +104,8 @@ class Plc:
     waiting_io: tuple[str, ...] = ()
     io_wait: IoWait | None = None
     first_round: bool = True  # the next firing round is the first since a start (first_scan)
+    # Memory symbols that kept a value from another program at the last download (status).
+    kept_across: memory.Kept | None = None
     _io_ready: tuple[object, object, object] | None = None  # awaited() found none for these
 
     @classmethod
@@ -166,7 +168,8 @@ class Plc:
         self.state = target
         if target is not PlcState.FAULTED:
             self.fault_code, self.fault_reason = FAULT_NONE, ""
-        return f"{cmd.command.value}: now {target.name}"
+        kept = self.kept_across if cmd.command is Command.DOWNLOAD else None
+        return f"{cmd.command.value}: now {target.name}" + (kept.note() if kept else "")
 
     def _fresh(self, net: CompiledNet) -> NetState:
         """`net`'s initial state, persistent places kept from a program of the same name."""
@@ -180,7 +183,10 @@ class Plc:
         if net.io.sizes != self.image.sizes:
             self.image, self.prev = ProcessImage(net.io.sizes), ProcessImage(net.io.sizes)
             before = None  # a new image holds no symbol's value
-        memory.initialized(self.image, net.io, before)
+        if net is not self.net:  # a download: which values another program left here
+            old = self.net.name if self.net is not None else net.name
+            kept = memory.initialized(self.image, net.io, before, old == net.name)
+            self.kept_across = memory.Kept(old, kept) if kept else None
         if clear:
             memory.unretained(self.image, net.io)
         if engine is not None and engine.net is net and engine is not self.engine:
@@ -333,7 +339,7 @@ class Plc:
         self.first_round = True
         why = "replacement" if same_devices else "replacement with new devices (reconfiguration)"
         return (f"online {why}: {old.name} -> {net.name} ({net.program_hash[:12]}), "
-                "initial marking")
+                "initial marking" + (self.kept_across.note() if self.kept_across else ""))
 
     def fault(self, code: FaultCode, now_ns: int | None = None, reason: str = "") -> None:
         """Watchdog, device, program or limit fault: FAULTED, outputs safe (the caller or the

@@ -144,6 +144,16 @@ def shown_number(type_name: str | None, raw: int,
     return int(value) if isinstance(value, bool) else value
 
 
+def shown_rounded(type_name: str | None, raw: int,
+                  scale: Scaling | Mapping[str, Any] | None = None) -> Shown:
+    """As `shown_number`, a scaled value at its scale's resolution (`plotted`): what a
+    person reads in a list of changes (the timeline), not the double's noise."""
+    number = plotted(type_name, raw, scale)
+    if isinstance(number, float) and not math.isfinite(number):
+        return NOT_FINITE[repr(number)]
+    return int(number) if isinstance(number, bool) else number
+
+
 def takes(t: SymType) -> str:
     """What a symbol of type `t` takes, for a refusal."""
     info = INFO[t]

@@ -10,6 +10,8 @@ the input image the drivers filled).
       write: {hold: true}        # an HMI write (as Modbus or PUT /symbols): memory or outputs
     - at: 12s
       force: {s1_i: true}        # an input override: the scan sees this value, not the device's
+    - at: 12500ms
+      force: {level: 47.5, temp: {raw: 120}}  # engineering units; {raw: N} before scaling
     - at: 13s
       release: [s1_i]            # the device's value again (`release: all`: every override)
 """
@@ -21,16 +23,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from softplc.core.image import ProcessImage, Width, split_registers
+from softplc.core.image import ProcessImage, split_registers
 from softplc.core.present import ValueRefused, accepted
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.snapshot import HmiWrite
-from softplc.core.symbols import Direction, IoImage, Symbol, SymType
+from softplc.core.symbols import Direction, IoImage, Symbol
 from softplc.core.units import parse_duration_ns
 from softplc.program.suggest import did_you_mean, did_you_mean_key
 from softplc.program.yamlload import YList, YMap, line_of, load_yaml, trap_hint
 
 STEP_KEYS = ("at", "write", "force", "release")
+RAW_KEY = "raw"  # `{raw: N}`: a value given before scaling (docs/simulate.md)
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,23 +128,21 @@ class _Reader:
         return sym
 
     def value(self, sym: Symbol, value: Any, line: int, path: str) -> int | None:
-        """The raw bits a write or force of `value` stores in `sym`, or None (a problem)."""
-        if sym.type is SymType.BOOL:
-            if isinstance(value, bool) or value in (0, 1):
-                return int(value)
-            self.problem(line, path, f"{sym.name} is a bool: expected true or false, got "
-                                     f"{value!r}{trap_hint(value)}")
-            return None
-        if sym.address.width in (Width.DWORD, Width.LWORD):
-            try:  # a value of its type, raw (as a 16-bit register's is): the bits it stores
-                return accepted(sym.type.value, value, sym.name)
-            except ValueRefused as exc:
-                self.problem(line, path, f"{exc}{trap_hint(value)}")
+        """The raw bits a write or force of `value` stores in `sym`, or None (a problem): a
+        value as `softplc force` and the API take it (core/present.py: a scaled symbol in
+        engineering units), or `{raw: N}`, the value of the symbol's type before scaling."""
+        scale = sym.scaling
+        if isinstance(value, YMap | dict):
+            if set(value) != {RAW_KEY}:
+                self.problem(line, path, f"{sym.name}: expected a value or {{{RAW_KEY}: N}} "
+                                         f"(the raw value, before scaling), got {dict(value)!r}")
                 return None
-        if isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 0xFFFF:
-            return value
-        self.problem(line, path, f"{sym.name} is a word: expected 0..65535, got {value!r}")
-        return None
+            value, scale = value[RAW_KEY], None
+        try:
+            return accepted(sym.type.value, value, sym.name, scale)
+        except ValueRefused as exc:
+            self.problem(line, path, f"{exc}{trap_hint(value)}")
+            return None
 
     def release(self, item: YMap, path: str) -> tuple[tuple[str, ...] | None, bool]:
         value = item.get("release")

@@ -14,14 +14,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from softplc.core.image import ProcessImage
+from softplc.core.image import ProcessImage, split_registers
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
-from softplc.core.present import Shown, shown_number
-from softplc.core.scaling import Scaling
+from softplc.core.present import Shown, shown_number, shown_rounded
 from softplc.core.scan import ProgramCommand, ScanResult
 from softplc.core.snapshot import HmiWrite
-from softplc.core.symbols import Direction, Symbol, scalings
+from softplc.core.symbols import Direction, Symbol
 from softplc.devices.driver import Health
 from softplc.devices.sim import SimDriver
 from softplc.runtime.runner import boot
@@ -63,31 +62,42 @@ class Timeline:
     """One entry per scan in which something a person would look for happened."""
 
     watched: tuple[Symbol, ...]  # outputs and memory, by declaration order
-    names: dict[str, str]  # address -> symbol, to show HMI writes by name
+    names: dict[str, Symbol]  # address -> symbol, to show HMI writes by name and value
     last: dict[str, int]  # raw bits
-    types: dict[str, str]  # symbol -> type, to show values as they read (core/present.py)
     entries: list[dict[str, Any]]
-    scales: dict[str, Scaling]  # symbol -> scaling: scaled values shown in engineering units
 
     @classmethod
     def of(cls, net: CompiledNet, image: ProcessImage) -> Timeline:
         watched = tuple(s for s in net.io.symbols.values() if s.direction is not Direction.IN)
-        names = {str(s.address): s.name for s in net.io.symbols.values()}
-        types = {s.name: s.type.value for s in net.io.symbols.values()}
-        return cls(watched, names, {s.name: image.get(s.address) for s in watched}, types, [],
-                   dict(scalings(net.io)))
+        names = {str(s.address): s for s in net.io.symbols.values()}
+        return cls(watched, names, {s.name: image.get(s.address) for s in watched}, [])
+
+    def _shown(self, sym: Symbol, raw: int) -> Shown:
+        """A value as the timeline shows it: core/present.py's, at the scale's resolution."""
+        return shown_rounded(sym.type.value, raw, sym.scaling)
+
+    def _write(self, write: HmiWrite) -> str:
+        sym = self.names.get(str(write.address))
+        if sym is None or (not sym.address.is_bit and
+                           len(write.values) != len(split_registers(0, sym.address.width))):
+            return f"{write.address}={','.join(map(str, write.values))}"  # registers as sent
+        raw = 0
+        for register in write.values:  # most significant first, as Modbus writes them
+            raw = (raw << 16) | register
+        return f"{sym.name}={self._shown(sym, raw)}"
 
     def record(self, k: int, now_ns: int, result: ScanResult, image: ProcessImage,
                hmi: tuple[HmiWrite, ...], forced: dict[str, int | str]) -> None:
         values = {s.name: image.get(s.address) for s in self.watched}
-        changed = {n: shown_number(self.types[n], v, self.scales.get(n))
+        symbols = {s.name: s for s in self.watched}
+        changed = {n: self._shown(symbols[n], v)
                    for n, v in values.items() if self.last.get(n) != v}
         self.last = values
-        typed: dict[str, Shown] = {n: v if isinstance(v, str) else shown_number(
-            self.types.get(n), v, self.scales.get(n)) for n, v in forced.items()}
+        inputs = {s.name: s for s in self.names.values()}
+        typed: dict[str, Shown] = {n: v if isinstance(v, str) else self._shown(inputs[n], v)
+                                   for n, v in forced.items()}
         entry: dict[str, Any] = {"k": k, "t_s": now_ns / 1e9}
-        writes = [f"{self.names.get(str(w.address), w.address)}={','.join(map(str, w.values))}"
-                  for w in hmi]
+        writes = [self._write(w) for w in hmi]
         for key, value in (("hmi", writes),
                            ("forced", typed), ("fired", list(result.fired)),
                            ("done", list(result.completed)), ("marking", result.marking_changes),

@@ -112,6 +112,8 @@ def document(loop: LoopView) -> dict[str, Any]:
         "tokens": _records(net, plc.engine.state if plc.engine else None),
         "symbols": symbols, "events": list(loop.events),
         "forced": plc.forces.shown(),  # forcing (docs/design.md section 10), typed
+        # Memory symbols that kept a value from another program (docs/retain.md); null: none.
+        "kept_across": plc.kept_across.as_dict() if plc.kept_across else None,
         # The operator's page (docs/web.md): structure cached per program, live state.
         "net": netview.structure(net) if net else None,
         "net_live": netview.live(net, plc.engine.state if plc.engine else None, net_now_ns,

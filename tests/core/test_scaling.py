@@ -226,8 +226,9 @@ def _simulated(tmp: Path, body: str, writes: list[int]) -> tuple[dict[str, objec
     (tmp / "io.yaml").write_text(SIM_IO)
     (tmp / "prog.yaml").write_text(f"program: sim\nio_image: io.yaml\nplaces:\n  p: {{tokens: 1}}\n"
                                    f"transitions:\n{body}")
-    (tmp / "script.yaml").write_text("".join(f"- at: {k * 10}ms\n  write: {{raw_in: {v}}}\n"
-                                             for k, v in enumerate(writes)))
+    (tmp / "script.yaml").write_text("".join(  # {raw: N}: an int's raw value, signed
+        f"- at: {k * 10}ms\n  write: {{raw_in: {{raw: {v - 65536 * (v > 32767)}}}}}\n"
+        for k, v in enumerate(writes)))
     net = compile_file(tmp / "prog.yaml")
     script = load_script(tmp / "script.yaml", net.io)
     trace = tmp / "t.jsonl"

@@ -129,7 +129,8 @@ def test_a_bad_script_is_refused_with_located_problems(
     assert f"{bad}:6: [2].write.part: part is an input (%IX0.0)" in err
     assert f"{bad}:7: [2].relase: unknown key 'relase' (did you mean 'release'?)" in err
     assert f"{bad}:8: [3]: missing at:" in err
-    assert f"{bad}:8: [3].write.count: count is a word: expected 0..65535, got 70000" in err
+    assert f"{bad}:8: [3].write.count: symbol count is a word: the value must be a whole " \
+           "number 0..65535, not 70000" in err
     assert "Traceback" not in err
 
 
