@@ -18,10 +18,12 @@ completed before its read_inputs. Each output image handed over has a sequence n
 I/O thread acknowledges the number once the device has answered every write of it.
 
 go_safe hands over the safe image, cuts short any reconnect backoff and waits for its
-acknowledgement; if the I/O thread has not confirmed within half the bound (wedged, dead,
-closed), it writes on a fresh connection of its own within the rest. close() lets the I/O
-thread flush the latest unacknowledged outputs before it ends, and writes them directly if
-the thread cannot: a stop never drops the safe write.
+acknowledgement, unless the device has stopped answering (SILENT_AFTER cycles in a row without
+a reply: the scan would only wait out its timeout; the I/O thread writes the safe image when it
+answers again, and go_safe says it is not confirmed); if the I/O thread has not confirmed
+within half the bound (wedged, dead, closed), it writes on a fresh connection of its own within
+the rest. close() lets the I/O thread flush the latest unacknowledged outputs before it ends,
+and writes them directly if the thread cannot: a stop never drops the safe write.
 
 Health: OK when connected and the last cycle succeeded (or, after a good one, only the last
 failed: SILENT_AFTER in modbus_link.py); DEGRADED when connected but SILENT_AFTER cycles in a
@@ -42,7 +44,7 @@ import numpy as np
 from softplc.core.image import ProcessImage
 from softplc.core.symbols import DriverSpec, Symbol
 from softplc.devices.driver import Health
-from softplc.devices.modbus_link import DROP_AFTER, IoLink, LinkState, Outputs
+from softplc.devices.modbus_link import DROP_AFTER, SILENT_AFTER, IoLink, LinkState, Outputs
 from softplc.devices.modbus_params import Heartbeat, ModbusParams
 from softplc.devices.modbus_plan import (
     MAX_OFFSET,
@@ -132,6 +134,7 @@ class ModbusIoDriver:
         quiet_pymodbus()
         with self._shared.lock:  # inputs of an earlier opening are not this one's first image
             self._shared.closing, self._shared.inputs = False, None
+            self._shared.silent = 0
         self._delivered = False
         self.transport.attach()
         self._link.start()
@@ -203,6 +206,11 @@ class ModbusIoDriver:
         thread = self._link.thread
         if thread is not None and thread.is_alive():
             self._link.trigger(urgent=True)
+            with self._shared.lock:
+                silent = self._shared.silent >= SILENT_AFTER
+            if silent:  # waiting would only stall the scan: the thread writes them on answer
+                return self._safe_result(False, f"{self.transport.silence} (queued: written "
+                                                "when it answers)")
             if self._shared.wait_ack(seq, time.monotonic() + timeout_s * THREAD_SHARE):
                 return self._safe_result(True, "")
         why = self._direct(outputs, seq, deadline)

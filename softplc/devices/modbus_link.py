@@ -20,6 +20,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+from pymodbus.exceptions import ModbusIOException
+
 from softplc.core.image import BoolArray, WordArray
 from softplc.devices.modbus_plan import IoPlan
 from softplc.devices.modbus_requests import ERRORS, Client, read_block, write_block, write_word
@@ -50,6 +52,7 @@ class LinkState:
     ok_seq: int = 0
     cycles_failed: int = 0
     failures: int = 0
+    silent: int = 0  # failed cycles in a row in which the device did not answer at all
     connected: bool = False
     last_cycle_ok: bool = False
     last_error: str = ""
@@ -83,6 +86,14 @@ class LinkState:
             if seq > self.ack_seq:
                 self.ack_seq = seq
                 self.acked.notify_all()
+
+
+def no_reply(exc: BaseException) -> bool:
+    """A request that got no answer within timeout_s (not a refused connection, not a garbled
+    or exception reply): pymodbus 3.16 raises ModbusIOException("No response received ...")
+    for it (transaction.py), or TimeoutError."""
+    return isinstance(exc, TimeoutError) or (
+        isinstance(exc, ModbusIOException) and "No response received" in str(exc))
 
 
 class IoLink:
@@ -234,13 +245,17 @@ class IoLink:
             inputs = tuple([await read_block(client, b, self.params.unit) for b in self.plan.reads])
         except ERRORS as exc:
             self._fails_on_link += 1
-            self._note_failure(str(exc) or type(exc).__name__, cycle=True)
+            unanswered = no_reply(exc)
+            with shared.lock:
+                shared.silent = shared.silent + 1 if unanswered else 0
+            self._note_failure(self.transport.silence if unanswered
+                               else str(exc) or type(exc).__name__, cycle=True)
             return False
         self._fails_on_link = 0
         with shared.lock:
             shared.inputs = inputs
             shared.ok_seq += 1
-            shared.failures = 0
+            shared.failures = shared.silent = 0
             shared.last_cycle_ok = True
         return True
 

@@ -252,6 +252,8 @@ class RtuTransport:
     def __init__(self, name: str, params: RtuParams) -> None:
         self.name, self.params = name, params
         self.where = f"{params.port} unit {params.unit}"
+        self.silence = (f"unit {params.unit} on {params.port} did not answer within "
+                        f"{params.timeout_s:g} s")
         self._line: SerialLine | None = None
 
     def client(self, on_link: OnLink) -> Client:

@@ -36,6 +36,12 @@ class Transport(Protocol):
         """The device in a few words, for messages ("10.0.0.20:502", "/dev/ttyUSB0 unit 2")."""
         ...
 
+    @property
+    def silence(self) -> str:
+        """A request that got no reply within timeout_s, in the PLC's words ("unit 1 on
+        /dev/ttyUSB0 did not answer within 0.5 s"), for the fault reason and problem()."""
+        ...
+
     def client(self, on_link: OnLink) -> Client:
         """A new client for the I/O thread (made in that thread, on its loop)."""
         ...
@@ -71,6 +77,8 @@ class TcpTransport:
     def __init__(self, params: ModbusParams) -> None:
         self.params = params
         self.where = f"{params.host}:{params.port}"
+        self.silence = (f"unit {params.unit} at {self.where} did not answer within "
+                        f"{params.timeout_s:g} s")
 
     def client(self, on_link: OnLink) -> Client:
         p = self.params
