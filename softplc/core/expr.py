@@ -19,6 +19,7 @@ from typing import Any, Protocol
 from softplc.core.arith import BINOPS, CONVERSIONS, INT_LIMIT, as_number, checked, static_kind
 from softplc.core.datatypes import SymType
 from softplc.core.errors import SoftplcError
+from softplc.core.iecwords import XorWord, rewrite, unrewrite
 
 Value = int | bool | str | float
 Thunk = Callable[["EvalContext"], Value]
@@ -106,9 +107,11 @@ _CONSTS: dict[str, Value] = {"true": True, "false": False, "TRUE": True, "FALSE"
 
 
 class _Compiler:
-    def __init__(self, text: str, scope: Scope) -> None:
+    def __init__(self, text: str, scope: Scope, iec: frozenset[str] = frozenset()) -> None:
         self.text = text
         self.scope = scope
+        self.iec = iec  # the IEC words the text used (core/iecwords.py)
+        self.kind = _kinds(scope)
         self.reads: set[str] = set()
         self.edges: set[str] = set()
         self.tokens: set[str] = set()
@@ -177,7 +180,18 @@ class _Compiler:
 
         return field_of
 
+    def _bool_operand(self, node: ast.expr, word: str) -> None:
+        """IEC's AND/OR/NOT of integers are bitwise: only bools get the logical meaning."""
+        kind = static_kind(node, self.kind)
+        if kind not in ("bool", "any"):
+            raise ExprError(f"{word} of {ast.unparse(node)!r} ({kind}): IEC's {word} of an "
+                            f"integer is bitwise, here {word} is logical and takes bools; "
+                            f"compare instead, e.g. {ast.unparse(node)} <> 0")
+
     def on_BoolOp(self, node: ast.BoolOp) -> Thunk:
+        if self.iec & {"AND", "OR"}:
+            for value in node.values:
+                self._bool_operand(value, "AND" if isinstance(node.op, ast.And) else "OR")
         parts = [self.build(v) for v in node.values]
         if isinstance(node.op, ast.And):
             return lambda ctx: all(p(ctx) for p in parts)
@@ -191,10 +205,14 @@ class _Compiler:
             return lambda ctx: checked(-as_number(inner(ctx)))
         if isinstance(node.op, ast.UAdd):
             return lambda ctx: as_number(inner(ctx))
+        if "NOT" in self.iec:  # NOT was read as ~: IEC's precedence, logical on bools
+            self._bool_operand(node.operand, "NOT")
+            return lambda ctx: not inner(ctx)
         raise ExprError("operator ~ is not allowed; use 'not' or arithmetic")
 
     def on_BinOp(self, node: ast.BinOp) -> Thunk:
-        op = BINOPS.get(type(node.op))
+        op = _iec_mod if isinstance(node.op, ast.MatMult) and "MOD" in self.iec else (
+            BINOPS.get(type(node.op)))
         if op is None:
             symbol = {ast.Pow: "**", ast.LShift: "<<", ast.RShift: ">>"}.get(
                 type(node.op), type(node.op).__name__
@@ -252,6 +270,15 @@ class _Compiler:
         return lambda ctx: not ctx.symbol(name) and bool(ctx.previous(name))
 
 
+def _iec_mod(a: Any, b: Any) -> int | float:
+    """IEC's MOD: the remainder takes the dividend's sign (-7 MOD 3 is -1; `%` gives 2)."""
+    if b == 0:
+        raise ZeroDivisionError("MOD by zero")
+    if isinstance(a, int) and isinstance(b, int):
+        return abs(a) % abs(b) * (-1 if a < 0 else 1)
+    return math.fmod(a, b)
+
+
 def _describe(node: ast.AST) -> str:
     names = {
         "Lambda": "lambda",
@@ -275,23 +302,32 @@ def _describe(node: ast.AST) -> str:
 
 def parse(text: str) -> ast.expr:
     """Parse one expression; statements, imports and oversize input are rejected here."""
+    return _parse(text)[0]
+
+
+def _parse(text: str) -> tuple[ast.expr, frozenset[str]]:
+    """The tree and the IEC words (AND, OR, NOT, MOD) the text used (core/iecwords.py)."""
     if len(text) > MAX_TEXT:
         raise ExprError(f"expression longer than {MAX_TEXT} characters")
     try:
-        tree = ast.parse(text.strip(), mode="eval")
+        python, words = rewrite(text.strip())
+    except XorWord as exc:
+        raise ExprError(str(exc)) from None
+    try:
+        tree = ast.parse(python, mode="eval")
     except SyntaxError as exc:
         raise ExprError(f"syntax error: {exc.msg}") from None
     count = sum(1 for _ in ast.walk(tree))
     if count > MAX_NODES:
         raise ExprError(f"expression too complex ({count} nodes, at most {MAX_NODES})")
-    return tree.body
+    return tree.body, words
 
 
 def compile_expr(text: str | int | bool, scope: Scope) -> Compiled:
     """Compile `text` in `scope`. Raises ExprError; never runs any part of the text."""
     source = str(text).lower() if isinstance(text, bool) else str(text)
-    compiler = _Compiler(source, scope)
-    tree = parse(source)
+    tree, words = _parse(source)
+    compiler = _Compiler(source, scope, words)
     fn = compiler.build(tree)
     return Compiled(source, fn, frozenset(compiler.reads), frozenset(compiler.edges),
                     frozenset(compiler.tokens), kind=static_kind(tree, _kinds(scope)), scope=scope)
@@ -332,7 +368,7 @@ def names_in(text: str) -> set[str]:
 def substitute(text: str, mapping: Mapping[str, Value]) -> str:
     """Replace bare names (subnet parameters) at the ast level: a text value renames the name
     (a symbol of the instance), a number or bool becomes a literal."""
-    tree = parse(text)
+    tree, words = _parse(text)
 
     class Rename(ast.NodeTransformer):
         def visit_Name(self, node: ast.Name) -> ast.AST:
@@ -344,4 +380,5 @@ def substitute(text: str, mapping: Mapping[str, Value]) -> str:
             )
             return ast.copy_location(new, node)
 
-    return ast.unparse(Rename().visit(tree))
+    text = ast.unparse(Rename().visit(tree))
+    return unrewrite(text) if words else text

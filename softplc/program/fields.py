@@ -11,7 +11,7 @@ from __future__ import annotations
 import ast
 from collections.abc import Callable, Iterator, Sequence
 
-from softplc.core.expr import MAX_TEXT
+from softplc.core.expr import MAX_TEXT, ExprError, parse
 from softplc.core.net import Transition
 from softplc.program.specvalues import ProgramSpec, TransitionSpec, Where
 from softplc.program.suggest import did_you_mean
@@ -72,8 +72,8 @@ def _reads(text: str) -> Iterator[tuple[str, str]]:
     if len(text) > MAX_TEXT:
         return  # the expression compiler reports it (10,000 x `not ` was a MemoryError here)
     try:
-        tree = ast.parse(text.partition("=")[2] if _assignment(text) else text, mode="eval")
-    except (SyntaxError, MemoryError, RecursionError):
+        tree = parse(text.partition("=")[2] if _assignment(text) else text)  # IEC words too
+    except (ExprError, MemoryError, RecursionError):
         return  # the expression compiler reports it
     for node in ast.walk(tree):
         if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):

@@ -321,7 +321,8 @@ ESCAPES: list[tuple[str, str]] = [
     ("await a", "await is not allowed in an expression"),
     ("import os", "syntax error: invalid syntax"),
     ("a; b", "syntax error: invalid syntax"),
-    ("w = 1", "syntax error: invalid syntax"),
+    ("w = 1 = 2 = (x := 3)", "assignment := is not allowed in an expression"),
+    ("w += 1", "syntax error: invalid syntax"),
     ("yield 1", "syntax error: invalid syntax"),
     ("(" * 300 + "1" + ")" * 300, "syntax error: too many nested parentheses"),
     ("not " * 450 + "a", "expression too complex (903 nodes, at most 400)"),
@@ -491,3 +492,61 @@ def test_division_by_zero_is_a_run_time_error_the_engine_reports(text: str) -> N
     """Not a silent 0 (issue 16): the engine turns it into a located diagnostic."""
     with pytest.raises(ZeroDivisionError):
         run(text)
+
+
+# -- IEC 61131-3 operator words (core/iecwords.py, docs/programs.md "Expressions") ----------
+
+
+@pytest.mark.parametrize(
+    ("text", "value"),
+    [
+        ("a AND NOT b", True),
+        ("a AND b OR s1", True),
+        ("NOT a OR b", False),
+        ("NOT a = b", True),  # IEC: (NOT a) = b; NOT binds tighter than a comparison
+        ("NOT (w > 3)", False),
+        ("w > 3 AND v < 4", True),
+        ("Not a Or b", False),  # IEC is case-insensitive; capitalised words too
+        ("w MOD 4", 3),
+        ("-7 MOD 3", -1),  # IEC: the dividend's sign (Python's % gives 2)
+        ("7 MOD -3", 1),
+        ("w MOD 4 * 2", 6),  # MOD binds like *
+        ("'AND' == 'AND' AND a", True),  # words in text are text
+        ("tok.ok AND a", True),
+    ],
+)
+def test_iec_words_read_with_iec_meaning(text: str, value: object) -> None:
+    assert run(text) == value
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("a XOR b", "XOR is not in the language (no operator has its IEC precedence): for bools "
+                    "write a != b, for integer bits a ^ b"),
+        ("NOT w", "NOT of 'w' (int): IEC's NOT of an integer is bitwise, here NOT is logical and "
+                  "takes bools; compare instead, e.g. w <> 0"),
+        ("w AND a", "AND of 'w' (int): IEC's AND of an integer is bitwise"),
+        ("a OR 2.5", "OR of '2.5' (float)"),
+        ("a @ b", "operator MatMult is not allowed"),  # `@` is still not the user's to write
+        ("~a", "operator ~ is not allowed"),
+    ],
+)
+def test_iec_words_that_would_change_meaning_are_refused_with_a_hint(text: str,
+                                                                     message: str) -> None:
+    with pytest.raises(ExprError) as err:
+        compile_expr(text, SCOPE)
+    assert message in err.value.message
+
+
+def test_a_substituted_iec_expression_keeps_its_meaning() -> None:
+    text = substitute("NOT sensor AND w MOD limit = 1", {"sensor": "b", "limit": 3})
+    assert run(text) is True and "NOT" in text and "MOD" in text
+    assert names_in("NOT sensor AND x") == {"sensor", "x"}
+
+
+def test_iec_comparisons_equal_and_not_equal() -> None:
+    assert run("w = 7 AND v <> 7") is True
+    assert run("w<>7") is False
+    with pytest.raises(ExprError, match="syntax error"):
+        compile_expr("w < > 7", SCOPE)  # <> is one operator: no space inside
