@@ -29,7 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from softplc.core.image import ImageSizes
-from softplc.core.scan import NOTHING_OBSERVED, Observed
+from softplc.core.judge import NOTHING_OBSERVED, Observed
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
 from softplc.runtime.clock import MonotonicClock, Schedule

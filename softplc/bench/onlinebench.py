@@ -22,7 +22,8 @@ from softplc.core.engine import Engine
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import Command
 from softplc.core.net import NetState
-from softplc.core.scan import Plc, ProgramCommand, scan
+from softplc.core.plc import Plc, ProgramCommand
+from softplc.core.scan import scan
 from softplc.core.snapshot import CommandRequest
 from softplc.program.compiler import compile_text
 from softplc.runtime.realtime import Realtime, keep_off_scan_cpu, recommended

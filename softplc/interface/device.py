@@ -27,8 +27,9 @@ from softplc.core.image import (
 )
 from softplc.core.lifecycle import Command, CommandRejected, PlcState
 from softplc.core.net import CompiledNet
+from softplc.core.plc import Plc, ProgramCommand
 from softplc.core.problems import ProgramError
-from softplc.core.scan import Plc, ProgramCommand, ScanResult
+from softplc.core.result import ScanResult
 from softplc.core.snapshot import HmiWrite
 from softplc.core.symbols import EventKind, EventSpec, IoImage, Symbol
 from softplc.devices.driver import (

@@ -19,10 +19,10 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from softplc.core.judge import CycleWatchdog
+from softplc.core.judge import NOTHING_OBSERVED, CycleWatchdog, Observed
 from softplc.core.lifecycle import Command, PlcState
+from softplc.core.plc import Plc, ProgramCommand
 from softplc.core.problems import FaultCode
-from softplc.core.scan import NOTHING_OBSERVED, Observed, Plc, ProgramCommand
 from softplc.core.snapshot import CommandReply, CommandRequest, Refusal, Status
 from softplc.core.steps import Steps
 from softplc.runtime import netview, statusdoc, warmstart

@@ -27,8 +27,8 @@ from softplc.core.errors import SoftplcError
 from softplc.core.image import ImageSizes
 from softplc.core.lifecycle import Command, CommandRejected, PlcState, Stage, next_stage
 from softplc.core.net import CompiledNet, NetState
+from softplc.core.plc import Plc
 from softplc.core.problems import Problem, ProgramError
-from softplc.core.scan import Plc
 from softplc.core.snapshot import CommandReply, CommandRequest
 from softplc.core.steps import Steps, drain
 from softplc.devices.driver import DeviceError, Driver

@@ -14,7 +14,8 @@ from typing import Any
 from softplc.core.image import ProcessImage, parse_address
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
-from softplc.core.scan import Plc, ProgramCommand, scan
+from softplc.core.plc import Plc, ProgramCommand
+from softplc.core.scan import scan
 from softplc.core.snapshot import HmiWrite
 from softplc.runtime.runner import observed_from
 from softplc.runtime.trace import image_digest, read_trace

@@ -34,8 +34,8 @@ from softplc.core.net import (
     persistent_places,
     places_marked,
 )
+from softplc.core.plc import Plc
 from softplc.core.problems import FaultCode
-from softplc.core.scan import Plc
 from softplc.core.symbols import Retain, Symbol, persistent_memory
 from softplc.core.values import record_problems, value_problem
 from softplc.runtime.retain_store import SnapshotInvalid

@@ -13,17 +13,12 @@ from typing import Any
 
 from softplc.core.faults import DeviceMonitor
 from softplc.core.image import ProcessImage
+from softplc.core.judge import NOTHING_OBSERVED, Observed, judge
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.net import CompiledNet
-from softplc.core.scan import (
-    NOTHING_OBSERVED,
-    Observed,
-    Plc,
-    ProgramCommand,
-    ScanResult,
-    judge,
-    scan,
-)
+from softplc.core.plc import Plc, ProgramCommand
+from softplc.core.result import ScanResult
+from softplc.core.scan import scan
 from softplc.core.snapshot import HmiWrite
 from softplc.core.symbols import DriverSpec, IoImage
 from softplc.devices.driver import Diagnosed, Driver, Health, go_safe_all

@@ -17,8 +17,9 @@ from typing import Any
 from softplc.core.image import ProcessImage, split_registers
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
+from softplc.core.plc import ProgramCommand
 from softplc.core.present import Shown, shown_number, shown_rounded
-from softplc.core.scan import ProgramCommand, ScanResult
+from softplc.core.result import ScanResult
 from softplc.core.snapshot import HmiWrite
 from softplc.core.symbols import Direction, Symbol
 from softplc.devices.driver import Health

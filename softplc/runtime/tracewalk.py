@@ -21,8 +21,9 @@ from softplc.core.errors import SoftplcError
 from softplc.core.expr import EvalContext
 from softplc.core.image import ProcessImage, parse_address
 from softplc.core.net import CompiledNet, NetState
+from softplc.core.plc import Plc
 from softplc.core.result import ScanResult
-from softplc.core.scan import Plc, scan
+from softplc.core.scan import scan
 from softplc.core.snapshot import HmiWrite
 from softplc.core.why import Why, run_round, why
 from softplc.runtime.replay import _apply_inputs, _commands

@@ -18,8 +18,8 @@ from typing import IO
 
 from softplc.core.datatypes import INFO, SymType
 from softplc.core.net import CompiledNet
+from softplc.core.plc import Plc
 from softplc.core.present import plotted
-from softplc.core.scan import Plc
 from softplc.core.symbols import Symbol
 from softplc.runtime.tracewalk import walk
 

@@ -15,7 +15,7 @@ from typing import Protocol
 
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.net import CompiledNet, persistent_places
-from softplc.core.scan import Plc, ProgramCommand
+from softplc.core.plc import Plc, ProgramCommand
 from softplc.core.symbols import persistent_memory
 from softplc.runtime.clock import Clock
 from softplc.runtime.config import LoopConfig

@@ -13,7 +13,9 @@ from softplc.core.expr import Value
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
-from softplc.core.scan import Plc, ProgramCommand, ScanResult, scan
+from softplc.core.plc import Plc, ProgramCommand
+from softplc.core.result import ScanResult
+from softplc.core.scan import scan
 from softplc.core.snapshot import HmiWrite
 from softplc.program.compiler import compile_text
 

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from softplc.core.faults import DeviceMonitor, Verdict
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.net import CompiledNet
-from softplc.core.scan import FAULT_DEVICE, FAULT_NONE, FAULT_WATCHDOG, ProgramCommand
+from softplc.core.plc import FAULT_DEVICE, FAULT_NONE, FAULT_WATCHDOG, ProgramCommand
 from softplc.core.symbols import FaultPolicy, OnFailure
 from tests.core.helpers import Bench, compile_program
 

@@ -21,7 +21,7 @@ from softplc.core.engine import Engine, Step, enabled_transitions, fire_one
 from softplc.core.image import parse_address
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet, NetState
-from softplc.core.scan import ProgramCommand
+from softplc.core.plc import ProgramCommand
 from softplc.core.snapshot import HmiWrite
 from softplc.program.compiler import compile_text
 from tests.core.helpers import Bench, Ctx, compile_program, write_io

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from softplc.core.lifecycle import Command, PlcState, accepting
-from softplc.core.scan import FAULT_WATCHDOG, ProgramCommand
+from softplc.core.plc import FAULT_WATCHDOG, ProgramCommand
 from tests.core.helpers import Bench, compile_program
 
 C, S = Command, PlcState

@@ -24,7 +24,7 @@ from softplc.core.lifecycle import (
     accepting,
 )
 from softplc.core.net import CompiledNet
-from softplc.core.scan import FAULT_WATCHDOG, Plc, ProgramCommand
+from softplc.core.plc import FAULT_WATCHDOG, Plc, ProgramCommand
 from tests.core.helpers import Bench, compile_program
 
 S, C = Stage, Command

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from softplc.core.datatypes import SymType
 from softplc.core.lifecycle import Command, PlcState
+from softplc.core.plc import ProgramCommand
 from softplc.core.present import (
     ValueRefused,
     accepted,
@@ -24,7 +25,6 @@ from softplc.core.present import (
     shown_number,
 )
 from softplc.core.scaling import Scaling
-from softplc.core.scan import ProgramCommand
 from tests.core.helpers import Bench, compile_program
 
 IO = """\

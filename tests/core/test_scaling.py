@@ -19,9 +19,10 @@ from softplc.core.datatypes import TypeRangeError
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
+from softplc.core.plc import Plc, ProgramCommand
 from softplc.core.problems import ProgramError
 from softplc.core.scaling import Scaling
-from softplc.core.scan import Plc, ProgramCommand, scan
+from softplc.core.scan import scan
 from softplc.program.compiler import compile_file
 
 PCT = Scaling((0, 27648), (0.0, 100.0), "%", clamp=True)

@@ -15,7 +15,7 @@ import pytest
 from softplc.core.image import ImageSizes, ProcessImage, parse_address
 from softplc.core.lifecycle import Command, CommandRejected, PlcState
 from softplc.core.net import CompiledNet
-from softplc.core.scan import FAULT_WATCHDOG, Plc, ProgramCommand
+from softplc.core.plc import FAULT_WATCHDOG, Plc, ProgramCommand
 from softplc.core.snapshot import HmiWrite
 from softplc.program.compiler import compile_text
 from tests.core.helpers import Bench, compile_program

@@ -15,8 +15,10 @@ from softplc.core.image import ProcessImage
 from softplc.core.judge import Observed
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.net import CompiledNet
+from softplc.core.plc import Plc, ProgramCommand
 from softplc.core.problems import FaultCode
-from softplc.core.scan import Plc, ProgramCommand, ScanResult, scan
+from softplc.core.result import ScanResult
+from softplc.core.scan import scan
 from softplc.program.compiler import compile_text
 
 MS = 1_000_000

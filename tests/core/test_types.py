@@ -51,7 +51,8 @@ class Run:
 
     def __init__(self, tmp_path: Path, transitions: str) -> None:
         from softplc.core.lifecycle import Command
-        from softplc.core.scan import Plc, ProgramCommand, scan
+        from softplc.core.plc import Plc, ProgramCommand
+        from softplc.core.scan import scan
         self.net = build(tmp_path, transitions)
         self._scan, self._cmd = scan, ProgramCommand
         self.plc = Plc.empty(ProcessImage(self.net.io.sizes))  # type: ignore[attr-defined]

@@ -14,8 +14,8 @@ import pytest
 
 from softplc.core.lifecycle import Command, PlcState, Stage
 from softplc.core.net import CompiledNet
+from softplc.core.plc import ProgramCommand
 from softplc.core.problems import FaultCode
-from softplc.core.scan import ProgramCommand
 from tests.core.helpers import Bench, compile_program
 
 C = Command

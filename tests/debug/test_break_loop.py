@@ -15,7 +15,7 @@ from typing import Any
 from softplc.api.clicmds import format_status
 from softplc.cli import main
 from softplc.core.lifecycle import Command, PlcState
-from softplc.core.scan import ProgramCommand
+from softplc.core.plc import ProgramCommand
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop
 

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from softplc.core.breakpoints import Outputs
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
-from softplc.core.scan import ProgramCommand
+from softplc.core.plc import ProgramCommand
 from tests.core.helpers import compile_program
 from tests.debug.test_break_core import PROGRAM, Clocked, brk, paused_at_go
 

@@ -20,7 +20,7 @@ import pytest
 
 from softplc.api.client import ApiClient
 from softplc.core.lifecycle import Command, PlcState, Stage
-from softplc.core.scan import ProgramCommand
+from softplc.core.plc import ProgramCommand
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.comm import CommConfig
 from softplc.runtime.loop import LoopConfig, ScanLoop

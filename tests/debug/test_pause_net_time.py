@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from softplc.core.lifecycle import Command
-from softplc.core.scan import ProgramCommand
+from softplc.core.plc import ProgramCommand
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop
 

@@ -11,7 +11,7 @@ from typing import Any
 
 from softplc.api.debug import explain_board
 from softplc.core.lifecycle import Command
-from softplc.core.scan import ProgramCommand
+from softplc.core.plc import ProgramCommand
 from softplc.core.why import format_why
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from softplc.core.lifecycle import Command, PlcState
-from softplc.core.scan import FAULT_DEVICE, FAULT_NONE, ProgramCommand
+from softplc.core.plc import FAULT_DEVICE, FAULT_NONE, ProgramCommand
 from softplc.hmi.map import STATUS_FAULT_CODE, STATUS_STATE, status_registers
 from softplc.runtime.loop import LoopConfig, ScanLoop
 from tests.devices.test_modbus_io import FC_COIL, FC_DI

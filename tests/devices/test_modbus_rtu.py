@@ -20,7 +20,7 @@ import pytest
 
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import Command, PlcState
-from softplc.core.scan import ProgramCommand
+from softplc.core.plc import ProgramCommand
 from softplc.core.symbols import DriverSpec, Symbol
 from softplc.devices.check import check_devices
 from softplc.devices.driver import DriverConfigError, Health

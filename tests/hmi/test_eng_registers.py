@@ -20,7 +20,7 @@ from pymodbus.client import ModbusTcpClient
 from pymodbus.pdu import ExceptionResponse
 
 from softplc.core.lifecycle import Command
-from softplc.core.scan import ProgramCommand
+from softplc.core.plc import ProgramCommand
 from softplc.core.snapshot import HmiWrite, Snapshot
 from softplc.hmi.eng import EngSource
 from softplc.hmi.server import ModbusSlave

@@ -22,7 +22,7 @@ import pytest
 
 from softplc.api.client import ApiClient
 from softplc.core.lifecycle import Command, PlcState
-from softplc.core.scan import ProgramCommand
+from softplc.core.plc import ProgramCommand
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop
 from tests.runtime.test_retain_per_variable import write

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from softplc.core.lifecycle import Command
-from softplc.core.scan import ProgramCommand
+from softplc.core.plc import ProgramCommand
 from softplc.program.compiler import compile_file
 from softplc.runtime.runner import boot
 from softplc.runtime.simulate import simulate

@@ -15,9 +15,9 @@ from typing import Any
 import pytest
 
 from softplc.core import online
+from softplc.core.judge import NOTHING_OBSERVED, Observed
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.net import CompiledNet
-from softplc.core.scan import NOTHING_OBSERVED, Observed
 from softplc.core.snapshot import CommandReply, CommandRequest, Refusal
 from softplc.core.steps import Steps
 from softplc.program.compiler import compile_file

@@ -13,9 +13,10 @@ import pytest
 
 from softplc.core.engine import Engine
 from softplc.core.image import ProcessImage
+from softplc.core.judge import NOTHING_OBSERVED
 from softplc.core.lifecycle import Command, PlcState
+from softplc.core.plc import ProgramCommand
 from softplc.core.problems import FaultCode, PlcFault
-from softplc.core.scan import NOTHING_OBSERVED, ProgramCommand
 from softplc.core.snapshot import CommandRequest
 from softplc.devices.driver import Health
 from softplc.program.compiler import compile_file

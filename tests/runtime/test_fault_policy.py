@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 
 from softplc.core.lifecycle import Command, PlcState
+from softplc.core.plc import FAULT_DEVICE, FAULT_NONE, ProgramCommand
 from softplc.core.problems import ProgramError
-from softplc.core.scan import FAULT_DEVICE, FAULT_NONE, ProgramCommand, ScanResult
+from softplc.core.result import ScanResult
 from softplc.core.symbols import FaultPolicy, OnFailure
 from softplc.devices.sim import SimDriver
 from softplc.program.compiler import compile_file

@@ -15,7 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from softplc.core.lifecycle import Command, PlcState
-from softplc.core.scan import ProgramCommand
+from softplc.core.plc import ProgramCommand
 from softplc.program.compiler import compile_file
 from softplc.runtime.loop import LoopConfig, ScanLoop
 from softplc.runtime.replay import replay

@@ -12,8 +12,9 @@ import struct
 from pathlib import Path
 
 from softplc.core.lifecycle import Command, PlcState
+from softplc.core.plc import Plc, ProgramCommand
 from softplc.core.present import shown
-from softplc.core.scan import Plc, ProgramCommand, scan
+from softplc.core.scan import scan
 from softplc.core.symbols import Symbol
 from softplc.program.compiler import compile_file
 from softplc.runtime.clock import VirtualClock

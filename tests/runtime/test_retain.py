@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from softplc.core.lifecycle import Command, PlcState
-from softplc.core.scan import ProgramCommand
+from softplc.core.plc import ProgramCommand
 from softplc.program.compiler import compile_file
 from softplc.runtime import retain
 from softplc.runtime.clock import VirtualClock

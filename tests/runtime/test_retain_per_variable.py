@@ -14,8 +14,9 @@ from pathlib import Path
 import pytest
 
 from softplc.core.lifecycle import Command, PlcState
+from softplc.core.plc import Plc, ProgramCommand
 from softplc.core.problems import ProgramError
-from softplc.core.scan import Plc, ProgramCommand, scan
+from softplc.core.scan import scan
 from softplc.program.compiler import compile_file
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop

@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from softplc.core.lifecycle import Command
-from softplc.core.scan import ProgramCommand
+from softplc.core.plc import ProgramCommand
 from softplc.runtime import retain
 from softplc.runtime.retain import FileOps, RetainStore, RetainWriter, Stage, WriteFailed
 from tests.core.helpers import Bench, compile_program

@@ -17,8 +17,8 @@ import pytest
 
 from softplc.api.clicmds import format_status
 from softplc.cli import DESCRIPTION
+from softplc.core.judge import Observed
 from softplc.core.lifecycle import PlcState
-from softplc.core.scan import Observed
 from softplc.runtime import statusdoc
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop

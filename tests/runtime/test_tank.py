@@ -8,8 +8,8 @@ from __future__ import annotations
 import itertools
 from pathlib import Path
 
+from softplc.core.plc import Plc
 from softplc.core.present import shown
-from softplc.core.scan import Plc
 from softplc.devices.plants.tank import TankPlant
 from softplc.program.compiler import compile_file
 from softplc.runtime.clock import VirtualClock

@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 
 from softplc.core.lifecycle import Command, PlcState
+from softplc.core.plc import ProgramCommand
 from softplc.core.present import shown
 from softplc.core.problems import FaultCode
-from softplc.core.scan import ProgramCommand
 from softplc.runtime import retain_codec
 from tests.core.helpers import Bench, compile_program
 

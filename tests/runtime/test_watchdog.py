@@ -11,7 +11,7 @@ from pathlib import Path
 
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import PlcState
-from softplc.core.scan import FAULT_WATCHDOG
+from softplc.core.plc import FAULT_WATCHDOG
 from softplc.devices.driver import Health
 from softplc.runtime.loop import LoopConfig, ScanLoop
 from softplc.runtime.trace import read_trace

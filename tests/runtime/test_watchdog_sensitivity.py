@@ -16,7 +16,7 @@ import pytest
 
 from softplc.core.image import ProcessImage
 from softplc.core.lifecycle import PlcState
-from softplc.core.scan import FAULT_WATCHDOG
+from softplc.core.plc import FAULT_WATCHDOG
 from softplc.devices.driver import Health
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop

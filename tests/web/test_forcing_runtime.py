@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from softplc.core.lifecycle import Command
-from softplc.core.scan import ProgramCommand
+from softplc.core.plc import ProgramCommand
 from softplc.hmi.map import STATUS_FORCED, status_registers
 from softplc.program.compiler import compile_file
 from softplc.runtime.clock import VirtualClock
