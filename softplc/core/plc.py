@@ -15,10 +15,8 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from softplc.core import events as event_conditions
-from softplc.core import memory, online
+from softplc.core import memory, online, verdict
 from softplc.core.breakpoints import Breakpoints
 from softplc.core.context import ScanContext
 from softplc.core.engine import Engine
@@ -37,7 +35,7 @@ from softplc.core.lifecycle import (
 )
 from softplc.core.net import Busy, CompiledNet, NetState
 from softplc.core.online import CarryPlan
-from softplc.core.present import shown_number
+from softplc.core.present import shown_rounded
 from softplc.core.problems import FaultCode
 from softplc.core.result import ScanResult
 from softplc.core.snapshot import HmiWrite
@@ -145,8 +143,15 @@ class Plc:
         if cmd.command is Command.DOWNLOAD:
             if cmd.net is None:
                 raise CommandRejected(self.state, cmd.command, "download without a program")
-            if self.state is PlcState.RUNNING:
-                return self._online_change(cmd)
+            fate = verdict.decide(self.stage, self.net, self.engine.state if self.engine
+                                  else None, cmd.net, online_change=cmd.online,
+                                  replace=cmd.replace, plan=cmd.plan)  # as the dry run's
+            if not fate.accepted:
+                raise CommandRejected(self.state, cmd.command, fate.reason)
+            if fate.plan is not None:  # an online change, its plan checked
+                return self._online_change(cmd, fate.plan)
+            if fate.outcome is verdict.Outcome.REPLACEMENT:
+                return self._replace(cmd)
             self._load(cmd.net, self._fresh(cmd.net), cmd.engine, clear=True)
         elif cmd.command is Command.START or cmd.command is Command.RESET:
             assert self.net is not None
@@ -230,7 +235,8 @@ class Plc:
         except ForceRefused as exc:
             raise CommandRejected(self.state, cmd.command, f"{cmd.command.value} refused: "
                                   f"{exc}") from None
-        shown = shown_number(entry.type.value if entry.type else None, entry.value, entry.scaling)
+        shown = shown_rounded(entry.type.value if entry.type else None, entry.value,
+                              entry.scaling)  # at its scale's resolution (core/present.py)
         return f"force: {entry.symbol} = {shown} (state {self.state.name})"
 
     def _unshadow(self, entry: Force, shadow: int | None) -> None:
@@ -299,19 +305,11 @@ class Plc:
             self._shift_timers(now_ns - wait.since_ns)
             wait.outputs.restore(self.image)
 
-    def _online_change(self, cmd: ProgramCommand) -> str:
-        """A download while RUNNING (docs/programs.md, online change; core/online.py)."""
+    def _online_change(self, cmd: ProgramCommand, carry_plan: CarryPlan) -> str:
+        """A download while RUNNING of the same program, accepted by core/verdict.py
+        (docs/programs.md, online change; core/online.py)."""
         assert self.net is not None and self.engine is not None and cmd.net is not None
-        net, old = cmd.net, self.net
-        if not cmd.online:
-            raise CommandRejected(self.state, Command.DOWNLOAD,
-                                  "download while RUNNING needs online change (--online), "
-                                  "or stop the program first (a plain download is accepted in "
-                                  f"{accepting(Command.DOWNLOAD).replace(', RUNNING', '')})")
-        if net.name != old.name:
-            return self._replace(cmd)
-        carry_plan = cmd.plan if cmd.plan is not None and cmd.plan.old is old \
-            and cmd.plan.new is net else online.plan(old, net)
+        net = cmd.net
         carried = online.carry(carry_plan, self.engine.state)
         if isinstance(carried, str):
             raise CommandRejected(self.state, Command.DOWNLOAD, carried)
@@ -321,19 +319,12 @@ class Plc:
                 + (f", {fresh} new place(s) with their declared tokens" if fresh else ""))
 
     def _replace(self, cmd: ProgramCommand) -> str:
-        """Another program while RUNNING. On other devices it is the seed paper's
-        reconfiguration (the machine changed too) and goes ahead; on the same devices the
-        tokens of the running program stand for real parts, so it needs `replace`."""
+        """Another program while RUNNING, accepted by core/verdict.py. On other devices it is
+        the seed paper's reconfiguration (the machine changed too); on the same devices the
+        tokens of the running program stand for real parts, so it needed `replace`."""
         assert self.net is not None and cmd.net is not None
         old, net = self.net, cmd.net
         same_devices = tuple(old.io.drivers.values()) == tuple(net.io.drivers.values())
-        if same_devices and not cmd.replace:
-            marked = int(np.count_nonzero(self.engine.state.marking)) if self.engine else 0
-            raise CommandRejected(self.state, Command.DOWNLOAD, (
-                f"online change refused: {net.name} is another program than the running "
-                f"{old.name} on the same devices; it would start from its initial marking and "
-                f"drop the tokens of {marked} marked place(s). Replace it explicitly "
-                "(--replace), or stop first"))
         self._load(net, NetState.initial(net), cmd.engine)
         self.drive_safe()  # outputs the new program does not drive must not stay on
         self.first_round = True

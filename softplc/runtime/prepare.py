@@ -21,11 +21,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from softplc.core import online
+from softplc.core import online, verdict
 from softplc.core.engine import Engine
 from softplc.core.errors import SoftplcError
 from softplc.core.image import ImageSizes
-from softplc.core.lifecycle import Command, CommandRejected, PlcState, Stage, next_stage
+from softplc.core.lifecycle import PlcState, Stage
 from softplc.core.net import CompiledNet, NetState
 from softplc.core.plc import Plc
 from softplc.core.problems import Problem, ProgramError
@@ -300,40 +300,23 @@ def answering(prepared: Prepared, at: Boundary) -> Steps[CommandReply]:
         carry_plan = prepared.plan if prepared.plan is not None \
             and prepared.plan.old is at.net else (yield from online.planning(at.net, net))
         detail = yield from online.describing(carry_plan, at.net_state)
-    detail["verdict"] = _verdict(at, prepared, detail)
-    detail["accepted"] = not detail["verdict"].startswith(("refused", "online change "
-                                                           "refused"))
+        prepared.plan = carry_plan
+    fate = decision(prepared, at)
+    detail["verdict"], detail["accepted"] = fate.text(), fate.accepted
+    detail["outcome"] = fate.outcome.value
     detail["state"] = at.state.name
     prepared.discard()
     return CommandReply(req.id, True, f"dry run: {detail['verdict']} (nothing applied)",
                         at.state, detail=detail)
 
 
-def _verdict(at: Boundary, prepared: Prepared, detail: dict[str, Any]) -> str:
-    """The download's fate in the state at `at`, by the rules of core/scan.py."""
+def decision(prepared: Prepared, at: Boundary) -> verdict.Verdict:
+    """The download's fate in the state at `at`: the `decide` of the real apply
+    (core/verdict.py), on the plan made off the scan when it still holds."""
     net, req = prepared.net, prepared.request
-    if net.io.sizes != at.sizes:
-        return "refused: the program's image sizes differ from the runtime's"
-    if at.state is not PlcState.RUNNING:
-        try:
-            next_stage(at.stage, Command.DOWNLOAD)
-        except CommandRejected as exc:
-            return f"refused: {exc}"
-        dropped = " (the marking kept at the stop is dropped)" \
-            if at.stage is Stage.SUSPENDED else ""
-        return f"accepted: loads from its initial marking ({at.state.name}){dropped}"
-    old = at.net
-    assert old is not None
-    if not req.online:
-        return "refused: download while RUNNING needs online change (--online)"
-    if net.name == old.name:
-        return str(detail["verdict"])
-    same = tuple(old.io.drivers.values()) == tuple(net.io.drivers.values())
-    if same and not req.replace:
-        return (f"refused: {net.name} is another program than the running {old.name} on "
-                "the same devices; it needs --replace (it starts from its initial marking)")
-    return (f"accepted: replacement of {old.name} by {net.name} from its initial marking"
-            + ("" if same else " (reconfiguration: new devices)"))
+    plan = prepared.plan if prepared.plan is not None and prepared.plan.old is at.net else None
+    return verdict.decide(at.stage, at.net, at.net_state, net, online_change=req.online,
+                          replace=req.replace, sizes_fit=net.io.sizes == at.sizes, plan=plan)
 
 
 def describe_error(error: BaseException) -> str:
