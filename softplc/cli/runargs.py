@@ -7,16 +7,25 @@ Owns: the run parser and its defaults. Does not know: how a PLC runs (runtime/ru
 from __future__ import annotations
 
 import argparse
+import sys
 
 from softplc.api.secopts import add_run_options
 from softplc.cli.argtypes import count as _count
 from softplc.cli.argtypes import duration as _duration
 from softplc.cli.argtypes import endpoint as _endpoint
 from softplc.cli.argtypes import timeout as _timeout
+from softplc.sparkplug.options import add_options as add_sparkplug_options
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     from softplc.runtime.runcmd import run
+    from softplc.sparkplug.options import from_args as sparkplug_config
+
+    try:  # the whole edge node configuration, before anything starts (docs/sparkplug.md)
+        args.sparkplug = sparkplug_config(args)
+    except ValueError as exc:
+        print(f"softplc run: {exc}", file=sys.stderr)
+        return 2
     return run(args)
 
 
@@ -105,5 +114,6 @@ def add_run(run: argparse.ArgumentParser) -> None:
                      "(default: 3s; at least period x watchdog)")
     run.add_argument("--duration", type=_duration, help="stop after this long (default: Ctrl-C)")
     run.add_argument("--quiet", action="store_true", help="no live status line (default: off)")
+    add_sparkplug_options(run)  # --sparkplug URL and its options (docs/sparkplug.md)
     add_run_options(run)  # --tls, --tls-cert, --tls-key, --trusted-keys (docs/security.md)
     run.set_defaults(func=cmd_run)

@@ -63,7 +63,8 @@ class GaveUp(SoftplcError, RuntimeError):
 _TITLES: Final = {"modbus": ("softplc-modbus", "Modbus process"),
                   "modbus-tls": ("softplc-mbtls", "Modbus/TCP Security process"),
                   "http": ("softplc-http", "HTTP process"),
-                  "opcua": ("softplc-opcua", "OPC UA process")}
+                  "opcua": ("softplc-opcua", "OPC UA process"),
+                  "sparkplug": ("softplc-sparkplug", "Sparkplug process")}
 
 
 @dataclass(eq=False)
@@ -72,10 +73,11 @@ class ServiceProcess:
     and restart history."""
 
     name: str
-    config: CommConfig
+    config: Any  # a CommConfig, or what `main` takes (sparkplug/config.py)
     stop: StopFlag = field(default_factory=StopFlag)
     proc: Any = None
     restarts: deque[float] = field(default_factory=deque)
+    main: Callable[..., None] = comm_process_main  # another room's (sparkplug/config.py main)
 
     @property
     def title(self) -> str:
@@ -167,7 +169,10 @@ class Supervisor:
                                  opcua=getattr(args, "opcua", None),
                                  modbus_tls=getattr(args, "modbus_tls", None),
                                  **modbus_limits(args))
-        return cls(loop_config, comm_config)
+        supervisor = cls(loop_config, comm_config)
+        if (sparkplug := getattr(args, "sparkplug", None)) is not None:  # cli resolved it
+            supervisor.services.append(ServiceProcess("sparkplug", sparkplug, main=sparkplug.main))
+        return supervisor
 
     def start(self, timeout_s: float = 30.0,
               stopping: Callable[[], bool] = lambda: False) -> None:
@@ -210,7 +215,7 @@ class Supervisor:
     def _spawn(self, service: ServiceProcess) -> ReadySignal:
         ready = ReadySignal(self.ctx)
         service.proc = self.ctx.Process(
-            target=comm_process_main, name=_TITLES[service.name][0],
+            target=service.main, name=_TITLES[service.name][0],
             args=(service.config, self.channel, self.shm_name, self.board_name, ready,
                   service.stop))
         service.proc.start()
@@ -226,7 +231,8 @@ class Supervisor:
         while not self._stopping() and not ready.wait(0.05):
             if not service.proc.is_alive() or time.monotonic() > deadline:
                 config = service.config
-                host, port = config.modbus or config.api or config.opcua or ("?", 0)
+                host, port = getattr(config, "broker", None) or config.modbus or config.api \
+                    or config.opcua or ("?", 0)
                 raise RuntimeError(f"the {service.title} did not start (is {host}:{port} "
                                    "in use?)")
 

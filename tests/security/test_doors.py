@@ -41,6 +41,9 @@ DOORS: dict[str, tuple[str, frozenset[str]]] = {
     "hmi/map.py": ("Modbus TCP writes", frozenset({"granted"})),
     "runtime/comm.py": ("starts the Modbus slaves (hmi/map.py decides their writes)",
                         frozenset()),
+    # Sparkplug B (issue 41): a host's NCMD writes and program commands, decided for the
+    # door's configured role (--sparkplug-role, default viewer: nothing)
+    "sparkplug/door.py": ("Sparkplug NCMD writes and commands", frozenset({"granted"})),
 }
 # Callers in the PLC's own process or offline tools: no client reaches them.
 NOT_DOORS: frozenset[str] = frozenset({

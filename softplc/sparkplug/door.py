@@ -1,0 +1,186 @@
+"""The Sparkplug door: what a host's NCMD may do to the PLC, decided, applied and audited like
+at every other door (issue 38).
+
+Owns: a host's NCMD metric as an act: a symbol write (Act.WRITE) or a program command
+(Node Control/Command = start, stop, resume or reset: its own act, and only with
+`--sparkplug-commands`); the decision by `granted` for the door's configured role (MQTT says
+nothing about who published a command: the broker's ACL decides who may publish NCMD, spec
+5.11; this door gives each the role of --sparkplug-role, viewer by default = nothing); the
+write policy (an input or `hmi_writable: false` symbol is refused, as is a write while the
+board still describes another program), the typed check (core/present.py `accepted`, as the
+HTTP API's); one audit record per command (iface "sparkplug"); the outcome as one line for
+the `Node Control/Command Status` metric. Everything that blocks (the trail's fsync, a
+command's reply) runs in one worker thread behind a bounded queue; a full queue refuses.
+Does not know: MQTT, topics, payload bytes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import logging
+import queue
+import threading
+from collections.abc import Callable
+from typing import Any, Final, Protocol
+
+from softplc.core.image import split_registers
+from softplc.core.lifecycle import Command
+from softplc.core.present import ValueRefused, accepted
+from softplc.core.snapshot import (
+    ChannelFull,
+    CommandReply,
+    CommandRequest,
+    HmiWrite,
+    NoReply,
+    NotQueued,
+    SnapshotSource,
+    SnapshotUnavailable,
+)
+from softplc.security.decide import Identity, granted
+from softplc.security.roles import Act
+from softplc.sparkplug import codec
+from softplc.sparkplug.codec import Metric
+from softplc.sparkplug.config import SparkplugConfig
+from softplc.sparkplug.metrics import COMMAND, Report, SymbolMetric
+
+log = logging.getLogger(__name__)
+
+MAX_WAITING: Final = 64  # commands queued for the worker; more are refused at once
+COMMAND_TIMEOUT_S: Final = 5.0
+PROGRAM_COMMANDS: Final = {c.value: c for c in (Command.START, Command.STOP, Command.RESUME,
+                                                 Command.RESET)}
+_FIRST_ID: Final = 2_000_000  # command ids that show Sparkplug in the trace
+
+
+class Channel(Protocol):
+    def send_hmi_write(self, write: HmiWrite) -> None: ...
+
+    def send_command(self, request: CommandRequest, timeout_s: float = ...) -> CommandReply: ...
+
+
+class AuditSink(Protocol):
+    def append(self, entry: dict[str, Any]) -> object: ...
+
+
+class Door:
+    """Decides and applies hosts' commands in a worker thread; `outcomes()` (from the node's
+    thread) returns the lines written since the last call."""
+
+    def __init__(self, config: SparkplugConfig, channel: Channel, source: SnapshotSource,
+                 audit: AuditSink) -> None:
+        self.config = config
+        self.who = Identity(None, "policy", granted=config.role)
+        self._channel, self._source, self._audit = channel, source, audit
+        self._ids = itertools.count(_FIRST_ID)
+        self._numbers = itertools.count(1)
+        self._waiting: queue.Queue[Callable[[], None] | None] = queue.Queue(MAX_WAITING)
+        self._done: queue.Queue[str] = queue.Queue()
+        self.refused_busy = 0
+        self._thread = threading.Thread(target=self._work, name="sparkplug-door", daemon=True)
+        self._thread.start()
+
+    def submit(self, report: Report, metric: Metric) -> None:
+        """A host's NCMD metric (from the node's thread): queued for the worker."""
+        symbol = report.by_name.get(metric.name or "") if metric.name is not None \
+            else report.by_alias.get(metric.alias or -1)
+        program = str(report.document.get("program_hash") or "")
+        try:
+            self._waiting.put_nowait(lambda: self._handle(metric, symbol, program))
+        except queue.Full:
+            self.refused_busy += 1
+            self._done.put(f"#{next(self._numbers)} refused: more than {MAX_WAITING} "
+                           "commands waiting")
+
+    def outcomes(self) -> list[str]:
+        lines: list[str] = []
+        with contextlib.suppress(queue.Empty):
+            while True:
+                lines.append(self._done.get_nowait())
+        return lines
+
+    def close(self) -> None:
+        with contextlib.suppress(queue.Full):
+            self._waiting.put(None, timeout=1.0)
+        self._thread.join(COMMAND_TIMEOUT_S + 1.0)
+
+    def _work(self) -> None:
+        while (job := self._waiting.get()) is not None:
+            try:
+                job()
+            except Exception:  # a bug here must not end the door
+                log.exception("Sparkplug command failed")
+
+    # -- one command, in the worker ---------------------------------------------------------
+
+    def _handle(self, metric: Metric, symbol: SymbolMetric | None, program: str) -> None:
+        target = metric.name if metric.name is not None else f"alias {metric.alias}"
+        if metric.name == COMMAND:
+            action, outcome, why = self._program_command(metric.value)
+        elif symbol is None:
+            action, outcome, why = "write", "refused", f"no metric {target} in the last NBIRTH"
+        else:
+            target = symbol.name
+            action = "write"
+            outcome, why = self._write(symbol, metric, program)
+        line = f"#{next(self._numbers)} {action} {target}: {outcome}" + (f" ({why})" if why
+                                                                          else "")
+        entry = {"user": None, "role": self.config.role.label, "via": "policy",
+                 "peer": f"{self.config.host}:{self.config.port}", "iface": "sparkplug",
+                 "action": action, "outcome": outcome, "status": why or "ok",
+                 "detail": {"metric": target, "value": _plain(metric.value)}}
+        try:
+            self._audit.append(entry)
+        except OSError as exc:
+            log.error("audit record of a Sparkplug %s not written: %s", action, exc)
+        self._done.put(line)
+
+    def _write(self, symbol: SymbolMetric, metric: Metric, program: str) -> tuple[str, str]:
+        decision = granted(self.who, Act.WRITE)
+        if not decision.allowed:
+            return "denied", decision.reason() + " (--sparkplug-role)"
+        if not symbol.writable:
+            return "refused", f"{symbol.name} is an input or hmi_writable: false"
+        with contextlib.suppress(SnapshotUnavailable):
+            if self._source.latest().status.program_hash != program:
+                return "refused", "the program changed: use the metrics of the next NBIRTH"
+        number = metric.value
+        if metric.datatype is None and isinstance(number, int) and not isinstance(number, bool):
+            number = codec.signed(symbol.datatype, number)  # by alias: the birth's datatype
+        try:
+            raw = accepted(symbol.type_name, number, symbol.name, symbol.scale)
+        except ValueRefused as exc:
+            return "refused", str(exc)
+        address = symbol.address
+        registers = (raw,) if address.is_bit else tuple(split_registers(raw, address.width))
+        try:
+            self._channel.send_hmi_write(HmiWrite(address, registers))
+        except ChannelFull as exc:
+            return "refused", str(exc)
+        return "queued", ""
+
+    def _program_command(self, value: object) -> tuple[str, str, str]:
+        command = PROGRAM_COMMANDS.get(str(value).strip().lower())
+        if command is None:
+            return "command", "refused", (f"{value!r} is not one of "
+                                          f"{', '.join(PROGRAM_COMMANDS)}")
+        if not self.config.commands:
+            return command.value, "refused", "program commands are off (--sparkplug-commands)"
+        decision = granted(self.who, Act.of(command))
+        if not decision.allowed:
+            return command.value, "denied", decision.reason() + " (--sparkplug-role)"
+        try:
+            reply = self._channel.send_command(CommandRequest(next(self._ids), command),
+                                               COMMAND_TIMEOUT_S)
+        except (NotQueued, NoReply, ChannelFull) as exc:
+            return command.value, "refused", str(exc)
+        return command.value, ("applied" if reply.ok else "refused"), \
+            ("" if reply.ok else reply.message)
+
+
+def _plain(value: object) -> object:
+    if isinstance(value, float) and value != value:
+        return "NaN"
+    if isinstance(value, float) and value in (float("inf"), float("-inf")):
+        return "Infinity" if value > 0 else "-Infinity"
+    return value

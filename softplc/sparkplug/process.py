@@ -1,0 +1,83 @@
+"""The Sparkplug process (`softplc-sparkplug`): one edge node over the published snapshot, the
+status board and the command channel, started and restarted alone by the supervisor like
+the other service processes (runtime/supervisor.py).
+
+Owns: attaching the snapshot and the board, the door's audit trail in STATE_DIR, the loop
+(the node's step every STEP_S, the door's outcomes into the status metric), the niceness
+(NICE, as OPC UA: reporting yields to the scan and to the HMI doors), and the stop: SIGTERM
+ends the loop, an NDEATH goes out before DISCONNECT, then the process exits.
+Does not know: MQTT details (node.py), decisions (door.py).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+from typing import Final
+
+from softplc.core.snapshot import SnapshotUnavailable
+from softplc.runtime.board import StatusBoard
+from softplc.runtime.channel import Channel
+from softplc.runtime.fresh import FreshSource
+from softplc.runtime.procs import (
+    Flag,
+    die_with_parent,
+    exit_now,
+    name_process,
+    once,
+    supervisor_pid,
+)
+from softplc.runtime.shm import SnapshotReader
+from softplc.security.audit import AuditTrail
+from softplc.sparkplug.config import SparkplugConfig
+from softplc.sparkplug.door import Door
+from softplc.sparkplug.node import EdgeNode, Reading
+
+log = logging.getLogger("softplc.sparkplug")
+
+STEP_S: Final = 0.02  # how long one step waits for the socket
+NICE: Final = 10
+NAME: Final = "softplc-sparkplug"
+
+
+def process_main(config: SparkplugConfig, channel: Channel, shm_name: str, board_name: str,
+                 ready: Flag, stop: Flag) -> None:
+    name_process(NAME)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, once(stop.set))
+    die_with_parent()
+    mapping = SnapshotReader.attach(shm_name, config.sizes)
+    source = FreshSource(mapping)
+    board = StatusBoard.attach(board_name)
+    door = Door(config, channel, source, AuditTrail(config.state_dir))
+
+    def read() -> Reading:
+        try:
+            document = board.read()
+        except TimeoutError:
+            document = {}
+        image = None
+        with contextlib.suppress(SnapshotUnavailable):
+            image = source.latest().image
+        return document, image
+
+    node = EdgeNode(config, read, door.submit)
+    os.nice(NICE)
+    ready.set()  # serving from now on: the broker may be away, the node keeps trying
+    parent = supervisor_pid()
+    try:
+        while not stop.is_set() and os.getppid() == parent:
+            node.step(STEP_S)
+            lines = door.outcomes()
+            if lines and node.report is not None:
+                node.report.status = lines[-1]
+                for line in lines:
+                    log.info("Sparkplug command %s", line)
+    finally:
+        node.close()
+        door.close()
+        mapping.close()
+        board.close()
+    exit_now(0)
