@@ -32,7 +32,7 @@ from softplc.core.problems import Problem, ProgramError
 from softplc.core.symbols import FIRST_SCAN, RETAIN_WORDS, Direction, IoImage, Retain, SymType
 from softplc.core.values import MAX_FIELDS, field_name_problem
 from softplc.program import fields as token_fields
-from softplc.program.io_image import hashed_text, load_io_image
+from softplc.program.io_image import hashed_text, load_io_image, parse_io_image
 from softplc.program.spec import parse_program, resolve
 from softplc.program.specvalues import ArcSpec, ProgramSpec, TransitionSpec, Where
 from softplc.program.suggest import did_you_mean
@@ -384,6 +384,11 @@ def compile_text_with_io(text: str, filename: str, io: IoImage,
 
 
 def compile_file(path: str | Path, root: Path | None = None) -> CompiledNet:
+    if str(path).partition("#")[0].lower().endswith(".xml"):  # an SFC chart: docs/sfc.md
+        from softplc.sfc.load import load_chart
+        c = load_chart(path)
+        return c.compiled(lambda: compile_text_with_io(c.program_text, c.file,
+                                                       parse_io_image(c.io_text, c.file), root))
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
