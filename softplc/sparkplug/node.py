@@ -94,7 +94,7 @@ class EdgeNode:
         self.connected = self.subscribed = self.born = False
         self.host_online = config.primary_host is None
         self.host_ts = -1  # the last STATE timestamp taken from the primary host
-        self.rebirth = False
+        self.rebirth = self.host_left = False
         self.report: Report | None = None
         self.next_try_s = 0.0
         self.failures = 0
@@ -113,6 +113,12 @@ class EdgeNode:
                 time.sleep(min(timeout_s, max(0.0, self.next_try_s - time.monotonic())))
             return
         self.client.loop(timeout=timeout_s)
+        if self.host_left:
+            self.host_left = False
+            self.close()
+            self._retry(f"primary host {self.config.primary_host} is offline")
+            self.next_try_s = time.monotonic()
+            return
         if self.client is None or not (self.connected and self.subscribed and self.host_online):
             return
         board, image = self._read()
@@ -235,10 +241,9 @@ class EdgeNode:
         if online:
             self.host_online = True
             return
-        if self.host_online and self.client is not None:  # the host went away: death, and
-            self.close()  # a new session (new bdSeq) whose births wait for it again
-            self._retry(f"primary host {self.config.primary_host} is offline")
-            self.next_try_s = time.monotonic()
+        if self.host_online:  # the host went away: death, and a new session (new bdSeq)
+            self.host_left = True  # whose births wait for it again (step(), out of paho's
+            self.host_online = False  # callback)
 
     # -- births and data --------------------------------------------------------------------
 

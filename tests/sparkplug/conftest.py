@@ -207,10 +207,13 @@ class Host:
 def host() -> Iterator[Callable[..., Host]]:
     made: list[Host] = []
 
-    def connect(port: int, **tls: Any) -> Host:
+    def connect(port: int, user: str | None = None, password: str | None = None,
+                ca: str | None = None) -> Host:
         client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=f"test-host-{len(made)}")
-        if tls:
-            client.tls_set(**tls)
+        if user is not None:
+            client.username_pw_set(user, password)
+        if ca is not None:
+            client.tls_set(ca_certs=ca)
         h = Host(client)
         subscribed = threading.Event()
 
