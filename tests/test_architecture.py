@@ -30,7 +30,7 @@ ALLOWED: dict[str, frozenset[str]] = {
     # imports sfc, which imports only core (the compiler is handed to it as a callable).
     "program": frozenset({"core", "sfc"}),
     "sfc": frozenset({"core"}),
-    "analysis": frozenset({"core", "program"}),
+    "analysis": frozenset({"core", "program", "sfc"}),  # sfc: tell a chart from PNML
     "devices": frozenset({"core", "program"}),
     "hmi": frozenset({"core", "security"}),
     # The services meet the runtime through core/snapshot.py (SnapshotSource, the channel's

@@ -45,7 +45,9 @@ def add_export(ex: argparse.ArgumentParser) -> None:
 
 def _load(path: str) -> tuple[AnalysisNet, bool]:
     """The net and whether it is a program (scan semantics meaningful)."""
-    if Path(path).suffix.lower() in (".pnml", ".xml"):
+    from softplc.sfc.load import is_plcopen  # an SFC chart compiles as a program
+
+    if Path(path).suffix.lower() in (".pnml", ".xml") and not is_plcopen(path):
         from softplc.analysis.pnml import load_for_analysis
 
         net, compiled = load_for_analysis(path)

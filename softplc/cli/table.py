@@ -44,6 +44,8 @@ COMMANDS: Final[dict[str, Entry]] = {
     "bench": Entry(_LOCAL, "add_bench", "benchmarks of the engine, scan timing and Modbus"),
     "analyze": Entry("softplc.analysis.cli", "add_analyze", "state-space and structural "
                      "analysis of a program (YAML) or a PNML net"),
+    "import": Entry("softplc.sfc.importcmd", "add_import", "write a PLCopen XML SFC chart "
+                    "as a softplc program and symbols file (docs/sfc.md)"),
     "export": Entry("softplc.analysis.cli", "add_export",
                     "write a program as PNML (ISO/IEC 15909-2)"),
     "why": Entry(_DEBUG, "add_why", "why a transition fires or not: the places short of "

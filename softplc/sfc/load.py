@@ -108,3 +108,12 @@ def load_chart(path: str | Path, pou: str | None = None, io_name: str = "") -> C
     if problems or more:
         raise ProgramError(sorted(set(problems + more)))
     return ChartProgram(chart, name, emitted, str(sidecar) if head else None)
+
+
+def is_plcopen(path: str | Path) -> bool:
+    """A PLCopen project (not PNML, which is .xml too): its root names a PLCopen namespace."""
+    try:
+        with open(str(path).partition("#")[0], "rb") as f:
+            return b"plcopen.org/xml" in f.read(4096)
+    except OSError:
+        return False
