@@ -212,9 +212,15 @@ class ApiClient:
         symbols: dict[str, Any] = self._json("GET", "/symbols")["symbols"]
         return symbols
 
+    def symbol(self, name: str) -> dict[str, Any]:
+        """{"name", "address", "type", "direction", "value"}, with "unit" and "scale" when
+        the value is in engineering units."""
+        entry: dict[str, Any] = self._json("GET", f"/symbols/{_quote(name)}")
+        return entry
+
     def read_symbol(self, name: str) -> bool | int | float | str:
         """The typed value (a real as a number; "NaN"/"Infinity" as text)."""
-        value: bool | int | float | str = self._json("GET", f"/symbols/{_quote(name)}")["value"]
+        value: bool | int | float | str = self.symbol(name)["value"]
         return value
 
     def write_symbol(self, name: str, value: bool | int | float) -> dict[str, Any]:

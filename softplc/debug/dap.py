@@ -23,7 +23,7 @@ from softplc.core.net import CompiledNet
 from softplc.core.problems import ProgramError
 from softplc.debug.dapbreaks import VERB, BreakBook
 from softplc.debug.dapsource import Block, LineMap
-from softplc.debug.dapvars import Var, marking_vars, symbol_vars, value_text, why_vars
+from softplc.debug.dapvars import Var, marking_vars, symbol_var, symbol_vars, why_vars
 from softplc.program.compiler import compile_file
 
 Send = Callable[[dict[str, Any]], None]
@@ -278,13 +278,16 @@ class DapSession:
                 "variablesReference": ref}
 
     def evaluate(self, args: dict[str, Any]) -> dict[str, Any]:
-        """A symbol's typed value (a hover, the watch list)."""
+        """A symbol's typed value (a hover, the watch list), as the Symbols scope shows it."""
         name = str(args.get("expression", "")).strip()
         try:
-            value = self.client.read_symbol(name)
+            var = symbol_var(name, self.client.symbol(name),
+                             name in (self.client.status().get("forced") or {}))
         except ApiError as exc:
             raise Refused(f"{name}: {exc.message}") from None
-        return {"result": value_text(value), "variablesReference": 0}
+        reply = self._variable(var)
+        return {"result": reply["value"], "type": reply["type"],
+                "variablesReference": reply["variablesReference"]}
 
     def nothing(self, args: dict[str, Any]) -> dict[str, Any]:
         return {}

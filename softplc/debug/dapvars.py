@@ -2,8 +2,9 @@
 answers (debug/dap.py turns them into DAP variables with references).
 
 Owns: the Marking scope (every place's token count, a coloured place's records under it), the
-Symbols scope (typed values as status shows them, unit and force noted), the Why scope (the
-verdict, the reasons, the feeders one level down each).
+Symbols scope (typed values as live `why` shows them, core/present.py: a real as a real, a
+scaled symbol in engineering units with its unit, force noted, the stored bits in a child
+`raw`), the Why scope (the verdict, the reasons, the feeders one level down each).
 Does not know: DAP's references, HTTP, how the PLC computes any of it.
 """
 
@@ -13,6 +14,10 @@ import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
+
+from softplc.core import present
+from softplc.core.datatypes import INFO, value_of
+from softplc.core.present import ValueRefused
 
 
 @dataclass(frozen=True, slots=True)
@@ -35,17 +40,42 @@ def marking_vars(status: Mapping[str, Any], places: Iterable[str] = ()) -> list[
 
 def symbol_vars(symbols: Mapping[str, Mapping[str, Any]],
                 forced: Mapping[str, Any]) -> list[Var]:
-    vars_ = []
-    for name in sorted(symbols):
-        entry = symbols[name]
-        text = value_text(entry.get("value"))
-        if entry.get("unit"):
-            text += f" {entry['unit']}"
-        if name in forced:
-            text += " (forced)"
-        kind = " ".join(str(entry[k]) for k in ("type", "direction", "address") if entry.get(k))
-        vars_.append(Var(name, text, kind))
-    return vars_
+    return [symbol_var(name, symbols[name], name in forced) for name in sorted(symbols)]
+
+
+def symbol_var(name: str, entry: Mapping[str, Any], forced: bool = False) -> Var:
+    """A symbol as live `why` and the VCD show it (core/present.py): a real as a real, a
+    scaled symbol in engineering units at its scale's resolution with its unit; the stored
+    bits (a real's pattern, a scaled symbol's raw count) in its child `raw`."""
+    kind, scale = entry.get("type"), entry.get("scale")
+    value = entry.get("value")
+    text = present.text(kind, value, scale) if isinstance(value, bool | int | float) \
+        else value if isinstance(value, str) else value_text(value)  # "NaN": a real's
+    if forced:
+        text += " (forced)"
+    where = " ".join(str(entry[k]) for k in ("type", "direction", "address") if entry.get(k))
+    if entry.get("unit"):
+        where += f" scaled, {entry['unit']}"
+    raw = _raw(name, entry)
+    return Var(name, text, where, (raw,) if raw is not None else ())
+
+
+def _raw(name: str, entry: Mapping[str, Any]) -> Var | None:
+    """The bits the API's typed value is stored as, by the presenter's own inverse (what a
+    write of that value stores); none for a value it refuses (NaN, an unknown type)."""
+    kind, value = entry.get("type"), entry.get("value")
+    if isinstance(value, bool) or kind == "bool":
+        return None  # a bit is its value
+    try:
+        bits = present.accepted(kind, value, name, entry.get("scale"))
+    except ValueRefused:
+        return None
+    t = present.sym_type(kind)
+    if t is None:
+        return None
+    count = bits if INFO[t].is_float else value_of(t, bits)  # an int's count, signed
+    return Var("raw", f"{count} (0x{bits:0{INFO[t].bits // 4}X})",
+               f"{'raw count' if 'scale' in entry else 'stored bits'} of {entry.get('address')}")
 
 
 def why_vars(answer: Mapping[str, Any]) -> list[Var]:

@@ -142,10 +142,10 @@ def test_breakpoint_on_a_line_next_continue_disconnect(plc: tuple[str, str], dap
     plc_symbols = ApiClient(url).symbols()
     assert set(symbols) == set(plc_symbols)
     assert symbols["m1"]["type"].startswith("bool out")
-    assert symbols["hold"]["value"] == json.dumps(plc_symbols["hold"]["value"])
+    assert symbols["hold"]["value"] == str(int(plc_symbols["hold"]["value"]))  # as why: 0/1
     why = variables(dap, scopes["Why handed_over"])
     assert why["verdict"]["value"] in ("fires", "blocked", "waiting", "lost")
-    assert dap.request("evaluate", expression="hold")["body"]["result"] in ("true", "false")
+    assert dap.request("evaluate", expression="hold")["body"]["result"] in ("0", "1")
     assert not dap.request("pause", threadId=1)["success"]  # the PLC has no pause-now
 
     assert dap.request("next", threadId=1)["success"]
