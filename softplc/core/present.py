@@ -154,6 +154,31 @@ def shown_rounded(type_name: str | None, raw: int,
     return int(number) if isinstance(number, bool) else number
 
 
+def entry_form(type_name: str | None,
+               scale: Scaling | Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """How a page shows and takes a symbol's value: `scaled`, `unit` (a scaled symbol's),
+    `range` (what an input box offers: a scaled symbol's engineering span, 0..100 %, not
+    its raw type's -32768..32767; an integer type's range; None for a bool or a real) and
+    `decimals` (a scaled value's display precision, `decimals`; None: as it comes)."""
+    t = sym_type(type_name)
+    scaling = scaling_of(scale, type_name)
+    if scaling is not None and t is not SymType.BOOL:
+        (e0, e1) = scaling.eng
+        return {"scaled": True, "unit": scaling.unit, "range": [min(e0, e1), max(e0, e1)],
+                "decimals": decimals(scaling)}
+    whole = t is not None and t is not SymType.BOOL and not INFO[t].is_float
+    return {"scaled": False, "unit": "",
+            "range": [INFO[t].low, INFO[t].high] if whole and t else None, "decimals": None}
+
+
+def text_of(entry: Mapping[str, Any], value: object) -> str:
+    """`value` as JSON carries it for a status board entry (its `type` and `scale`), as
+    `text` writes it: `47.002 %`. A text value (NaN, "released") as it is."""
+    if isinstance(value, str) or not isinstance(value, bool | int | float):
+        return str(value)
+    return text(entry.get("type"), value, entry.get("scale"))
+
+
 def takes(t: SymType) -> str:
     """What a symbol of type `t` takes, for a refusal."""
     info = INFO[t]

@@ -12,6 +12,7 @@ from __future__ import annotations
 from typing import Any, Final
 
 from softplc.core.net import CompiledNet, NetState
+from softplc.core.present import entry_form
 
 MAX_NODES: Final = 1500  # beyond this the page shows counts only (the board is 1 MiB)
 MAX_TOKENS_SHOWN: Final = 8  # coloured tokens per place on the board
@@ -92,7 +93,8 @@ def _symbols(net: CompiledNet) -> list[dict[str, Any]]:
                                                            s.address.index))
     return [{"name": s.name, "address": str(s.address), "type": s.type.value,
              "direction": s.direction.value, "description": s.description,
-             "hmi_writable": s.hmi_writable and s.direction.value != "in", "safe": s.safe}
+             "hmi_writable": s.hmi_writable and s.direction.value != "in", "safe": s.safe,
+             **entry_form(s.type.value, s.scaling)}  # unit, input range, display precision
             for s in ordered]
 
 

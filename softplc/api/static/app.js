@@ -293,17 +293,25 @@ function cell(tr, className, content) {
   return td;
 }
 
-/* What each type takes (docs/programs.md, types); the server checks the range and says why. */
-const TAKES = {
-  bool: "0/1", int: "-32768..32767", word: "0..65535", dint: "-2147483648..2147483647",
-  udint: "0..4294967295", real: "a number, e.g. 12.5", lreal: "a number, e.g. 12.5",
-};
+/* What a symbol takes and how it is shown come from the server (softplc/core/present.py,
+   docs/programs.md "How values are shown and given"): `range` (a scaled symbol's engineering
+   span, an integer type's range), `unit` and `decimals` (the scale's resolution). The server
+   checks the value and says why it refuses one. */
 const DECIMAL = new Set(["real", "lreal"]);
+
+function takes(sym) {
+  if (sym.type === "bool") return "0/1";
+  const unit = sym.unit ? " " + sym.unit : "";
+  if (Array.isArray(sym.range)) return `${sym.range[0]}..${sym.range[1]}${unit}`;
+  return "a number, e.g. 12.5" + unit;
+}
 
 function valueInput(sym, label, onValue) {
   const wrap = document.createElement("span");
   const input = document.createElement("input");
-  input.placeholder = TAKES[sym.type] || "a number";
+  input.placeholder = takes(sym);
+  input.title = `${label} ${sym.name}: ${takes(sym)}`;
+  if (Array.isArray(sym.range)) { input.dataset.min = sym.range[0]; input.dataset.max = sym.range[1]; }
   input.className = label;
   const button = document.createElement("button");
   button.className = "small " + label;
@@ -311,6 +319,20 @@ function valueInput(sym, label, onValue) {
   button.addEventListener("click", () => onValue(input.value.trim()));
   wrap.append(input, button);
   return wrap;
+}
+
+/* A value as a person reads it: a scaled one at its scale's resolution with its unit. */
+function symbolText(sym, v) {
+  if (v === undefined || v === null) return "";
+  if (sym.type === "bool") return v ? "1" : "0";
+  if (typeof v !== "number") return String(v);  // "NaN", "Infinity" (never raw bits)
+  const unit = sym.unit ? " " + sym.unit : "";
+  if (Number.isInteger(sym.decimals)) {
+    const fixed = v.toFixed(sym.decimals);
+    return (Number(fixed) === 0 ? fixed.replace(/^-/, "") : fixed) + unit;
+  }
+  if (sym.scaled) return String(Number(v.toPrecision(7))) + unit;  // a scaled real
+  return String(v) + unit;
 }
 
 function parseValue(sym, raw) {
@@ -322,7 +344,7 @@ function parseValue(sym, raw) {
   if (raw === "") return null;
   const n = Number(raw);
   if (DECIMAL.has(sym.type)) return Number.isFinite(n) ? n : null;
-  return Number.isInteger(n) ? n : null;
+  return Number.isInteger(n) || (sym.scaled && Number.isFinite(n)) ? n : null;
 }
 
 function buildImage() {
@@ -374,8 +396,7 @@ function updateImage(frame) {
     // Values arrive typed (softplc/core/present.py): a negative int, a real as a decimal
     // number, "NaN"/"Infinity" as text; shown as they are, never as raw bits.
     const v = frame.values[name];
-    const shown = row.sym.type === "bool" ? (v ? "1" : "0") : String(v === undefined ? "" : v);
-    text(row.value, shown);
+    text(row.value, symbolText(row.sym, v));
     if (row.sym.type === "bool") row.value.className = "value " + (v ? "on" : "off");
     const forced = name in (frame.forced || {});
     row.tr.classList.toggle("forced", forced);

@@ -229,7 +229,12 @@
     }));
   }
 
-  function shownValue(v) { return typeof v === "boolean" ? (v ? "1" : "0") : String(v); }
+  /* As the process image shows it (app.js's symbolText: unit, the scale's resolution). */
+  function shownValue(v, name) {
+    const sym = page.symbols.find((s) => s.name === name);
+    if (sym) return symbolText(sym, v);
+    return typeof v === "boolean" ? (v ? "1" : "0") : String(v);
+  }
 
   function showAt() {
     const d = tl.data, i = tl.index;
@@ -244,8 +249,8 @@
       (past ? ` (${d.scans.length - 1 - i} samples back; Live to follow again)` : " (newest)") + gapBefore;
     at.dataset.scan = scan;
     const syms = Object.keys(d.values);
-    rows("#tl-image tbody", syms.map((n) => [n, shownValue(d.values[n][i])]));
-    rows("#tl-watch tbody", tl.pinned.filter((n) => n in d.values).map((n) => [n, shownValue(d.values[n][i])]),
+    rows("#tl-image tbody", syms.map((n) => [n, shownValue(d.values[n][i], n)]));
+    rows("#tl-watch tbody", tl.pinned.filter((n) => n in d.values).map((n) => [n, shownValue(d.values[n][i], n)]),
          "unpin");
     const j = boardAt(scan);
     const b = d.board;
