@@ -136,7 +136,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from softplc.runtime.replay import replay
+    from softplc.debug.replay import replay
 
     net = _compile_or_report(args.program)
     if net is None:

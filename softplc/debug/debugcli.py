@@ -3,8 +3,8 @@ break|step|continue` and simulate's `--break`/`--step` (added to its parser here
 
 Owns: their arguments, exit codes (0 answered, 1 refused or unusable input, 2 no API
 answering) and what a person reads. `why` asks a running softplc (GET /api/v1/why/NAME) or,
-with --trace, replays a trace to the scan asked (runtime/tracewalk.py); `vcd` writes a trace
-as a value change dump (runtime/vcd.py).
+with --trace, replays a trace to the scan asked (debug/tracewalk.py); `vcd` writes a trace
+as a value change dump (debug/vcd.py).
 Does not know: how a transition is explained (core/why.py), HTTP (api/client.py).
 """
 
@@ -89,7 +89,7 @@ def cmd_why(args: argparse.Namespace) -> int:
     net = _compile(args.program, "why")
     if net is None:
         return EXIT_REFUSED
-    from softplc.runtime.tracewalk import why_at
+    from softplc.debug.tracewalk import why_at
 
     try:
         why = why_at(args.trace, net, args.transition, args.at_scan)
@@ -109,7 +109,7 @@ def cmd_why(args: argparse.Namespace) -> int:
 
 
 def cmd_vcd(args: argparse.Namespace) -> int:
-    from softplc.runtime.vcd import write_vcd
+    from softplc.debug.vcd import write_vcd
 
     net = _compile(args.program, "vcd")
     if net is None:

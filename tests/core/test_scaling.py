@@ -221,7 +221,7 @@ symbols:
 
 
 def _simulated(tmp: Path, body: str, writes: list[int]) -> tuple[dict[str, object], bool]:
-    from softplc.runtime.replay import replay
+    from softplc.debug.replay import replay
     from softplc.runtime.simscript import load_script
     from softplc.runtime.simulate import simulate
     (tmp / "io.yaml").write_text(SIM_IO)

@@ -16,10 +16,10 @@ import pytest
 
 from softplc.cli import main
 from softplc.core.why import FIRES, run_round, why
+from softplc.debug.tracewalk import walk
 from softplc.program.compiler import compile_file
 from softplc.runtime.simulate import simulate
 from softplc.runtime.trace import read_trace
-from softplc.runtime.tracewalk import walk
 
 ROOT = Path(__file__).resolve().parents[2]
 PROGRAM = ROOT / "programs/transport.yaml"

@@ -16,11 +16,11 @@ import pytest
 
 from softplc.core.lifecycle import PlcState
 from softplc.core.problems import FaultCode
+from softplc.debug.replay import replay
 from softplc.hmi.map import FLAG_WAITING_IO, STATUS_FLAGS, status_registers
 from softplc.program.compiler import compile_file
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop
-from softplc.runtime.replay import replay
 from tests.devices.remote_io_device import FC_DI, FC_IR, RemoteIoDevice
 from tests.support import free_port
 

@@ -18,11 +18,11 @@ from softplc.core.lifecycle import Command, PlcState
 from softplc.core.plc import ProgramCommand
 from softplc.core.problems import FaultCode, PlcFault
 from softplc.core.snapshot import CommandRequest
+from softplc.debug.replay import replay
 from softplc.devices.driver import Health
 from softplc.program.compiler import compile_file
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop
-from softplc.runtime.replay import replay
 from softplc.runtime.runner import ScanRunner, boot
 from softplc.runtime.trace import TraceWriter
 

@@ -16,9 +16,9 @@ from pathlib import Path
 
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.plc import ProgramCommand
+from softplc.debug.replay import replay
 from softplc.program.compiler import compile_file
 from softplc.runtime.loop import LoopConfig, ScanLoop
-from softplc.runtime.replay import replay
 from softplc.runtime.trace import read_trace
 from tests.devices.remote_io_device import FC_DI, RemoteIoDevice
 

@@ -16,10 +16,10 @@ from softplc.core.plc import Plc, ProgramCommand
 from softplc.core.present import shown
 from softplc.core.scan import scan
 from softplc.core.symbols import Symbol
+from softplc.debug.replay import replay
 from softplc.program.compiler import compile_file
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop
-from softplc.runtime.replay import replay
 from softplc.runtime.simulate import simulate
 
 MS = 1_000_000

@@ -9,8 +9,8 @@ import pytest
 
 from softplc.cli import main
 from softplc.core.problems import ProgramError
+from softplc.debug.replay import replay
 from softplc.program.compiler import compile_file
-from softplc.runtime.replay import replay
 from softplc.runtime.simscript import load_script
 from softplc.runtime.simulate import simulate
 

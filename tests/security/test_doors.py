@@ -48,7 +48,7 @@ DOORS: dict[str, tuple[str, frozenset[str]]] = {
 # Callers in the PLC's own process or offline tools: no client reaches them.
 NOT_DOORS: frozenset[str] = frozenset({
     "runtime/channel.py",  # the channel itself
-    "runtime/replay.py", "runtime/tracewalk.py", "runtime/simscript.py",  # traces, simulate
+    "debug/replay.py", "debug/tracewalk.py", "runtime/simscript.py",  # traces, simulate
     "interface/device.py",  # the seed paper's device interface over a local PLC
     "bench/onlinebench.py",  # the online-change benchmark drives its own scan
 })

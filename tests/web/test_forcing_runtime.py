@@ -9,11 +9,11 @@ from pathlib import Path
 
 from softplc.core.lifecycle import Command
 from softplc.core.plc import ProgramCommand
+from softplc.debug.replay import replay
 from softplc.hmi.map import STATUS_FORCED, status_registers
 from softplc.program.compiler import compile_file
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop
-from softplc.runtime.replay import replay
 from tests.core.helpers import write_io
 
 MS = 1_000_000

@@ -1,10 +1,10 @@
 """A trace walked scan by scan: replayed into a fresh PLC, the PLC shown after each scan.
 
 Owns: `walk`, which feeds a trace's inputs, commands, HMI writes and observations back into
-a PLC as `softplc replay` does (runtime/replay.py) and yields each scan with the PLC after
+a PLC as `softplc replay` does (debug/replay.py) and yields each scan with the PLC after
 it, stopping at the first scan that does not reproduce; and the capture of one scan's firing
 round as it ran (the marking it started from, its image and events, time and forces), which
-`softplc why --trace` explains (core/why.py). Used by the VCD export (runtime/vcd.py) too.
+`softplc why --trace` explains (core/why.py). Used by the VCD export (debug/vcd.py) too.
 Does not know: what the scans are used for, devices, clocks.
 """
 
@@ -26,7 +26,7 @@ from softplc.core.result import ScanResult
 from softplc.core.scan import scan
 from softplc.core.snapshot import HmiWrite
 from softplc.core.why import Why, run_round, why
-from softplc.runtime.replay import _apply_inputs, _commands
+from softplc.debug.replay import _apply_inputs, _commands
 from softplc.runtime.runner import observed_from
 from softplc.runtime.trace import image_digest, read_trace
 

@@ -6,7 +6,7 @@ types as vectors of their width, reals and scaled symbols as `real` variables ho
 core/present.py gives them, a scaled symbol's raw count beside it as NAME_raw), a `places`
 scope with each place's marking as an integer (subnet instances as nested scopes), the time in
 nanoseconds from the trace's first scan, values as they stand after each scan, to the run's end.
-Does not know: how the trace is replayed (runtime/tracewalk.py), what the values mean.
+Does not know: how the trace is replayed (debug/tracewalk.py), what the values mean.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from softplc.core.net import CompiledNet
 from softplc.core.plc import Plc
 from softplc.core.present import plotted
 from softplc.core.symbols import Symbol
-from softplc.runtime.tracewalk import walk
+from softplc.debug.tracewalk import walk
 
 _FIRST, _LAST = 33, 126  # identifier codes: printable ASCII (IEEE 1364 section 18.2)
 _REALS = frozenset({SymType.REAL, SymType.LREAL})
