@@ -323,6 +323,9 @@ def format_status(status: dict[str, Any]) -> str:
         json.dumps(r, sort_keys=True) for r in records[place]) if records.get(place) else "")
         for place, tokens in sorted(marked.items())]
     lines += _firings(status.get("net_live") or {})
+    lines += [f"waiting     {_waited(w)}" for w in (status.get("waiting") or [])[:1]]
+    if kept := status.get("kept_across"):  # docs/retain.md, a program's own values
+        lines.append(f"kept        from {kept.get('from')}: {', '.join(kept.get('symbols'))}")
     forced = status.get("forced") or {}
     lines.append("forced" + ("      (nothing)" if not forced else ""))
     lines += [f"  {name:<24} {value}  FORCED" for name, value in sorted(forced.items())]
@@ -339,6 +342,12 @@ def _firings(live: dict[str, Any]) -> list[str]:
     """Timed firings in progress (`duration`: tokens consumed, production due), with the
     time left; a net too large for the board only gives their number."""
     busy = live.get("busy") or {}
+def _waited(wait: dict[str, Any]) -> str:
+    """The longest wait of the running net (core/waiting.py), from its status document."""
+    what = wait.get("transition") or "(the net)"
+    return f"{what} for {wait.get('for_s', 0):.1f} s: {'; '.join(wait.get('blockers') or [])}"
+
+
     if not isinstance(busy, dict):
         return [f"firing      {busy} timed firing(s) in progress"]
     return [f"firing      {name}: {_ms(times.get('remaining_ms'))} left of "

@@ -19,7 +19,7 @@ from typing import Any, Protocol
 from softplc.core.arith import BINOPS, CONVERSIONS, INT_LIMIT, as_number, checked, static_kind
 from softplc.core.datatypes import SymType
 from softplc.core.errors import SoftplcError
-from softplc.core.iecwords import XorWord, rewrite, unrewrite
+from softplc.core.iecwords import XOR_HINT, rewrite, unrewrite
 
 Value = int | bool | str | float
 Thunk = Callable[["EvalContext"], Value]
@@ -309,10 +309,9 @@ def _parse(text: str) -> tuple[ast.expr, frozenset[str]]:
     """The tree and the IEC words (AND, OR, NOT, MOD) the text used (core/iecwords.py)."""
     if len(text) > MAX_TEXT:
         raise ExprError(f"expression longer than {MAX_TEXT} characters")
-    try:
-        python, words = rewrite(text.strip())
-    except XorWord as exc:
-        raise ExprError(str(exc)) from None
+    python, words = rewrite(text.strip())
+    if "XOR" in words:
+        raise ExprError(XOR_HINT)
     try:
         tree = ast.parse(python, mode="eval")
     except SyntaxError as exc:

@@ -14,14 +14,14 @@ from __future__ import annotations
 import io
 import tokenize
 
-__all__ = ["IEC_WORDS", "rewrite", "unrewrite"]
+__all__ = ["IEC_WORDS", "XOR_HINT", "rewrite", "unrewrite"]
 
 _TO_PYTHON = {"AND": "and", "OR": "or", "NOT": "~", "MOD": "@"}
 IEC_WORDS = frozenset({*_TO_PYTHON, "XOR"})
 
 
-class XorWord(ValueError):
-    """XOR in an expression: the message says what to write instead."""
+XOR_HINT = ("XOR is not in the language (no operator has its IEC precedence): for bools "
+            "write a != b, for integer bits a ^ b")
 
 
 def _tokens(text: str) -> list[tokenize.TokenInfo] | None:
@@ -40,8 +40,9 @@ def _offsets(text: str) -> list[int]:
 
 
 def rewrite(text: str) -> tuple[str, frozenset[str]]:
-    """(`text` with its IEC words in Python's spelling, the IEC words it used). Raises
-    XorWord for XOR. Words in strings, after a `.` (a token field) or lower case are kept."""
+    """(`text` with its IEC words in Python's spelling, the IEC words it used).
+    XOR among the words means: refuse it with XOR_HINT. Words in strings, after a `.` (a
+    token field) or in lower case are kept."""
     tokens = _tokens(text)
     if tokens is None:
         return text, frozenset()
@@ -64,10 +65,9 @@ def rewrite(text: str) -> tuple[str, frozenset[str]]:
         if (tok.type == tokenize.NAME and previous != "." and word.upper() in IEC_WORDS
                 and word in (word.upper(), word.capitalize())):
             upper = word.upper()
-            if upper == "XOR":
-                raise XorWord("XOR is not in the language (no operator has its IEC precedence):"
-                              " for bools write a != b, for integer bits a ^ b")
             used.add(upper)
+            if upper == "XOR":
+                return text, frozenset(used)
             start = starts[tok.start[0] - 1] + tok.start[1]
             end = starts[tok.end[0] - 1] + tok.end[1]
             edits.append((start, end, _TO_PYTHON[upper]))

@@ -8,14 +8,15 @@ Does not know: symbols' meaning, expressions' meaning (compiler.py checks those)
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
 from softplc.core import limits
 from softplc.core.expr import ExprError, Value, substitute
 from softplc.core.problems import Problem
-from softplc.core.units import parse_duration_ns
 from softplc.core.values import record_problems
+from softplc.program.iectime import BAD_DURATION, duration_ns
 from softplc.program.sizes import DEFAULT_SIZES, SizeExceeded, SizeLimits, Sizes
 from softplc.program.specvalues import ArcSpec, PlaceSpec, ProgramSpec, TransitionSpec, Where
 from softplc.program.suggest import did_you_mean, did_you_mean_key
@@ -56,8 +57,7 @@ class _Parser:
         return self.prefix + local
 
     def symbol(self, text: str) -> str:
-        value = self.params.get(text, text)
-        return str(value)
+        return str(self.params.get(text, text))
 
     def expr(self, text: str, where: Where) -> str:
         if not self.params:
@@ -258,14 +258,12 @@ class _Parser:
         return text
 
     def duration(self, data: YMap, key: str, where: Where) -> int:
-        if key not in data:
-            return 0
+        raw = data.get(key, 0)  # none: 0
         try:
-            value = parse_duration_ns(data[key])
+            return duration_ns(raw)
         except ValueError as exc:
             self.problem(line_of(data, key), f"{where.path}.{key}", str(exc))
-            return 0
-        return value
+            return BAD_DURATION  # reported: not also "outputs need a duration" (one problem)
 
     def arcs(self, data: YMap, key: str, where: Where) -> tuple[ArcSpec, ...]:
         raw = data.get(key)
@@ -365,8 +363,7 @@ class _Parser:
 
 
 def resolve(base: Path, ref: str, root: Path | None) -> Path | str:
-    """A referenced file, relative to the referring file. With `root`, it must stay inside
-    (programs downloaded over the network may not read arbitrary files)."""
+    """A referenced file, relative to the referring file (and so named); with `root`, inside it."""
     if "\0" in ref:  # the OS refuses such names: a located problem, never a ValueError
         return f"file name {ref!r} contains a NUL character"
     path = Path(ref)
@@ -375,7 +372,8 @@ def resolve(base: Path, ref: str, root: Path | None) -> Path | str:
     full = (base / path).resolve()
     if root is not None and not full.is_relative_to(root.resolve()):
         return f"path {ref!r} leaves the program directory"
-    return full
+    shown = Path(os.path.normpath(base / path))  # named as the program is: relative or not
+    return shown if shown.resolve() == full else full
 
 
 def parse_program(text: str, filename: str, root: Path | None = None,

@@ -41,6 +41,9 @@ def closest(word: str, choices: Iterable[str], aliases: Mapping[str, str] | None
     known = sorted({str(c) for c in choices if str(c) != word})
     if aliases and aliases.get(word) in known:
         return aliases[word]
+    same = [k for k in known if k.lower() == word.lower()]  # `REAL` for `real`: IEC's spelling
+    if same:
+        return same[0]
     found = difflib.get_close_matches(word, known, n=1, cutoff=CUTOFF)
     return found[0] if found else None
 

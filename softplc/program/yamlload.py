@@ -32,10 +32,42 @@ __all__ = ["MAX_EXPANDED_VALUES", "MAX_NESTING", "YList", "YMap", "line_of", "lo
            "trap_hint"]
 
 MAX_EXPANDED_VALUES = 100_000  # the example programs have a few hundred
+_PERCENT = "found character '%' that cannot start any token"
+
+
+MAX_PERCENT_HINTS = 20  # unquoted %addresses reported (each a parse again) before giving up
 
 
 def load_yaml(text: str, filename: str) -> tuple[Any, list[Problem]]:
-    """Parse `text`. Returns (data, problems); data is None when the text does not parse."""
+    """Parse `text`. Returns (data, problems); data is None when the text does not parse.
+    An unquoted `%IX0.0` (YAML reserves `%`) is one located problem, and the rest of the
+    file is still read as if it were quoted, so its other problems are reported too."""
+    hints: list[Problem] = []
+    while True:
+        at: list[tuple[int, int]] = []
+        data, problems = _load(text, filename, at)
+        if not at:
+            return data, hints + problems if hints else problems
+        (line, column), lines = at[0], text.split("\n")
+        row = lines[line] if line < len(lines) else ""
+        if row[column:column + 1] != "%":  # other line breaks (\r, U+0085) than \n
+            data, problems = _load(text, filename)  # the scanner's message, not the hint
+            return data, hints + problems
+        end = column
+        while end < len(row) and row[end] not in " ,]}#\t":
+            end += 1
+        word = row[column:end]
+        hints.append(Problem(filename, line + 1, "", f"unquoted {word}: YAML reserves % at "
+                             f"the start of a value; write \"{word}\""))
+        if len(hints) == MAX_PERCENT_HINTS:
+            return None, hints
+        lines[line] = f'{row[:column]}"{word}"{row[end:]}'
+        text = "\n".join(lines)
+
+
+def _load(text: str, filename: str, percent: list[tuple[int, int]] | None = None
+          ) -> tuple[Any, list[Problem]]:
+    """load_yaml's one parse: the fast path, else the reference loader (same results)."""
     if not found(NON_PRINTABLE, text):  # else the reader's exact message below
         source = _CParser if _CParser is not None and libyaml_agrees(text) else PyEvents
         try:
@@ -46,10 +78,12 @@ def load_yaml(text: str, filename: str) -> tuple[Any, list[Problem]]:
             built = None  # the reference loader decides, with its own messages
         if built is not None:
             return _checked(built.data, built.expanded, built.own, built.problems, filename)
-    return _reference(text, filename)
+    return _reference(text, filename, percent)
 
 
-def _reference(text: str, filename: str) -> tuple[Any, list[Problem]]:
+def _reference(text: str, filename: str, percent: list[tuple[int, int]] | None = None
+               ) -> tuple[Any, list[Problem]]:
+    """`percent`: given, an unquoted % puts its (line, column) there instead of a problem."""
     """PyYAML's own composer and constructor: the behaviour yamlfast.build reproduces, used for
     what it does not handle (explicit tags, errors, several documents)."""
     try:
@@ -64,6 +98,9 @@ def _reference(text: str, filename: str) -> tuple[Any, list[Problem]]:
         return None, [Problem(filename, 1, "", "YAML error: nesting too deep")]
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
+        if percent is not None and mark is not None and str(exc.problem).startswith(_PERCENT):
+            percent.append((mark.line, mark.column))
+            return None, []
         line = mark.line + 1 if mark is not None else 1
         reason = exc.problem or str(exc)
         return None, [Problem(filename, line, "", f"YAML syntax error: {reason}")]

@@ -11,13 +11,16 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from typing import Any, Protocol
+from weakref import WeakKeyDictionary
 
+from softplc.core.context import ScanContext
 from softplc.core.judge import CycleWatchdog
-from softplc.core.lifecycle import Stage
+from softplc.core.lifecycle import PlcState, Stage
 from softplc.core.net import CompiledNet, NetState
 from softplc.core.present import shown
 from softplc.core.snapshot import Status
-from softplc.core.symbols import Symbol
+from softplc.core.symbols import Symbol, scalings
+from softplc.core.waiting import Waits
 from softplc.runtime import netview
 from softplc.runtime.bootkeeper import BootKeeper
 from softplc.runtime.clock import Clock
@@ -112,6 +115,8 @@ def document(loop: LoopView) -> dict[str, Any]:
         "tokens": _records(net, plc.engine.state if plc.engine else None),
         "symbols": symbols, "events": list(loop.events),
         "forced": plc.forces.shown(),  # forcing (docs/design.md section 10), typed
+        # Why nothing moves (core/waiting.py): the longest waits and what blocks each.
+        "waiting": waiting(loop, net_now_ns),
         # Memory symbols that kept a value from another program (docs/retain.md); null: none.
         "kept_across": plc.kept_across.as_dict() if plc.kept_across else None,
         # The operator's page (docs/web.md): structure cached per program, live state.
@@ -124,6 +129,26 @@ def document(loop: LoopView) -> dict[str, Any]:
         # Breakpoints (docs/debug.md): "breakpoints", "paused" (null: not paused), "steps_left".
         **plc.debug.as_dict(),
     }
+
+_WAITS: WeakKeyDictionary[ScanRunner, Waits] = WeakKeyDictionary()
+
+
+def waiting(loop: LoopView, net_now_ns: int) -> list[dict[str, Any]]:
+    """The transitions the running net has waited on longest (net time: a pause stands
+    still), with their blockers (docs/simulate.md, a reset with parts on the belts); []
+    unless RUNNING with every device delivered. Observed at each document, between scans."""
+    runner = loop.runner
+    plc, waits = runner.plc, _WAITS.setdefault(runner, Waits())
+    if plc.state is not PlcState.RUNNING or plc.waiting_io or plc.net is None \
+            or plc.engine is None:
+        waits.clear()
+        return []
+    state = plc.engine.state
+    waits.observe(plc.net, state, net_now_ns, runner.fired_counts)
+    ctx = ScanContext(plc.image, plc.prev, plc.locations, frozenset(), plc.typed,
+                      scalings(plc.net.io))
+    return [w.as_dict() for w in waits.longest(state, ctx, net_now_ns, plc.forces.values())]
+
 
 def status(loop: LoopView) -> Status:
     """The fixed-size status of every snapshot (shared memory, Modbus status block)."""
