@@ -10,10 +10,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from tests.sparkplug.conftest import Broker, Host, Tahu, metrics_of, start_plc, stop_plc
 from tests.support import wait_until
 
 TOPIC = "spBv1.0/plant/%s/tank1"
+
+pytestmark = pytest.mark.slow  # real softplc runs against a real broker
 
 
 def _ndata_strings(tahu: Tahu, host: Host, start: int, alias: int) -> list[str]:

@@ -16,6 +16,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from tests.sparkplug.conftest import (
     Broker,
     Host,
@@ -29,6 +31,8 @@ from tests.support import free_port, wait_until
 
 NODE = "plant/tank1"
 TOPIC = "spBv1.0/plant/%s/tank1"
+
+pytestmark = pytest.mark.slow  # real softplc runs against a real broker
 
 
 def _symbol(api_port: int, name: str) -> Any:
@@ -79,7 +83,8 @@ def test_edge_node_against_mosquitto(tmp_path: Path, tahu: Tahu,
         _, birth = h.wait("NBIRTH")
         assert birth.topic == TOPIC % "NBIRTH" and birth.qos == 0 and not birth.retain
         decoded = tahu.decode([birth.payload])[0]
-        assert int(decoded["payload"]["seq"]) == 0
+        assert int(decoded["payload"]["seq"]) == 0 and int(decoded["payload"]["timestamp"]) > 0
+        assert h.messages[0].topic == TOPIC % "NBIRTH"  # the node's first message
         metrics = metrics_of(decoded)
         assert metrics["bdSeq"]["type"] == "Int64" and int(metrics["bdSeq"]["value"]) == 0
         rebirth = metrics["Node Control/Rebirth"]

@@ -9,10 +9,14 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
+
 from tests.sparkplug.conftest import Broker, Host, Tahu, metrics_of, start_plc, stop_plc
 from tests.support import wait_until
 
 STATE = "spBv1.0/STATE/scada1"
+
+pytestmark = pytest.mark.slow  # real softplc runs against a real broker
 
 
 def _state(online: bool, stamp: int) -> bytes:
