@@ -8,6 +8,7 @@ Does not know: the net, the lifecycle, clocks.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from math import isfinite
 
 from softplc.core.datatypes import SymType, value_of
 from softplc.core.expr import Value
@@ -21,9 +22,13 @@ _UNSCALED: Mapping[str, Scaling] = {}
 class ScanContext:
     """EvalContext over the scan's image: current values, previous values, events. Symbols in
     `typed` (int, dint, udint, real, lreal) are decoded from their raw bits, symbols in
-    `scaled` then converted to engineering units."""
+    `scaled` then converted to engineering units. A NaN or an infinity read is read as it is
+    (IEEE 754: every comparison with NaN is false) and its name noted in `unusable`, which
+    core/nonfinite.py turns into an event naming the symbol and its door; `reported` holds
+    the names it has said and that are still not finite."""
 
-    __slots__ = ("events", "image", "locations", "prev", "scaled", "typed")
+    __slots__ = ("events", "image", "locations", "prev", "reported", "scaled", "typed",
+                 "unusable")
 
     def __init__(self, image: ProcessImage, prev: ProcessImage,
                  locations: dict[str, tuple[str, int]], events: frozenset[str],
@@ -31,6 +36,8 @@ class ScanContext:
                  scaled: Mapping[str, Scaling] = _UNSCALED) -> None:
         self.image, self.prev, self.locations, self.events = image, prev, locations, events
         self.typed, self.scaled = typed, scaled
+        self.unusable: set[str] = set()
+        self.reported: set[str] = set()
 
     # Two copies, not one helper: a guard reads symbols on the scan's hot path.
     def symbol(self, name: str) -> int | float:
@@ -38,6 +45,8 @@ class ScanContext:
         raw = int(getattr(self.image, area)[index])
         typed = self.typed.get(name)
         value = raw if typed is None else value_of(typed, raw)
+        if value.__class__ is float and not isfinite(value):  # said: core/nonfinite.py
+            self.unusable.add(name)
         if self.scaled and (scaling := self.scaled.get(name)) is not None:
             return scaling.to_eng(value)
         return value
@@ -47,6 +56,8 @@ class ScanContext:
         raw = int(getattr(self.prev, area)[index])
         typed = self.typed.get(name)
         value = raw if typed is None else value_of(typed, raw)
+        if value.__class__ is float and not isfinite(value):  # said: core/nonfinite.py
+            self.unusable.add(name)
         if self.scaled and (scaling := self.scaled.get(name)) is not None:
             return scaling.to_eng(value)
         return value

@@ -20,7 +20,7 @@ from typing import NamedTuple
 import numpy as np
 
 from softplc.core import events as event_conditions
-from softplc.core import pausing
+from softplc.core import nonfinite, pausing
 from softplc.core.breakpoints import Pause
 from softplc.core.context import ScanContext
 from softplc.core.datatypes import raw_of
@@ -211,6 +211,8 @@ def _fire(plc: Plc, now_ns: int, occurred: tuple[str, ...]) -> _Round:
         after = plc.engine.state.marking
         changes = {plc.net.place_names[p]: int(after[p])
                    for p in sorted(step.changed_places) if after[p] != before[p]}
+    if ctx.unusable or ctx.reported:  # a NaN or an infinity was read: said once
+        occurred = occurred + nonfinite.said(ctx, plc.net.io.symbols)
     emitted = step.emitted
     plc.last_events = frozenset(emitted) if emitted else _NO_EVENTS
     plc.true_last = now_events

@@ -66,6 +66,9 @@ class Symbol:
     # Memory only: the raw bits `init:` puts at the address (given in engineering units on a
     # scaled symbol, checked and converted once, when parsed); None: no `init:` (core/memory.py).
     init_raw: int | None = None
+    # real/lreal: a Modbus register write of a NaN's or an infinity's bits is refused (03);
+    # false lets them in (core/nonfinite.py). Typed doors refuse them whatever it says.
+    finite: bool = True
 
     @property
     def safe_raw(self) -> int:

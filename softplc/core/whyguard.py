@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import ast
 import itertools
+import math
 from collections.abc import Mapping
 
 from softplc.core.engine.bindings import Bound
 from softplc.core.expr import Compiled, EvalContext, ExprError, NameKind, compile_expr, parse
 from softplc.core.net import CompiledNet, NetState, Token, Transition
+from softplc.core.nonfinite import door
 from softplc.core.present import text as value_text
 
 MAX_TRIES = 200  # token combinations tried for a coloured guard (the round's own bound: 1000)
@@ -99,7 +101,10 @@ def _values(net: CompiledNet, expr: Compiled, ctx: EvalContext, env: Mapping[str
             continue
         sym = net.io.symbols[name]
         kind = sym.type.value
-        text = f"{name} = {value_text(kind, ctx.symbol(name), sym.scaling)}"
+        value = ctx.symbol(name)
+        text = f"{name} = {value_text(kind, value, sym.scaling)}"
+        if isinstance(value, float) and not math.isfinite(value):  # core/nonfinite.py
+            text += f" (not a number: it came in through {door(sym)})"
         if name in expr.edges:
             text += f" (previous scan {value_text(kind, ctx.previous(name), sym.scaling)})"
         if name in forced:

@@ -70,12 +70,20 @@ class EngTable:
     areas: Mapping[tuple[Area, Width], Mapping[int, EngSymbol]] = field(
         default_factory=lambda: MappingProxyType({}))
     stale: bool = False
+    # The real and lreal symbols served raw that refuse NaN and infinities (core/nonfinite.py:
+    # all but those declared `finite: false`): (name, type) by IEC area and index.
+    floats: Mapping[tuple[Area, Width], Mapping[int, tuple[str, SymType]]] = field(
+        default_factory=lambda: MappingProxyType({}))
 
     def area(self, area: Area, width: Width) -> Mapping[int, EngSymbol]:
         return self.areas.get((area, width), _NONE)
 
+    def finite(self, area: Area, width: Width) -> Mapping[int, tuple[str, SymType]]:
+        return self.floats.get((area, width), _NO_FLOATS)
+
 
 _NONE: Mapping[int, EngSymbol] = MappingProxyType({})
+_NO_FLOATS: Mapping[int, tuple[str, SymType]] = MappingProxyType({})
 NO_ENG = EngTable()
 
 
@@ -83,19 +91,23 @@ def table_of(document: Mapping[str, Any]) -> EngTable:
     """The EngTable of a status board document (runtime/statusdoc.py): its symbols whose
     `scale` says `modbus: eng`."""
     areas: dict[tuple[Area, Width], dict[int, EngSymbol]] = {}
+    floats: dict[tuple[Area, Width], dict[int, tuple[str, SymType]]] = {}
     for name, entry in (document.get("symbols") or {}).items():
         scale = entry.get("scale") if isinstance(entry, dict) else None
-        if not isinstance(scale, dict) or scale.get("modbus") != "eng":
-            continue
+        eng = isinstance(scale, dict) and scale.get("modbus") == "eng"
         try:
             address, sym_type = parse_address(str(entry.get("address"))), SymType(entry["type"])
-        except (AddressError, ValueError, KeyError):
+        except (AddressError, ValueError, KeyError, TypeError, AttributeError):
             continue
-        if sym_type is not SymType.BOOL:
-            areas.setdefault((address.area, address.width), {})[address.index] = EngSymbol(
+        where = (address.area, address.width)
+        if eng and isinstance(scale, dict) and sym_type is not SymType.BOOL:
+            areas.setdefault(where, {})[address.index] = EngSymbol(
                 str(name), sym_type, MappingProxyType(dict(scale)))
+        elif INFO[sym_type].is_float and entry.get("finite", True) is True:
+            floats.setdefault(where, {})[address.index] = (str(name), sym_type)
     return EngTable(str(document.get("program_hash") or ""), MappingProxyType(
-        {key: MappingProxyType(symbols) for key, symbols in areas.items()}))
+        {key: MappingProxyType(symbols) for key, symbols in areas.items()}),
+        floats=MappingProxyType({key: MappingProxyType(f) for key, f in floats.items()}))
 
 
 def join_registers(registers: tuple[int, ...]) -> int:

@@ -9,11 +9,13 @@ Does not know: sockets, frames, function codes, pymodbus, when writes are applie
 from __future__ import annotations
 
 import enum
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
+from softplc.core.datatypes import SymType
 from softplc.core.errors import SoftplcError
 from softplc.core.image import WORD_MAX, Address, Area, ImageSizes, Width, split_registers
+from softplc.core.nonfinite import refusal
 from softplc.core.present import ValueRefused
 from softplc.core.snapshot import HmiWrite, Snapshot, Status
 from softplc.hmi.eng import EngTable, Presentation, join_registers
@@ -315,6 +317,9 @@ def _journal_entry(piece: _Piece, values: Sequence[int]) -> HmiWrite:
 def _raw_write(write: HmiWrite, eng: EngTable) -> HmiWrite:
     """`write` with the registers of symbols served in engineering units converted back to
     the raw bits they store (eng.py); 03 for a value the symbol cannot take."""
+    floats = eng.finite(write.address.area, write.address.width)
+    if floats:
+        _check_finite(write, floats)
     shown = eng.area(write.address.area, write.address.width)
     if not shown:
         return write
@@ -331,6 +336,20 @@ def _raw_write(write: HmiWrite, eng: EngTable) -> HmiWrite:
             raise MapError(ExceptionCode.ILLEGAL_DATA_VALUE, f"{where}: {exc}") from None
         values[i * per : (i + 1) * per] = split_registers(raw, first.width)
     return HmiWrite(first, tuple(values))
+
+
+def _check_finite(write: HmiWrite, floats: Mapping[int, tuple[str, SymType]]) -> None:
+    """03 for the raw bits of a NaN or an infinity written to a real or lreal symbol that
+    refuses them (core/nonfinite.py: all but `finite: false`)."""
+    per, first = _REGISTERS[write.address.width], write.address
+    for i in range(len(write.values) // per):
+        held = floats.get(first.index + i)
+        if held is None:
+            continue
+        problem = refusal(*held, join_registers(write.values[i * per : (i + 1) * per]))
+        if problem is not None:
+            where = Address(first.area, first.width, first.index + i)
+            raise MapError(ExceptionCode.ILLEGAL_DATA_VALUE, f"{where}: {problem}")
 
 
 def _check_values(table: Table, values: Sequence[int]) -> None:

@@ -42,7 +42,7 @@ from softplc.program.yamlload import YMap, line_of, load_yaml, trap_hint
 DRIVER_KINDS = ("sim", "modbus", "modbus_rtu", "opcua")
 POLICY_KEYS = ("on_failure", "hold_scans", "auto_recover", "startup_s")  # any kind of driver
 SYMBOL_KEYS = {"address", "type", "dir", "safe", "driver", "channel", "description", "hmi_writable",
-               "retain", "scale", "init"}
+               "retain", "scale", "init", "finite"}
 
 
 class _Reader:
@@ -160,7 +160,8 @@ class _Reader:
         return Symbol(name, address, sym_type, direction, safe, str(spec.get("description", "")),
                       driver, str(spec.get("channel", name)),
                       spec.get("hmi_writable", True) is True, line,
-                      self._retain(spec, path, direction), scaling, init)
+                      self._retain(spec, path, direction), scaling, init,
+                      symvalues.finite(spec, path, sym_type, self.problem))
 
     def _retain(self, spec: dict[Any, Any], path: str, direction: Direction) -> Retain:
         """Memory only: inputs are read anew every scan, outputs are the program's."""

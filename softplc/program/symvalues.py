@@ -1,4 +1,4 @@
-"""The values a symbol of a symbols file declares: `scale:`, `safe:` and `init:`.
+"""The values a symbol of a symbols file declares: `scale:`, `safe:`, `init:` and `finite:`.
 
 Owns: checking each against the symbol's type and scale and converting it once, when the
 file is parsed (a `safe:` or `init:` of a scaled symbol is in engineering units and kept as
@@ -153,6 +153,22 @@ def init(spec: dict[Any, Any], name: str, path: str, sym_type: SymType, directio
     except ValueRefused as exc:
         report(line, path, f"init {value!r} refused: {exc}{trap_hint(value)}")
         return None
+
+
+def finite(spec: dict[Any, Any], path: str, sym_type: SymType, report: Report) -> bool:
+    """`finite:` (default true): whether a Modbus register write of a NaN's or an infinity's
+    bits is refused (core/nonfinite.py); real and lreal symbols only."""
+    if "finite" not in spec:
+        return True
+    value, line = spec["finite"], line_of(spec, "finite")
+    if not isinstance(value, bool):
+        report(line, f"{path}.finite", f"finite must be true or false{trap_hint(value)}")
+        return True
+    if not INFO[sym_type].is_float:
+        report(line, f"{path}.finite", f"finite applies to real and lreal symbols, not "
+                                       f"{article(sym_type.value)}: no other type holds NaN")
+        return True
+    return value
 
 
 def article(word: str) -> str:

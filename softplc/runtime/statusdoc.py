@@ -172,6 +172,8 @@ def _symbol(s: Symbol, raw: int) -> dict[str, Any]:
     if s.scaling is not None:  # the value is in engineering units; the raw count in `raw`
         entry["scale"] = s.scaling.as_dict()
         entry["unit"] = s.scaling.unit
+    if not s.finite:  # the Modbus slave lets a NaN's bits in (core/nonfinite.py)
+        entry["finite"] = False
     return entry
 
 
