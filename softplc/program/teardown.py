@@ -1,14 +1,17 @@
-"""Big temporaries of a compile freed a container at a time.
+"""Big temporaries freed a container at a time, between scans.
 
-Owns: `bury`, which takes the last references to trees of containers (the YAML document, the
-parsed program) and lets them go one container per Python step, roots first.
+Owns: `burying`, the steps that take the last references to trees of containers (a replaced
+net and its engine) and let them go one container per step, roots first; `bury`, the same at
+once.
 Why: freeing a tree in one go is a single decref cascade that no other thread can interrupt;
-for a 10,000-transition program the parsed document took 5.5 ms and the parsed program
-7-12 ms, while a scan thread waited for the interpreter lock at 1 ms (an online change runs
-its compile beside the scan, as it once did). Each container held here is freed when
-its slot is cleared: its children are still held further on, so nothing cascades. Objects
-also referenced from elsewhere (the compiled net keeps some) are simply not freed: nothing is
-ever modified.
+a replaced 10,000-transition net took milliseconds to free, a scan waiting at 1 ms, so the
+scan thread frees it in steps between its scans (runtime/download.py). Each container held
+here is freed when its slot is cleared: its children are still held further on, so nothing
+cascades. Objects also referenced from elsewhere are simply not freed: nothing is ever
+modified. A compile's own temporaries (the YAML document, the parsed program) are freed at
+once (`bury`): compiles run in the compile process, `check`, `simulate` and `analyze`, where
+no scan thread shares the interpreter (the piecewise switch that once served a compile beside
+the scan is gone, issue 40.7).
 Does not know: what the objects mean.
 """
 
@@ -18,7 +21,7 @@ import gc
 from types import MappingProxyType
 from typing import Any
 
-from softplc.core.steps import Steps, drain
+from softplc.core.steps import Steps
 
 _LEAVES = (str, bytes, int, float, bool, type(None))
 
@@ -30,31 +33,18 @@ _FORGET = 1024  # seen ids dropped per step
 _TRIM = 16384  # emptied slots of the walk's list given back per step
 _SHARDS = 64
 _WALK_STEP = 256  # objects looked at per step of the walk (~0.3-1 µs each)
-# This process: does a scan thread share the interpreter while it compiles? Off by default:
-# the compile process, `check`, `simulate` and `analyze` free at once (nobody waits there; a
-# piecewise burial is ~40 % of a 10,000-transition compile).
-_PIECEWISE = [False]
-
-
-def piecewise(on: bool) -> None:
-    """For the whole process: bury() a container at a time (on), or at once (off)."""
-    _PIECEWISE[0] = on
 
 
 def bury(box: list[Any]) -> None:
-    """Empty `box` and let go of what it held: a container at a time where piecewise() is on,
-    else at once. The caller hands over its last references in the box (a reference passed as
-    an argument would stay on the caller's stack until the call returns, and the cascade
-    would come then)."""
-    if _PIECEWISE[0]:
-        drain(burying(box))
-    else:
-        box.clear()
+    """Empty `box` and let go of what it held, at once. The caller hands over its last
+    references in the box (a reference passed as an argument would stay on the caller's
+    stack until the call returns, and the cascade would come then)."""
+    box.clear()
 
 
 def burying(box: list[Any]) -> Steps[None]:
-    """A container at a time, whatever piecewise() says (core/steps.py; the sizes above): the
-    scan thread frees a replaced net between its scans (runtime/download.py)."""
+    """A container at a time (core/steps.py; the sizes above): the scan thread frees a
+    replaced net between its scans (runtime/download.py)."""
     order: list[Any] = []
     # Ids seen, in shards: one set of ~100,000 ids took 3 ms to grow and 4 ms to free.
     seen: list[set[int]] = [set() for _ in range(_SHARDS)]

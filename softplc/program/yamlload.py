@@ -21,7 +21,6 @@ from softplc.program.yamlfast import (
     TooDeep,
     Unsupported,
     build,
-    found,
     libyaml_agrees,
 )
 from softplc.program.yamlfast import CParser as _CParser
@@ -68,7 +67,7 @@ def load_yaml(text: str, filename: str) -> tuple[Any, list[Problem]]:
 def _load(text: str, filename: str, percent: list[tuple[int, int]] | None = None
           ) -> tuple[Any, list[Problem]]:
     """load_yaml's one parse: the fast path, else the reference loader (same results)."""
-    if not found(NON_PRINTABLE, text):  # else the reader's exact message below
+    if NON_PRINTABLE.search(text) is None:  # else the reader's exact message below
         source = _CParser if _CParser is not None and libyaml_agrees(text) else PyEvents
         try:
             built = build(source, text, filename)

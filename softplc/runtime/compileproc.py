@@ -32,7 +32,6 @@ from typing import Any
 
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.snapshot import CommandRequest
-from softplc.program import teardown
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.prepare import AnalysisRefused, Built, CompilerFailed, Preparer
 from softplc.runtime.realtime import keep_off_scan_cpu
@@ -60,7 +59,6 @@ def compile_main(config: LoopConfig, conn: Connection,
     name_process()  # softplc-compile (CompileProcess.start)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the supervisor's business
     die_with_parent()
-    teardown.piecewise(False)  # no scan thread here: temporaries are freed at once
     prep = Preparer(config, lambda: None, lambda: ())
     idle(0)  # imports done at normal priority (see starting()); every compile in background
     no_memory = pickle.dumps(("ended", CompilerFailed(_over_memory(memory_bytes))), protocol=5)

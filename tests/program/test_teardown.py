@@ -1,4 +1,4 @@
-"""program/teardown.py: a compile's big temporaries are let go a container at a time, and
+"""program/teardown.py: a replaced net's big containers are let go a container at a time, and
 nothing anybody else still holds is touched."""
 
 from __future__ import annotations
@@ -52,13 +52,13 @@ def test_what_others_still_hold_is_kept_whole() -> None:
     assert len(kept_places) == 100 and kept_places[99]["name"] == "p99"
 
 
-def test_where_no_scan_thread_waits_a_burial_frees_all_at_once() -> None:
-    """Piecewise burial off (the default: the compile process, check, simulate, analyze): the
-    same result, without walking the tree (there, freeing in one cascade delays nobody)."""
+def test_a_compiles_burial_frees_all_at_once() -> None:
+    """bury (a compile's temporaries: the compile process, check, simulate, analyze): the
+    same result as burying, without walking the tree (there, freeing in one cascade delays
+    nobody)."""
     from softplc.program import teardown
 
     gc.disable()
-    teardown.piecewise(False)
     try:
         root = document(1000)
         watched = [weakref.ref(root), weakref.ref(root["places"])]
@@ -71,7 +71,6 @@ def test_where_no_scan_thread_waits_a_burial_frees_all_at_once() -> None:
         assert [w() for w in watched] == [None, None]
     finally:
         teardown._walk = original
-        teardown.piecewise(False)
         gc.enable()
 
 
