@@ -328,7 +328,11 @@ def format_status(status: dict[str, Any]) -> str:
         lines.append(f"kept        from {kept.get('from')}: {', '.join(kept.get('symbols'))}")
     forced = status.get("forced") or {}
     lines.append("forced" + ("      (nothing)" if not forced else ""))
-    lines += [f"  {name:<24} {value}  FORCED" for name, value in sorted(forced.items())]
+    if forced:  # imported here: core/present.py needs numpy, which a client does not load
+        from softplc.core.present import text_of
+    symbols = status.get("symbols") or {}  # the value as core/present.py writes it, unit too
+    lines += [f"  {name:<24} {text_of(symbols.get(name) or {}, value)}  FORCED"
+              for name, value in sorted(forced.items())]
     if status.get("diagnostic_count"):
         lines.append(f"diagnostics {status['diagnostic_count']} run-time error(s) of guards "
                      "and actions (the last shown)")
@@ -338,16 +342,16 @@ def format_status(status: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _firings(live: dict[str, Any]) -> list[str]:
-    """Timed firings in progress (`duration`: tokens consumed, production due), with the
-    time left; a net too large for the board only gives their number."""
-    busy = live.get("busy") or {}
 def _waited(wait: dict[str, Any]) -> str:
     """The longest wait of the running net (core/waiting.py), from its status document."""
     what = wait.get("transition") or "(the net)"
     return f"{what} for {wait.get('for_s', 0):.1f} s: {'; '.join(wait.get('blockers') or [])}"
 
 
+def _firings(live: dict[str, Any]) -> list[str]:
+    """Timed firings in progress (`duration`: tokens consumed, production due), with the
+    time left; a net too large for the board only gives their number."""
+    busy = live.get("busy") or {}
     if not isinstance(busy, dict):
         return [f"firing      {busy} timed firing(s) in progress"]
     return [f"firing      {name}: {_ms(times.get('remaining_ms'))} left of "
