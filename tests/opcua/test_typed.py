@@ -34,7 +34,7 @@ symbols:
   small:  {address: "%MW0", type: int}
   temp:   {address: "%MD0", type: real}
   count:  {address: "%MD1", type: dint}
-  nan_r:  {address: "%MD2", type: real}
+  nan_r:  {address: "%MD2", type: real, finite: false}  # Modbus may write NaN bits here
   big:    {address: "%MD3", type: udint}
   level:  {address: "%ML0", type: lreal}
   pct:    {address: "%MW1", type: int, scale: {raw: [0, 27648], eng: [0.0, 100.0], unit: "%"}}
