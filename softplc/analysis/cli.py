@@ -130,7 +130,7 @@ def check_pnml(path: str, check_devices: Callable[[IoImage], list[Problem]]) -> 
     arcs = int((net.pre > 0).sum() + (net.post > 0).sum() + (net.inhibit > 0).sum())
     print(f"P/T net {net.name} ({path}): {net.n_places} places, {net.n_transitions} "
           f"transitions, {arcs} arcs")
-    verdict = verdict_of(analyze(net, "interleaving", GATE_MAX_STATES))
+    verdict = verdict_of(analyze(net, "interleaving", GATE_MAX_STATES), gate=True)
     print(verdict.summary)
     for finding in verdict.findings:
         print(f"warning: {finding}")

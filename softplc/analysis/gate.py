@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from softplc.analysis.analyze import Analysis, analyze
+from softplc.analysis.analyze import DEFAULT_MAX_STATES, Analysis, analyze
 from softplc.analysis.model import AnalysisNet, TooLarge, from_compiled
 from softplc.core.net import CompiledNet
 
@@ -46,10 +46,11 @@ def verify(net: CompiledNet, max_states: int = GATE_MAX_STATES,
         model = from_compiled(net)
     except TooLarge as exc:
         return Verdict((str(exc),), True, None)
-    return verdict_of(analyze(model, semantics, max_states))
+    return verdict_of(analyze(model, semantics, max_states), gate=True)
 
 
-def verdict_of(result: Analysis) -> Verdict:
+def verdict_of(result: Analysis, gate: bool = False) -> Verdict:
+    """The findings of `result`; `gate`: it ran on check's budget (GATE_MAX_STATES)."""
     net, g = result.net, result.graph
     blocking: list[str] = []
     for u in g.unbounded:
@@ -60,20 +61,21 @@ def verdict_of(result: Analysis) -> Verdict:
                         f"{_marking(d.marking)} reached by {_seq(d.path)}; no transition "
                         "can ever fire there")
     if g.deadlock_count > len(g.deadlocks):
-        blocking.append(f"{_short_source(net)}:0: {g.deadlock_count - len(g.deadlocks)} more "
+        blocking.append(f"{net.where_net()}: {g.deadlock_count - len(g.deadlocks)} more "
                         "deadlock(s) not listed")
     for t in result.dead_transitions:
         blocking.append(f"{net.where_transition(t)}: transition {net.transition_names[t]}: "
                         "dead (fires in no reachable state)")
     for c in g.conflicts:
-        where = c.locations[0] if c.locations else f"{_short_source(net)}:0"
+        where = c.locations[0] if c.locations else net.where_net()
         blocking.append(f"{where}: output {c.symbol}: driven to different values "
                         f"({'; '.join(c.drivers)}) after {_seq(c.path)}")
     notes: list[str] = []
     if not g.complete:
-        why = g.stopped or f"stopped at {g.states} states (max_states)"
-        notes.append(f"{_short_source(net)}:0: analysis incomplete: {why}; findings so far "
-                     "only")
+        why = g.stopped or (f"explored {g.states:,} states (check's budget; `softplc analyze` "
+                            f"explores up to {DEFAULT_MAX_STATES:,})" if gate else
+                            f"stopped at {g.states:,} states (--max-states)")
+        notes.append(f"{net.where_net()}: analysis incomplete: {why}; findings so far only")
     return Verdict(tuple(blocking + notes), bool(blocking), result)
 
 
@@ -89,8 +91,4 @@ def _deadlock_where(net: AnalysisNet, marking: dict[str, int]) -> str:
     for p, name in enumerate(net.place_names):
         if name in marking:
             return net.where_place(p)
-    return f"{_short_source(net)}:0"
-
-
-def _short_source(net: AnalysisNet) -> str:
-    return net.where_place(len(net.place_names) + 1).rsplit(":", 1)[0]
+    return net.where_net()

@@ -77,6 +77,11 @@ class AnalysisNet:
     busy_outputs: Mapping[int, tuple[tuple[str, int], ...]]  # transition -> (symbol, value)
     coloured: tuple[int, ...]
     notes: tuple[str, ...] = ()
+    line: int = 1  # of the net as a whole: a PNML <net>, a program's first line
+
+    def where_net(self) -> str:
+        """Where a finding about the whole net points (a deadlock with every place empty)."""
+        return f"{_short(self.source)}:{self.line}"
 
     @property
     def n_places(self) -> int:
@@ -93,17 +98,17 @@ class AnalysisNet:
         return frozenset(syms)
 
     def where_place(self, p: int) -> str:
-        return _loc(self.place_where, p, self.source)
+        return _loc(self.place_where, p, self.where_net())
 
     def where_transition(self, t: int) -> str:
-        return _loc(self.transition_where, t, self.source)
+        return _loc(self.transition_where, t, self.where_net())
 
 
-def _loc(table: Sequence[tuple[str, int]], i: int, source: str) -> str:
-    if i < len(table):
+def _loc(table: Sequence[tuple[str, int]], i: int, whole: str) -> str:
+    if i < len(table) and table[i][1] > 0:
         file, line = table[i]
         return f"{_short(file)}:{line}"
-    return f"{_short(source)}:0"
+    return whole  # no line of its own: the net's
 
 
 def _short(path: str) -> str:

@@ -66,6 +66,7 @@ class PnmlNet:
     inhibit: list[tuple[int, int, int]] = dataclasses.field(default_factory=list)  # p, t, w
     capacity: list[int] = dataclasses.field(default_factory=list)  # per place, -1: none
     notes: list[str] = dataclasses.field(default_factory=list)
+    line: int = 1  # the <net> element's: findings about the whole net point there
 
 
 class _Reader:
@@ -204,7 +205,7 @@ def parse_pnml(data: bytes, file: str) -> PnmlNet:
     if dialect == "PIPE":
         notes.append("PIPE net: rates, timing and priorities not read; analysed as a P/T net")
     return PnmlNet(file, label(net, "name") or net.attrs.get("id", "net"), places,
-                   initial, transitions, arcs, tool, inhibit, capacity, notes)
+                   initial, transitions, arcs, tool, inhibit, capacity, notes, net.line or 1)
 
 
 def _resolve(ident: str, items: dict[str, _Item], refs: dict[str, tuple[str, Node]],
@@ -248,7 +249,7 @@ def pt_analysis_net(net: PnmlNet, *notes: str) -> AnalysisNet:
                    [(n, t.line) for n, t in zip(shown_names(net.transitions), net.transitions,
                                                 strict=True)], pre, post, inhibit)
     capacity = np.array(net.capacity or [-1] * P, np.int64)
-    return dataclasses.replace(bare, capacity=capacity,
+    return dataclasses.replace(bare, capacity=capacity, line=net.line,
                                notes=(*bare.notes, *net.notes, *notes))
 
 
