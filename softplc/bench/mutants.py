@@ -231,11 +231,13 @@ def every(path: str, source: str) -> list[Mutant]:
 
 
 def sample(path: str, source: str, size: int, seed: int) -> tuple[list[Mutant], int]:
-    """`size` of the module's mutants drawn by `seed` (all when it has fewer), in source
-    order; with the number of sites they were drawn from."""
+    """`size` of the module's mutants drawn by `seed` (all when it has fewer), in the order
+    of the draw (not source order: a run the budget cuts after its first k mutants has run a
+    fair sample of k, not the top of the module); with the number of sites they were drawn
+    from."""
     found = every(path, source)
     picked = random.Random(f"{seed}:{path}").sample(range(len(found)), min(size, len(found)))
-    return [found[i] for i in sorted(picked)], len(found)
+    return [found[i] for i in picked], len(found)
 
 
 def mutated(source: str, mutant: Mutant) -> str:

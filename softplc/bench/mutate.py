@@ -188,7 +188,8 @@ def run(root: Path, targets: Mapping[str, Sequence[str]], settings: Settings,
                       file=sys.stderr, flush=True)
 
         list(pool.map(baseline, modules))
-        # round-robin over the modules: a budget cut shortens every module's sample alike
+        # round-robin over the modules, each module's mutants in the order of their seeded
+        # draw: a budget cut shortens every module's sample alike and leaves it random
         order = sorted(((rank, n, module, mutant) for n, module in enumerate(modules)
                         for rank, mutant in enumerate(drawn[module.path])),
                        key=lambda job: (job[0], job[1]))

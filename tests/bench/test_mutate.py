@@ -5,6 +5,7 @@ are never written."""
 
 from __future__ import annotations
 
+import random
 from pathlib import Path
 
 import pytest
@@ -78,3 +79,42 @@ def test_caught_mutants_are_killed_unseen_ones_survive_and_endless_ones_time_out
     table = markdown([tiny, loop], {tiny.outcomes[SURVIVED][0].key: "never called"}, "tiny")
     assert "| tiny.py | 5 | 5 | 2 | 3 | 0 | 1 | 0 | 50.0 % |" in table
     assert "| loop.py | 5 | 5 | 3 | 0 | 2 | 0 | 0 | 100.0 % |" in table
+
+
+MANY = '''def table() -> list[int]:
+    return [10, 20, 30, 40, 50, 60]
+'''
+SEEN = '''import os
+import random
+from pathlib import Path
+
+
+def test_record() -> None:
+    with open(os.environ["MUTATE_SEEN"], "a", encoding="utf-8") as log:
+        log.write(Path(__file__).parent.parent.joinpath("many.py").read_text() + "\\0")
+'''
+
+
+def test_a_run_takes_its_mutants_in_the_order_of_the_seeded_draw(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run the budget cuts after k mutants must have run a fair random k, not the top of
+    the module: the mutants run in the order they were drawn, not in source order."""
+    found = every("many.py", MANY)
+    drawn, sites = sample("many.py", MANY, 6, seed=5)
+    order = random.Random("5:many.py").sample(range(sites), 6)
+    assert [m.index for m in drawn] == order != sorted(order)
+    assert all(found[m.index] == m for m in drawn)
+    root = tmp_path / "project"
+    root.mkdir()
+    (root / "pytest.ini").write_text("[pytest]\n")
+    (root / "many.py").write_text(MANY)
+    (root / "tests").mkdir()
+    (root / "tests" / "test_seen.py").write_text(SEEN)
+    log = tmp_path / "seen"
+    monkeypatch.setenv("MUTATE_SEEN", str(log))
+    monkeypatch.setenv("PYTEST_DISABLE_PLUGIN_AUTOLOAD", "1")
+    settings = Settings(seed=5, size=6, jobs=1, budget_s=120.0, hypothesis=False)
+    (many,) = run(root, {"many.py": ("tests",)}, settings, quiet=True)
+    assert len(many.outcomes[SURVIVED]) == 6  # the test looks at nothing: all survive
+    ran = log.read_text().split("\0")[:-1]
+    assert ran[1:] == [mutated(MANY, m) for m in drawn]  # after the baseline, as drawn
