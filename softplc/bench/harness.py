@@ -28,7 +28,7 @@ from softplc.bench.measure import Progress
 SECTIONS = ("engine", "scan", "simulate", "modbus", "online_change", "restart", "memory",
             "web", "analysis", "opcua", "isolation", "cli")
 # Run only when named (--only): the watchdog section takes 30 minutes (--quick: 3).
-ON_REQUEST = ("watchdog",)
+ON_REQUEST = ("watchdog", "sparkplug")  # sparkplug: a fleet on Debian's mosquitto
 
 
 @dataclass(frozen=True, slots=True)
@@ -133,7 +133,8 @@ _MODULES = {"engine": "engine", "scan": "scanbench", "simulate": "simbench",
             "modbus": "modbusbench", "web": "webbench", "opcua": "opcuabench",
             "analysis": "analysisbench", "restart": "restartbench",
             "online_change": "onlinebench", "memory": "memorybench",
-            "watchdog": "watchdogbench", "isolation": "isolationbench", "cli": "clibench"}
+            "watchdog": "watchdogbench", "isolation": "isolationbench", "cli": "clibench",
+            "sparkplug": "sparkplugbench"}
 
 
 def _section_runner(name: str) -> Callable[[bool, Progress], dict[str, Any]]:
