@@ -34,8 +34,13 @@ LIFECYCLE = ("tests/core/test_lifecycle.py", "tests/core/test_scan.py",
 ENGINE = ("tests/core/test_steps.py", "tests/core/test_limits.py",
           "tests/core/test_firing.py", "tests/core/test_engine_oracle.py")
 SIGNED = ("tests/security/test_programgate.py", "tests/security/test_rollback.py",
-          "tests/security/test_signing.py::test_trusted_keys_refuse_unsigned_untrusted_and_"
-          "changed_downloads")
+          *(f"tests/security/test_signing.py::test_{name}" for name in (
+              "trusted_keys_refuse_unsigned_untrusted_and_changed_downloads",
+              "a_key_pair_is_private_and_never_overwritten",
+              "only_a_trusted_key_over_the_exact_bytes_verifies",
+              "signing_helpers_version_limit_is_eighteen_digits",
+              "signing_helpers_trust_at_most_256_keys", "signing_helpers_key_names_and_files",
+              "signing_helpers_refuse_unusable_key_files")))
 # Each module's own fast tests: in-process, no socket, no child process (the softplc-run
 # tests of test_retain.py and test_limits_download.py are left out by -k).
 TARGETS: dict[str, tuple[str, ...]] = {

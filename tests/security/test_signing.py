@@ -196,3 +196,89 @@ def _trail(state: Path) -> list[dict[str, Any]]:
     from softplc.security.audit import AuditTrail
 
     return list(AuditTrail(state).records(None, 1000))
+
+
+# -- the signing helpers in-process (issue 43: signing.py's own fast tests in `make mutate`) ----
+
+def test_signing_helpers_version_limit_is_eighteen_digits(keys: Path, tmp_path: Path) -> None:
+    key = signing.load_private(keys / "alice.key")
+    trusted = TrustedKeys.load(keys)  # alice, bob, mallory: the .pub files only
+    body = b"program"
+    top = 999_999_999_999_999_999  # MAX_VERSION, written out: a moved limit fails here
+    line = signing.sign(body, key, top)
+    assert line.endswith(f" version={top}") and top == signing.MAX_VERSION
+    assert trusted.verify(body, line) == signing.Signed("alice", top)
+    assert signing.Signature.parse(line).version == top
+    for bad in (top + 1, -1):
+        with pytest.raises(SigningError, match=f"version {bad}: a whole number from 0 to {top}"):
+            signing.sign(body, key, bad)
+    assert trusted.verify(body, signing.sign(body, key, 0)) == signing.Signed("alice", 0)
+    edited = signing.sign(body, key, 7).replace("version=7", "version=8")
+    with pytest.raises(SignatureRefused, match="signature by alice does not match"):
+        trusted.verify(body, edited)
+
+
+def test_signing_helpers_trust_at_most_256_keys(keys: Path, tmp_path: Path) -> None:
+    public = (keys / "alice.pub").read_bytes()
+    for count in (256, 257):  # MAX_KEYS exactly, and one over: the first 256 by name
+        directory = tmp_path / f"trusted{count}"
+        directory.mkdir()
+        for n in range(count):
+            (directory / f"k{n:03d}.pub").write_bytes(public)
+        trusted = TrustedKeys.load(directory)
+        assert trusted.names == [f"k{n:03d}" for n in range(256)], count
+        assert trusted.problems == ()
+
+
+def test_signing_helpers_key_names_and_files(tmp_path: Path) -> None:
+    assert signing.check_name("alice-2_b") == "alice-2_b"
+    for bad in ("Bad Name", "2alice", "", "a" * 33):
+        with pytest.raises(SigningError, match="1 to 32 of a-z 0-9 _ -, starting with a letter"):
+            signing.check_name(bad)
+    directory = tmp_path / "new"
+    assert signing.new_key_pair(directory, "carol") == (directory / "carol.key",
+                                                        directory / "carol.pub")
+    assert stat.S_IMODE(directory.stat().st_mode) == 0o700
+    with pytest.raises(SigningError, match="key name 'Carol'"):
+        signing.new_key_pair(directory, "Carol")
+    assert sorted(p.name for p in directory.iterdir()) == ["carol.key", "carol.pub"]
+    public = signing.load_public(directory / "carol.pub")
+    assert signing.fingerprint(public) == signing.fingerprint(
+        signing.load_private(directory / "carol.key").public_key())
+
+
+def test_signing_helpers_refuse_unusable_key_files(keys: Path, tmp_path: Path) -> None:
+    garbled = tmp_path / "garbled.key"
+    garbled.write_bytes(b"-----BEGIN PRIVATE KEY-----\nnot a key\n-----END PRIVATE KEY-----\n")
+    garbled.chmod(0o600)
+    with pytest.raises(SigningError, match=r"garbled.key: not an unencrypted PEM private key"):
+        signing.load_private(garbled)
+    with pytest.raises(SigningError, match=r"missing.key: No such file"):
+        signing.load_private(tmp_path / "missing.key")
+    with pytest.raises(SigningError, match="not a PEM public key"):
+        signing.load_public(garbled)
+    with pytest.raises(SigningError, match=r"missing.pub: No such file"):
+        signing.load_public(tmp_path / "missing.pub")
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    other = ec.generate_private_key(ec.SECP256R1())
+    ecdsa = tmp_path / "ecdsa.key"
+    ecdsa.write_bytes(other.private_bytes(serialization.Encoding.PEM,
+                                          serialization.PrivateFormat.PKCS8,
+                                          serialization.NoEncryption()))
+    ecdsa.chmod(0o600)
+    with pytest.raises(SigningError, match=r"ecdsa\.key: not an Ed25519 key"):
+        signing.load_private(ecdsa)
+    ecdsa_pub = tmp_path / "trusted" / "ecdsa.pub"
+    ecdsa_pub.parent.mkdir()
+    ecdsa_pub.write_bytes(other.public_key().public_bytes(
+        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo))
+    with pytest.raises(SigningError, match=r"ecdsa\.pub: not an Ed25519 public key"):
+        signing.load_public(ecdsa_pub)
+    shutil.copy(keys / "bob.pub", ecdsa_pub.parent)
+    trusted = TrustedKeys.load(ecdsa_pub.parent)
+    assert trusted.names == ["bob"] and len(trusted.problems) == 1
+    assert "ecdsa.pub: not an Ed25519 public key" in trusted.problems[0]
+    assert TrustedKeys.load(tmp_path / "nowhere") == TrustedKeys()
+    with pytest.raises(SigningError, match="not a softplc signature"):
+        signing.Signature.parse("ed25519 SHA256:x y")
