@@ -228,3 +228,46 @@ def test_a_compile_over_the_cpu_budget_is_refused_and_the_process_lives_on() -> 
         assert (compiler.pid, compiler.started) == (pid, 1)
     finally:
         compiler.close()
+
+
+# -- a bundle's limits at their edges (issue 43: the literal values, so a moved limit fails) --
+
+def _bundle_of(files: dict[str, bytes]) -> bytes:
+    return bundles.pack(bundles.Bundle("main.yaml", {"main.yaml": b"x", **files}))
+
+
+def test_a_bundle_file_of_exactly_1_mib_is_taken_and_one_byte_more_refused() -> None:
+    taken = bundles.unpack(_bundle_of({"big.bin": b"\0" * 1_048_576}))
+    assert len(taken.files["big.bin"]) == 1_048_576
+    with pytest.raises(bundles.BundleError,
+                       match=r"^bundle: 'big.bin' is larger than 1048576 bytes$"):
+        bundles.unpack(_bundle_of({"big.bin": b"\0" * 1_048_577}))
+
+
+def test_a_bundle_of_64_files_is_taken_and_65_refused() -> None:
+    files = {f"f{n:02d}.txt": b"" for n in range(63)}  # and main.yaml: 64
+    assert len(bundles.unpack(_bundle_of(files)).files) == 64
+    with pytest.raises(bundles.BundleError, match=r"^bundle: 65 files, at most 64 expected$"):
+        bundles.unpack(_bundle_of({**files, "f63.txt": b""}))
+
+
+def test_a_bundle_of_exactly_4_mib_unpacked_is_taken_and_one_byte_more_refused() -> None:
+    manifest = len(json.dumps({"format": 1, "program": "main.yaml"}, sort_keys=True))
+    mib = b"\0" * 1_048_576
+    rest = 4_194_304 - manifest - 1 - 3 * 1_048_576  # the manifest and main.yaml count too
+    files = {"a.bin": mib, "b.bin": mib, "c.bin": mib}
+    assert len(bundles.unpack(_bundle_of({**files, "d.bin": b"\0" * rest})).files) == 5
+    with pytest.raises(bundles.BundleError,
+                       match=r"^bundle: 4194305 bytes unpacked, at most 4194304$"):
+        bundles.unpack(_bundle_of({**files, "d.bin": b"\0" * (rest + 1)}))
+
+
+def test_a_bundle_manifest_of_4095_bytes_is_taken_and_4096_refused() -> None:
+    text = json.dumps({"format": 1, "program": "main.yaml"})
+    for size, taken in ((4095, True), (4096, False)):
+        blob = _zip({bundles.MANIFEST: text.ljust(size).encode(), "main.yaml": b"x"})
+        if taken:
+            assert bundles.unpack(blob).program == "main.yaml"
+        else:
+            with pytest.raises(bundles.BundleError, match=r"is larger than 4095 bytes$"):
+                bundles.unpack(blob)
