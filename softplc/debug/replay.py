@@ -15,6 +15,7 @@ from softplc.core.image import ProcessImage, parse_address
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
 from softplc.core.plc import Plc, ProgramCommand
+from softplc.core.present import raw_text
 from softplc.core.scan import scan
 from softplc.core.snapshot import HmiWrite
 from softplc.runtime.runner import observed_from
@@ -88,8 +89,10 @@ def _difference(net: CompiledNet, recorded: dict[str, int], outputs: ProcessImag
     for symbol in net.io.symbols.values():
         if symbol.name in recorded:
             value = int(outputs.get(symbol.address))
-            if value != recorded[symbol.name]:
-                diffs.append(f"{symbol.name} recorded {recorded[symbol.name]}, replay {value}")
+            if value != recorded[symbol.name]:  # as the program reads them (core/present.py)
+                shown = [raw_text(symbol.type.value, v, symbol.scaling)
+                         for v in (recorded[symbol.name], value)]
+                diffs.append(f"{symbol.name} recorded {shown[0]}, replay {shown[1]}")
     if not diffs:
         return "differs (the trace names no output symbols: it predates them, or memory differs)"
     more = f" and {len(diffs) - 3} more" if len(diffs) > 3 else ""
