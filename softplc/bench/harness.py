@@ -23,10 +23,11 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from softplc.bench.markdown import REPORTED
 from softplc.bench.measure import Progress
 
 SECTIONS = ("engine", "scan", "simulate", "modbus", "online_change", "restart", "memory",
-            "web", "analysis", "opcua", "isolation", "cli")
+            "web", "analysis", "opcua", "isolation", "cli", "startup")
 # Run only when named (--only): the watchdog section takes 30 minutes (--quick: 3).
 ON_REQUEST = ("watchdog", "sparkplug")  # sparkplug: a fleet on Debian's mosquitto
 
@@ -124,7 +125,7 @@ TARGETS = (
     Target("cli.help_over_bare", "<=", 5,
            "wall time of `softplc --help` / the same venv's `python -c pass`, medians, same run"),
 )
-HEADLINE = (*(t.key for t in TARGETS), "memory.rss_mb")
+HEADLINE = (*(t.key for t in TARGETS), "memory.rss_mb", *(key for key, _, _ in REPORTED))
 
 
 # Each section's module in softplc/bench (imported when its section runs: some need the
@@ -134,7 +135,7 @@ _MODULES = {"engine": "engine", "scan": "scanbench", "simulate": "simbench",
             "analysis": "analysisbench", "restart": "restartbench",
             "online_change": "onlinebench", "memory": "memorybench",
             "watchdog": "watchdogbench", "isolation": "isolationbench", "cli": "clibench",
-            "sparkplug": "sparkplugbench"}
+            "startup": "startbench", "sparkplug": "sparkplugbench"}
 
 
 def _section_runner(name: str) -> Callable[[bool, Progress], dict[str, Any]]:

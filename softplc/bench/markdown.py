@@ -13,6 +13,11 @@ from typing import Any
 
 from softplc.bench.cells import fmt, stat, verdict
 
+# Headline figures reported without a target: key, unit, meaning (harness.HEADLINE).
+REPORTED = (("startup.transport_first_scan_ms", "ms", "`softplc run programs/transport.yaml "
+             "--start` to its first scan, median (startbench.py)"),
+            ("startup.ring_10k_first_scan_ms", "ms", "the same for a 10,000-transition ring"))
+
 
 def _table(headers: list[str], rows: list[list[Any]]) -> list[str]:
     out = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
@@ -275,6 +280,8 @@ def write_markdown(results: dict[str, Any], path: Path) -> None:
             "resident memory of the scan, communication and compile processes after the soak",
         ]
     )
+    rows += [[key, results["headline"].get(key), "", "reported", meaning]
+             for key, _, meaning in REPORTED]
     lines += [*_table(["key", "value", "target", "verdict", "meaning"], rows), ""]
     notes = results.get("notes") or explain(results)
     if notes:

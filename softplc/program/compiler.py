@@ -31,6 +31,7 @@ from softplc.core.net import (
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.symbols import FIRST_SCAN, RETAIN_WORDS, Direction, IoImage, Retain, SymType
 from softplc.core.values import MAX_FIELDS, field_name_problem
+from softplc.program import compilelog
 from softplc.program import fields as token_fields
 from softplc.program.io_image import hashed_text, load_io_image, parse_io_image
 from softplc.program.spec import parse_program, resolve
@@ -340,6 +341,7 @@ def _at_reference(problem: Problem, ref: str, where: Where) -> Problem:
 def compile_text(text: str, filename: str, root: Path | None = None) -> CompiledNet:
     """Validate and compile a program given as text. Raises ProgramError listing every
     problem; nothing is built unless the whole program is valid."""
+    compilelog.note(filename)
     spec, problems = parse_program(text, filename, root)
     io = None
     if spec.too_large or (spec.io_image is None and any("YAML" in p.message for p in problems)):

@@ -11,8 +11,10 @@ Does not know: the scan, the channel.
 from __future__ import annotations
 
 import contextlib
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 from softplc.core.net import CompiledNet
 from softplc.core.problems import ProgramError
@@ -38,20 +40,42 @@ class BootKeeper:
         self._prep = prep
         self.source = config.program or "none"
         self.problem = ""
+        self.started: dict[str, Any] = {}  # how the start program came (start())
         self._writer: ThreadPoolExecutor | None = None
         if config.state_dir is not None:
             prep.keep = self.stage
 
-    def program(self) -> tuple[CompiledNet | None, boot.BootProgram | None]:
+    def start(self, prep: Preparer) -> tuple[CompiledNet | None, dict[str, Any] | None]:
+        """The program a start runs, and its analysis (reported, never a refusal: the person
+        at the console chose it): loaded from what `softplc run` compiled (config.compiled)
+        when it is that program, else compiled and analysed here (a loop built directly, the
+        boot program of an accepted download). `started` says which, for status."""
+        began, compiled = time.monotonic_ns(), self.config.compiled
+        net, _ = self.program(compiled)
+        if net is None:
+            return None, None
+        loaded = compiled is not None and net.program_hash == compiled.program_hash
+        analysis = compiled.analysis if loaded else prep.analyse(net, gate=False)
+        self.started = {"compiled_by": "compile process" if loaded else "scan process",
+                        "ready_ms": round((time.monotonic_ns() - began) / 1e6, 1)}
+        return net, analysis
+
+    def program(self, compiled: Any = None) -> tuple[CompiledNet | None, boot.BootProgram | None]:
         """The program to run: the command line's, else the boot program of the state dir.
-        The command line's is compiled by the CLI first, which reports its errors."""
+        The command line's is compiled by the CLI first, which reports its errors: `compiled`
+        (a StartProgram, runtime/compileproc.py) is loaded, not compiled again, for it and for
+        a boot program of the same hash."""
         config = self.config
         if config.program:
-            if config.plant and (why := plant_conflict(compile_file(config.program).io,
-                                                       config.plant)):
+            if compiled is not None:
+                net = compiled.load()
+            elif config.plant and (why := plant_conflict(compile_file(config.program).io,
+                                                         config.plant)):
                 raise ValueError(why)
-            net = compile_file(config.program)
-            program = boot.from_file(config.program, net.program_hash)
+            else:
+                net = compile_file(config.program)
+            program = (compiled.boot if compiled is not None  # its bundle: read by the compiler
+                       else boot.from_file(config.program, net.program_hash))
             if config.state_dir is not None:  # the program the PLC runs is its boot program
                 self._save(program, unless_same=True)
             return net, program
@@ -66,7 +90,9 @@ class BootKeeper:
             return None, None
         program = loaded
         try:
-            if program.bundle is not None:
+            if compiled is not None and program.program_hash == compiled.program_hash:
+                net = compiled.load()  # a restart of the command line's program
+            elif program.bundle is not None:
                 net = self._prep.compile_bundle(program.bundle)  # unpacked anew if removed
             else:
                 net = compile_text(program.text, program.filename,

@@ -6,7 +6,10 @@ download at a time over a private pipe, a compile that dies or runs past COMPILE
 turned into a refused download (the next download starts a new process), its budgets (a
 download past COMPILE_MEMORY_BYTES of address space or COMPILE_CPU_S of CPU is refused, by
 RLIMIT_AS and RLIMIT_CPU; after a MemoryError the process ends, the next download starts
-another), and its end with the scan process (pipe closed, or PR_SET_PDEATHSIG).
+another), and its end with the scan process (pipe closed, or PR_SET_PDEATHSIG); `softplc run`'s
+start program compiled once (compile_start: in a compile process of the CLI's, at normal
+priority), its compiled form (StartProgram) what the scan process loads at every start and
+restart.
 Why a process: threads of the scan process share one interpreter lock with the scan. Paced
 between scans on a thread of the scan process (as it once was), a 10,000-transition compile
 took ~3 s of the scan process's time and still cost slots at 1 ms; here it takes ~0.8 s of
@@ -27,11 +30,15 @@ import pickle
 import resource
 import signal
 import threading
+from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from typing import Any
 
+from softplc.core.net import CompiledNet
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.snapshot import CommandRequest
+from softplc.program import boot, wire
+from softplc.program.compiler import compile_file
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.prepare import AnalysisRefused, Built, CompilerFailed, Preparer
 from softplc.runtime.realtime import keep_off_scan_cpu
@@ -50,17 +57,74 @@ OUT_OF_MEMORY_EXIT = 86  # its exit code after a MemoryError (when the refusal c
 _CTX = multiprocessing.get_context("spawn")  # a fresh interpreter: nothing of the scan's
 
 
+@dataclass(frozen=True, slots=True)
+class StartRequest:
+    """`softplc run`'s program, to compile once; `plant` a --plant it must not conflict with."""
+
+    path: str
+    plant: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class StartProgram:
+    """The start program compiled: the net as bytes (program/wire.py), as a download's, and
+    its analysis (reported, never a refusal: the person at the console chose it). The
+    supervisor hands it to every scan process it starts (LoopConfig.compiled), so neither a
+    start nor a restart parses YAML. `conflict`: why it cannot run with --plant ("" if it can)."""
+
+    net: tuple[bytes, ...]
+    analysis: dict[str, Any] | None
+    program_hash: str
+    compiled_by: int  # the compile process's pid
+    conflict: str = ""
+    boot: Any = None  # its boot program (program/boot.py BootProgram: the bundle read here)
+
+    def load(self) -> CompiledNet:
+        """The net, loaded from its bytes (expressions compiled again, program/wire.py)."""
+        return wire.loads(self.net)
+
+
+def _start(prep: Preparer, req: StartRequest) -> StartProgram:
+    from softplc.runtime.runner import plant_conflict
+
+    net = compile_file(req.path)
+    conflict = (plant_conflict(net.io, req.plant) or "") if req.plant else ""
+    if conflict:
+        return StartProgram((), None, net.program_hash, os.getpid(), conflict)
+    return StartProgram(wire.dumps(net), prep.analyse(net, gate=False), net.program_hash,
+                        os.getpid(), boot=boot.from_file(req.path, net.program_hash))
+
+
+def compile_start(req: StartRequest, verify: str = "warn",
+                  timeout_s: float = COMPILE_TIMEOUT_S) -> StartProgram:
+    """`softplc run`'s program compiled and analysed once, in a compile process of the CLI's
+    (at normal priority: the start waits for it), ended after. Raises ProgramError or
+    CompilerFailed."""
+    from softplc.runtime.config import LoopConfig
+
+    compiler = CompileProcess(LoopConfig(verify=verify), timeout_s, background=False)
+    try:
+        value = compiler.exchange(req)
+    finally:
+        compiler.close()
+    assert isinstance(value, StartProgram)
+    return value
+
+
 def compile_main(config: LoopConfig, conn: Connection,
-                 memory_bytes: int = COMPILE_MEMORY_BYTES, cpu_s: float = COMPILE_CPU_S) -> None:
-    """Entry point of the compile process: a request in, a Built or an error out, until the
-    scan process closes the pipe. A download over the memory or CPU budget is refused."""
+                 memory_bytes: int = COMPILE_MEMORY_BYTES, cpu_s: float = COMPILE_CPU_S,
+                 background: bool = True) -> None:
+    """Entry point of the compile process: a request in, a Built (a StartProgram for a
+    StartRequest) or an error out, until the scan process closes the pipe. A download over
+    the memory or CPU budget is refused."""
     from softplc.runtime.procs import die_with_parent, name_process
 
     name_process()  # softplc-compile (CompileProcess.start)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the supervisor's business
     die_with_parent()
     prep = Preparer(config, lambda: None, lambda: ())
-    idle(0)  # imports done at normal priority (see starting()); every compile in background
+    if background:  # the CLI's start compile stays at normal priority: the start waits for it
+        idle(0)  # imports done at normal priority (see starting()); every compile in background
     no_memory = pickle.dumps(("ended", CompilerFailed(_over_memory(memory_bytes))), protocol=5)
     _limit_memory(memory_bytes)
     signal.signal(signal.SIGXCPU, _out_of_cpu)
@@ -72,7 +136,8 @@ def compile_main(config: LoopConfig, conn: Connection,
         _limit_cpu(cpu_s)
         gc.disable()  # collected once per download, below: full collections while the heap
         try:  # grows cost ~20 % of a big compile
-            reply: tuple[str, Any] = ("ok", prep.build(req))
+            reply: tuple[str, Any] = ("ok", _start(prep, req) if isinstance(req, StartRequest)
+                                      else prep.build(req))
         except ProgramError as exc:  # paths as the sender knows them: a bundle's folder is here
             reply = ("error", ProgramError([
                 Problem(prep.relative(p.file), p.line, p.path, prep.relative(p.message))
@@ -179,9 +244,11 @@ class CompileProcess:
     it); `close()` on the way out."""
 
     def __init__(self, config: LoopConfig, timeout_s: float = COMPILE_TIMEOUT_S,
-                 memory_bytes: int = COMPILE_MEMORY_BYTES, cpu_s: float = COMPILE_CPU_S) -> None:
+                 memory_bytes: int = COMPILE_MEMORY_BYTES, cpu_s: float = COMPILE_CPU_S,
+                 background: bool = True) -> None:
         self.config = config
         self.timeout_s = timeout_s
+        self.background = background
         self.budgets = (memory_bytes, cpu_s)  # the compile process's, per process/download
         self.started = 0  # processes started, for status and tests
         self.last_failure = ""  # why the last one ended while compiling (status)
@@ -195,7 +262,8 @@ class CompileProcess:
                 return
             self._end()
             mine, theirs = _CTX.Pipe(duplex=True)
-            proc = _CTX.Process(target=compile_main, args=(self.config, theirs, *self.budgets),
+            proc = _CTX.Process(target=compile_main,
+                                args=(self.config, theirs, *self.budgets, self.background),
                                 name="softplc-compile", daemon=True)
             proc.start()
             theirs.close()
@@ -216,6 +284,12 @@ class CompileProcess:
     def build(self, req: CommandRequest) -> Built:
         """Compile and analyse `req` in the compile process. Raises what the compile raised
         (ProgramError, AnalysisRefused) or CompilerFailed."""
+        value = self.exchange(req)
+        assert isinstance(value, Built)
+        return value
+
+    def exchange(self, req: CommandRequest | StartRequest) -> Any:
+        """One request, its answer (a Built, a StartProgram) or what the compile raised."""
         self.start()
         conn, proc = self._conn, self._proc  # close() may clear them meanwhile
         assert conn is not None and proc is not None
@@ -236,7 +310,6 @@ class CompileProcess:
             self.last_failure = str(value)
         if kind in ("error", "ended"):
             raise value
-        assert isinstance(value, Built)
         return value
 
     def _died(self) -> str:

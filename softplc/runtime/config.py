@@ -7,6 +7,7 @@ Does not know: how any of it is used (runtime/loop.py, runtime/prepare.py).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from softplc.core.image import ImageSizes
 from softplc.runtime.realtime import NORMAL, Realtime
@@ -57,3 +58,6 @@ class LoopConfig:
     paused_at_restart: str = ""
     boot: bool = True  # no program given: run the boot program of state_dir, if any
     verify: str = "warn"  # analysis gate on downloads: "refuse", "warn" or "off"
+    # `program` compiled once by `softplc run` (runtime/compileproc.py StartProgram): what a
+    # start and every restart load instead of compiling (None: the scan process compiles it).
+    compiled: Any = None

@@ -89,10 +89,7 @@ class ScanLoop:
         self._prepared: dict[int, Prepared] = {}  # downloads handed to the scan, by request id
         self._retired: list[Any] = []  # a replaced net and its engine (scan_once)
         self.boot = BootKeeper(config, self.prep)
-        net, _ = self.boot.program()
-        # The program the PLC starts with is analysed too, never refused: the person at the
-        # console chose it. Its findings are in status.
-        self.analysis = self.prep.analyse(net, gate=False) if net is not None else None
+        net, self.analysis = self.boot.start(self.prep)  # loaded as `softplc run` compiled it
         warmstart.begin(self, net)
         self.runner.plc.debug.period_ns = config.period_ns  # a step is one period of net time
         if config.restarts:
@@ -257,6 +254,7 @@ class ScanLoop:
     def run(self, stop: Event | None = None, safe: Callable[[], object] = lambda: None) -> None:
         if self.compiler is not None:
             self.compiler.start()  # ready before the first download, from the thread that stays
+        self.boot.started["loop_ns"] = time.monotonic_ns()  # the first scan: a period later
         self._paced = True
         try:
             self._run(stop)

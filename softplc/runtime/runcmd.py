@@ -13,6 +13,7 @@ died more than SCAN_RESTARTS times within RESTART_WINDOW_S.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import shlex
@@ -26,11 +27,11 @@ from typing import Any
 
 from softplc.api import secopts
 from softplc.core.problems import ProgramError
-from softplc.program.compiler import compile_file
+from softplc.runtime.compileproc import StartProgram, StartRequest, compile_start
 from softplc.runtime.leftovers import remove_stale_segments
+from softplc.runtime.prepare import CompilerFailed
 from softplc.runtime.procs import name_process
 from softplc.runtime.retain import StateDirBusy, check_state_dir
-from softplc.runtime.runner import plant_conflict
 from softplc.runtime.sdnotify import Notifier
 from softplc.runtime.supervisor import (
     RESTART_WINDOW_S,
@@ -94,12 +95,10 @@ def _shell_words(command: list[str]) -> str:
     return " ".join(f'"{word}"' if "$(" in word else shlex.quote(word) for word in command)
 
 
-def _startup_problem(args: argparse.Namespace) -> str | None:
+def _startup_problem(args: argparse.Namespace, start: StartProgram | None) -> str | None:
     """The first reason `softplc run` cannot start, as one line; None when it can."""
-    if args.program:
-        why = plant_conflict(compile_file(args.program).io, args.plant)
-        if why:
-            return why
+    if start is not None and start.conflict:
+        return start.conflict
     for what, endpoint in (("Modbus", args.modbus), ("API", args.api)):
         if problem := _port_in_use(endpoint):
             return f"{what} port {problem} (another softplc? choose another with --{what.lower()})"
@@ -170,19 +169,24 @@ def run(args: argparse.Namespace) -> int:
         print(f"softplc: --watchdog must be a number above 0, got {args.watchdog:g}",
               file=sys.stderr)
         return EXIT_USAGE
+    start = None  # compiled once, in a compile process; every scan process loads it
     if args.program:
         try:
-            compile_file(args.program)
+            start = compile_start(StartRequest(args.program, args.plant),
+                                  getattr(args, "verify", "warn"))
         except ProgramError as exc:
             for problem in exc.problems:
                 print(problem, file=sys.stderr)
+            return EXIT_START
+        except CompilerFailed as exc:
+            print(f"softplc: {exc}", file=sys.stderr)
             return EXIT_START
     try:
         check_state_dir(args.state_dir)  # the scan process takes the lock; fail early and clearly
     except StateDirBusy as exc:
         print(f"softplc: {exc}", file=sys.stderr)
         return EXIT_START
-    if trouble := _startup_problem(args):
+    if trouble := _startup_problem(args, start):
         print(f"softplc: {trouble}", file=sys.stderr)
         return EXIT_START
     if trouble := resolve_boot_policy(args) or secopts.prepare(args):  # TLS, trusted keys
@@ -193,6 +197,7 @@ def run(args: argparse.Namespace) -> int:
     remove_stale_segments()
     try:
         supervisor = Supervisor.from_args(args)
+        supervisor.loop_config = dataclasses.replace(supervisor.loop_config, compiled=start)
     except ValueError as exc:  # --rt-priority or --scan-cpu out of range
         print(f"softplc: {exc}", file=sys.stderr)
         return EXIT_USAGE

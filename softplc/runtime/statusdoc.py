@@ -96,6 +96,7 @@ def document(loop: LoopView) -> dict[str, Any]:
         "fault_reason": plc.fault_reason, "devices": loop.runner.device_report(),
         "start_mode": loop.start_mode,
         "start_reason": loop.start_reason, "program_source": loop.boot.source,
+        "start_program": loop.boot.started,  # compiled once by `softplc run`, or here
         "boot_policy": loop.config.boot_policy,
         "boot_policy_source": loop.config.boot_policy_source,
         "realtime": loop.realtime,
