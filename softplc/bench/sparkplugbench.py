@@ -20,6 +20,7 @@ from __future__ import annotations
 import os
 import shutil
 import signal
+import socket
 import statistics
 import subprocess
 import sys
@@ -83,13 +84,15 @@ class Subscriber:
         self.client.disconnect()
 
 
-def _broker(port: int, where: Path) -> subprocess.Popen[bytes]:
+def _broker(port: int, where: Path, n: int = 0) -> subprocess.Popen[bytes]:
+    """Mosquitto on `port`; its connection notices in where/broker-N.log."""
     binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
     conf = where / "m.conf"
     conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\n"
-                    "user root\nmax_queued_messages 1000\n")
-    return subprocess.Popen([binary, "-c", str(conf)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+                    "user root\nlog_dest stderr\nlog_type notice\n")
+    with (where / f"broker-{n}.log").open("wb") as log:
+        return subprocess.Popen([binary, "-c", str(conf)], stdout=subprocess.DEVNULL,
+                                stderr=log)
 
 
 def _sparkplug_pids(supervisor: int) -> list[int]:
@@ -106,6 +109,11 @@ def _sparkplug_pids(supervisor: int) -> list[int]:
                 comm.startswith("softplc-sparkp"):
             found.append(int(entry.name))
     return found
+
+
+def _listening(port: int) -> bool:
+    with socket.socket() as probe:
+        return probe.connect_ex(("127.0.0.1", port)) == 0
 
 
 def _cpu_s(pid: int) -> float:
@@ -170,6 +178,7 @@ def run(quick: bool, progress: Progress) -> dict[str, Any]:
             progress(f"sparkplug: {NODES} nodes starting")
             s = sub
             _wait(lambda: len(s.births) == NODES, 180.0, "every NBIRTH")
+            _wait(lambda: all(_listening(mb) for _, mb in plcs), 180.0, "every Modbus slave")
             time.sleep(2.0)
             result: dict[str, Any] = {"nodes": NODES, "interval_s": float(INTERVAL_S)}
             result.update(_latency(sub, plcs, trials, progress))
@@ -266,11 +275,29 @@ def _broker_gone(sub: Subscriber, brokers: list[subprocess.Popen[bytes]], port: 
         peak = max(peak, sum(rss_kib(p) for p in pids))
         time.sleep(1.0)
     rss_gone = sum(rss_kib(p) for p in pids)
-    brokers.append(_broker(port, where))  # run() stops it
-    time.sleep(0.3)
-    sub.client.reconnect()
-    reborn = _wait(lambda: all(sub.births.get(n, 0) > births.get(n, 0) for n in births),
-                   120.0, "every node born again")
+    start = time.monotonic()
+    brokers.append(_broker(port, where, 1))  # run() stops it
+    log = where / "broker-1.log"
+    nodes = [f"softplc-bench-{n}" for n in births]
+
+    def connected() -> bool:
+        text = log.read_text(errors="replace") if log.exists() else ""
+        return all(f"as {n} " in text for n in nodes)
+
+    _wait(connected, 120.0, "every node connected again")
+    reconnected = time.monotonic() - start
+    time.sleep(0.5)
+    fresh = Subscriber(port)  # a host that came back after the nodes' births: asks them
+    try:
+        time.sleep(1.0)
+        for node in births:
+            if node not in fresh.births:
+                fresh.client.publish(f"spBv1.0/bench/NCMD/{node}", codec.encode(
+                    codec.Payload(int(time.time() * 1000), (codec.Metric(
+                        "Node Control/Rebirth", codec.BOOLEAN, True),))))
+        _wait(lambda: len(fresh.births) == len(births), 60.0, "every node born again")
+    finally:
+        fresh.close()
     progress(f"sparkplug: broker away {gone_s:g} s")
     return {"away_s": gone_s, "rss_kib_before": rss_before, "rss_kib_peak": peak,
-            "rss_kib_after": rss_gone, "all_born_again_s": round(reborn, 1)}
+            "rss_kib_after": rss_gone, "all_connected_again_s": round(reconnected, 1)}
