@@ -1153,3 +1153,37 @@ def test_engine_follows_a_marking_written_from_outside(
         assert observed(engine)[0] == observed(fresh)[0], k
         assert engine.state.enabled_since == fresh.state.enabled_since, k
         previous = values
+
+
+# -- run-time diagnostics: located, counted, the first 100 kept (issue 43) --------------------
+
+def _failing_guards(tmp_path: Path, count: int) -> CompiledNet:
+    return compile_program(tmp_path, "places:\n  p: {tokens: 1}\ntransitions:\n" + "".join(
+        f'  t{n}: {{from: [p], when: "mw // w > 1"}}\n' for n in range(count)))
+
+
+def test_a_guard_that_raises_is_false_located_and_counted_with_its_scan(tmp_path: Path) -> None:
+    net = _failing_guards(tmp_path, 2)
+    engine = Engine(net)
+    assert (engine.diagnostics, engine.diagnostic_count) == ([], 0)
+    engine.scan = 7
+    assert engine.scan == 7
+    step = engine.fire_round(Ctx({"mw": 4, "w": 0}), 0)
+    assert step.fired == ()  # taken as false: p keeps its token
+    assert engine.state.marking_by_name(net) == {"p": 1}
+    path = tmp_path / "prog.yaml"
+    assert engine.diagnostics == [
+        f"scan 7: {path}:{line}: transition t{n}: guard 'mw // w > 1' failed (integer division "
+        "by zero); taken as false" for n, line in ((0, 6), (1, 7))]
+    assert engine.diagnostic_count == 2
+
+
+def test_the_first_100_diagnostics_are_kept_and_every_one_counted(tmp_path: Path) -> None:
+    for count in (100, 101):  # MAX_DIAGNOSTICS exactly, and one over
+        (tmp_path / str(count)).mkdir()
+        engine = Engine(_failing_guards(tmp_path / str(count), count))
+        engine.fire_round(Ctx({"mw": 4, "w": 0}), 0)
+        assert len(engine.diagnostics) == 100, count
+        assert engine.diagnostic_count == count
+        assert engine.diagnostics[-1].startswith("scan 0: ") and " transition t99: " in \
+            engine.diagnostics[-1]
