@@ -141,6 +141,7 @@ def check_pnml(path: str, check_devices: Callable[[IoImage], list[Problem]]) -> 
 
 def cmd_export(args: argparse.Namespace) -> int:
     from softplc.analysis.pnml import export_compiled
+    from softplc.analysis.pnml_encode import encoding
 
     try:
         net = compile_file(args.program)
@@ -155,4 +156,6 @@ def cmd_export(args: argparse.Namespace) -> int:
     out.write_text(export_compiled(net, io_image=io_ref, io_text=io_text), encoding="utf-8")
     print(f"{args.program} -> {out}: {len(net.place_names)} places, "
           f"{len(net.transitions)} transitions")
+    for warning in encoding(net).warnings:  # what other tools will not see (pnml_encode.py)
+        print(f"warning: {args.program}: {warning}", file=sys.stderr)
     return 0

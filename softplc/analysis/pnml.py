@@ -30,6 +30,7 @@ from softplc.analysis.pnml_dialects import (
     pipe_count,
     type_problem,
 )
+from softplc.analysis.pnml_encode import decoded
 from softplc.analysis.pnml_export import TOOL
 from softplc.analysis.pnml_export import export_compiled as export_compiled
 from softplc.analysis.pnml_export import export_pt as export_pt
@@ -273,6 +274,7 @@ def mapping_beside(path: Path) -> dict[str, Any] | None:
 def compiled_net(net: PnmlNet, mapping: dict[str, Any] | None = None) -> CompiledNet:
     """The runnable program: the net's softplc data (toolspecific), overlaid by `mapping`."""
     r = _Reader(net.file)
+    net = decoded(net, r.tool_json)  # without the export's P/T encodings (pnml_encode.py)
     tool = dict(net.tool or {})
     mapping = mapping or {}
     io_ref = mapping.get("io_image", tool.get("io_image"))
@@ -382,8 +384,8 @@ def load_for_analysis(path: str | Path) -> tuple[AnalysisNet, CompiledNet | None
     if missing is not None:
         return pt_analysis_net(net, f"io image {missing} not found beside {path.name} and not "
                                "embedded: its P/T skeleton analysed (softplc's guards, "
-                               "actions, timing, priorities, test and inhibitor arcs "
-                               "ignored)"), None
+                               "actions, timing and priorities ignored; capacities, read and "
+                               "inhibitor arcs as the export encodes them)"), None
     if net.tool is not None or mapping is not None:
         compiled = compiled_net(net, mapping)
         return from_compiled(compiled), compiled

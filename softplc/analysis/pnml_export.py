@@ -1,7 +1,8 @@
 """PNML (ISO/IEC 15909-2, `ptnet` type) export.
 
 Owns: writing a CompiledNet (or a bare PtNet) as PNML: the P/T skeleton any tool opens
-(places, transitions, weighted arcs, initial markings, names) plus softplc's own data in
+(places, transitions, weighted arcs, initial markings, names; capacities, read arcs and the
+inhibitor arcs it can say encoded as pnml_encode.py decides) plus softplc's own data in
 `toolspecific tool="softplc"` elements (guards, actions, timing, priorities, outputs,
 capacities, coloured tokens, test and inhibitor arcs, the io image); the namespaces and the
 tool name that pnml.py reads back; `structure`, what a round trip must keep.
@@ -15,6 +16,7 @@ from typing import Any
 from xml.sax.saxutils import escape, quoteattr
 
 from softplc.analysis.models import PtNet
+from softplc.analysis.pnml_encode import encoding
 from softplc.core.net import ActionKind, CompiledNet
 
 PNML_NS = "http://www.pnml.org/version-2009/grammar/pnml"
@@ -47,6 +49,7 @@ def export_compiled(net: CompiledNet, io_image: str | None = None,
     (relative to the PNML file); default: the path the program gave, made relative.
     `io_text`: that file's text, embedded so that the net still compiles where the file is
     not beside it (a net copied elsewhere)."""
+    enc = encoding(net)
     io_ref = io_image if io_image is not None else net.io.path
     program: dict[str, Any] = {"name": net.name, "io_image": io_ref, "events": sorted(net.emits)}
     if io_text is not None:
@@ -87,23 +90,42 @@ def export_compiled(net: CompiledNet, io_image: str | None = None,
             data["inhibit"] = [[net.place_names[p], w] for p, w in t.inhibit]
         out.append(_named("transition", f"t{t.index}", t.name,
                           _tool(_json_tag("transition", data), ind + "  "), ind))
-    n = 0
+    for c, (p, free) in enumerate(enc.complements):
+        inner = (f"{ind}  <initialMarking><text>{free}</text></initialMarking>\n"
+                 + _tool(_json_tag("place", {"complement_of": net.place_names[p]}), ind + "  "))
+        out.append(_named("place", f"c{c}", f"{net.place_names[p]} (free)", inner, ind))
+    arcs: list[tuple[str, str, int, dict[str, Any]]] = []
     for t in net.transitions:
+        pending = {(p, to): e for (u, p, to), e in enc.extra.items() if u == t.index}
         for a in t.pre:
-            tool = _tool(_json_tag("arc", {"var": a.var}), ind + "  ") if a.var else ""
-            out.append(_arc(f"a{n}", f"p{a.place}", f"t{t.index}", a.weight, tool, ind))
-            n += 1
+            spec: dict[str, Any] = {"var": a.var} if a.var else {}
+            _encodes(spec, pending.pop((a.place, False), 0))
+            arcs.append((f"p{a.place}", f"t{t.index}", a.weight + spec.get("encodes", 0), spec))
         for o in t.post:
-            spec: dict[str, Any] = {}
+            spec = {}
             if o.var is not None:
                 spec["token"] = o.var
             elif o.fields is not None:
                 spec["token"] = {k: c.text for k, c in o.fields.items()}
-            tool = _tool(_json_tag("arc", spec), ind + "  ") if spec else ""
-            out.append(_arc(f"a{n}", f"t{t.index}", f"p{o.place}", o.weight, tool, ind))
-            n += 1
+            _encodes(spec, pending.pop((o.place, True), 0))
+            arcs.append((f"t{t.index}", f"p{o.place}", o.weight + spec.get("encodes", 0), spec))
+        for (p, to_place), e in sorted(pending.items()):  # a read arc's pair, on its own
+            ends = (f"t{t.index}", f"p{p}") if to_place else (f"p{p}", f"t{t.index}")
+            arcs.append((*ends, e, {"encodes": e}))
+        for u, c, to_place, w in enc.arcs:
+            if u == t.index:
+                ends = (f"t{t.index}", f"c{c}") if to_place else (f"c{c}", f"t{t.index}")
+                arcs.append((*ends, w, {}))
+    for n, (src, dst, weight, spec) in enumerate(arcs):
+        tool = _tool(_json_tag("arc", spec), ind + "  ") if spec else ""
+        out.append(_arc(f"a{n}", src, dst, weight, tool, ind))
     out.append("    </page>\n  </net>\n</pnml>\n")
     return "".join(out)
+
+
+def _encodes(spec: dict[str, Any], extra: int) -> None:
+    if extra:
+        spec["encodes"] = extra
 
 
 def export_pt(net: PtNet) -> str:
