@@ -36,7 +36,8 @@ def page_paths(prefix: str) -> dict[str, Any]:
         f"{prefix}/net": {"get": {
             "operationId": "net", "tags": ["page"],
             "summary": "The loaded net's structure: places, transitions, arcs, subnet instance "
-                       "of each, outputs, symbols with descriptions.",
+                       "of each, outputs, symbols with descriptions and how a value is shown "
+                       "and given (core/present.py: scaled, unit, range, decimals).",
             "responses": {"200": {"description": "The structure.", "content": {
                 "application/json": {"schema": {"type": "object"}}}}, **err(401, 403, 404, 503)}}},
         f"{prefix}/live": {"get": {
