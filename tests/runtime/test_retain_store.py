@@ -225,3 +225,66 @@ def test_stop_writes_the_final_snapshot_synchronously_and_says_so(tmp_path: Path
     assert "ENOSPC" in result.error and str(result).startswith("final snapshot NOT written")
     assert writer.info()["errors_by_stage"]["write"] == 1
     assert temporaries(tmp_path / "state") == []
+
+
+# -- issue 43: what the codec carries, and the two files kept, checked on their own ------------
+
+ROUND_TRIP = """
+places:
+  parts: {tokens: [{id: 1, kg: 2.5, tag: 'a', ok: true}, {id: 2, kg: 7.25, tag: 'b', ok: false},
+                   {id: 3, kg: 0.5, tag: 'c', ok: true}]}
+  done: {coloured: true}
+  count: {tokens: 3}
+transitions:
+  move:
+    from: [count, {place: parts, var: p}]
+    to: [{place: done, token: {id: "p.id", kg: "p.kg * 2", tag: "p.tag", ok: "p.ok"}}]
+"""
+
+
+def _restored(tmp_path: Path, bench: Bench, resume: bool) -> Bench:
+    """`bench`'s PLC captured, encoded to JSON text and back, restored into a fresh PLC."""
+    import json
+    cap = retain.capture(bench.plc, 5_000_000, {})
+    assert cap is not None
+    payload = json.loads(json.dumps(retain.encode(cap, 1, 0)))
+    again = Bench(bench.net, start=False)
+    retain.restore(again.plc, payload, resume)
+    return again
+
+
+def test_coloured_tokens_survive_a_retain_round_trip(tmp_path: Path) -> None:
+    bench = Bench(compile_program(tmp_path, ROUND_TRIP), start=False)
+    bench.scan(0, [ProgramCommand(Command.START)])
+    assert bench.plc.engine is not None
+    tokens = bench.plc.engine.state.tokens
+    parts, done = bench.net.place_index["parts"], bench.net.place_index["done"]
+    assert len(tokens[parts]) == 2 and len(tokens[done]) == 1  # one moved in the first scan
+    again = _restored(tmp_path, bench, resume=True)
+    assert again.plc.engine is not None
+    assert again.plc.engine.state.tokens == tokens
+    assert again.plc.engine.state.tokens[done][0] == {"id": 1, "kg": 5.0, "tag": "a", "ok": True}
+    assert again.marking() == bench.marking()
+
+
+def test_a_faulted_plc_is_restored_faulted_with_its_reason(tmp_path: Path) -> None:
+    from softplc.core.lifecycle import PlcState
+    from softplc.core.problems import FaultCode
+    bench = Bench(compile_program(tmp_path, ROUND_TRIP))
+    bench.plc.fault(FaultCode.DEVICE, 1_000_000, reason="device press: no answer for 3 s")
+    again = _restored(tmp_path, bench, resume=False)
+    assert again.plc.state is PlcState.FAULTED
+    assert (again.plc.fault_code, again.plc.fault_reason) == (
+        FaultCode.DEVICE, "device press: no answer for 3 s")
+
+
+def test_the_store_keeps_the_two_newest_snapshots(tmp_path: Path) -> None:
+    store = RetainStore.open(tmp_path / "state")  # the default keep: KEEP, 2
+    try:
+        for seq in (1, 2):
+            store.write(payload(seq))
+        assert snapshot_seqs(store) == [2, 1]
+        store.write(payload(3))
+        assert snapshot_seqs(store) == [3, 2]  # a third write deletes the oldest
+    finally:
+        store.close()
