@@ -22,11 +22,14 @@ from softplc.api.client import (
     ApiUnreachable,
     default_url,
 )
+from softplc.core.lifecycle import Command
 from softplc.security.auth import TOKEN_ENV
 
 EXIT_OK: Final = 0
 EXIT_REFUSED: Final = 1
 EXIT_UNREACHABLE: Final = 2
+_SCAN_WORDS = frozenset(c.value for c in Command)  # the scan's names of commands (_own_words)
+
 
 def add_download(download: argparse.ArgumentParser) -> None:
     """Each add_* adds a command's arguments to the parser cli/table.py made for it."""
@@ -117,7 +120,7 @@ def call(args: argparse.Namespace, what: str,
                            user=args.user, password=password, ca=args.ca)
         return EXIT_OK, action(client)
     except ApiError as exc:
-        message = exc.message.removeprefix(f"{what} refused: ")  # said once is enough
+        message = _own_words(exc.message, " refused")  # said once is enough
         print(f"softplc {what}: refused (HTTP {exc.status}): {message}", file=sys.stderr)
         for problem in exc.problems:
             print(problem, file=sys.stderr)
@@ -226,13 +229,20 @@ def said(command: str, reply: dict[str, Any]) -> str:
     """A command's reply as one line that names the command and the state once each: the
     scan's messages already start with the command ("stop: now STOPPED") and may name the
     state, so nothing is added that is already there."""
-    message = str(reply.get("message") or "done")
+    message = _own_words(str(reply.get("message") or "done"), "")
     if not message.startswith(command):
         message = f"{command}: {message}"
     state = reply.get("state")
     if state and str(state) not in message:
         message += f" (state {state})"
     return message
+
+
+def _own_words(message: str, after: str) -> str:
+    """`message` without the scan's name of the command ("unbreak: removed b1", "stop refused:
+    ..."): the client names it as the person typed it (`break clear`), once (the one place)."""
+    head, sep, rest = message.partition(f"{after}: ")
+    return rest if sep and head in _SCAN_WORDS else message
 
 
 def cmd_lifecycle(args: argparse.Namespace) -> int:

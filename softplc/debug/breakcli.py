@@ -73,7 +73,7 @@ def cmd_break_add(args: argparse.Namespace) -> int:
 
 
 def cmd_break_remove(args: argparse.Namespace) -> int:
-    return _done(args, "unbreak", lambda c: c.remove_breakpoint(args.id))
+    return _done(args, f"break {args.break_command}", lambda c: c.remove_breakpoint(args.id))
 
 
 def cmd_break_list(args: argparse.Namespace) -> int:

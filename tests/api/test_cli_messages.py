@@ -83,3 +83,18 @@ def test_lifecycle_help_names_the_accepting_states() -> None:
     summaries = {a.dest: a.help or "" for a in _subparsers(build_parser())._choices_actions}
     for command in ("start", "stop", "resume", "reset", "kill"):
         assert f"(accepted in {accepting(Command(command))})" in summaries[command], command
+
+
+def test_break_commands_answer_in_the_words_typed(api: ServerThread,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    # before: `break clear` answered "unbreak: removed b1" (the scan's name of the command)
+    assert _out(capsys, "download", str(TRANSPORT), "--api", api.url)[0] == EXIT_OK
+    assert _out(capsys, "start", "--api", api.url)[0] == EXIT_OK
+    for _ in range(2):
+        code, out, _ = _out(capsys, "break", "add", "when", "s1_i", "--api", api.url)
+        assert code == EXIT_OK and out.startswith("break: "), out
+    code, out, _ = _out(capsys, "break", "remove", "b1", "--api", api.url)
+    assert (code, out) == (EXIT_OK, "break remove: removed b1 (state RUNNING)")
+    code, out, _ = _out(capsys, "break", "clear", "--api", api.url)
+    assert (code, out) == (EXIT_OK, "break clear: removed b2 (state RUNNING)")
+    assert "unbreak" not in out
