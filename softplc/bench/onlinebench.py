@@ -62,7 +62,8 @@ def _command(runtime: LiveRuntime, command: Command, text: str | None = None) ->
 
 def _download_online(runtime: LiveRuntime, api: ApiClient, text: str,
                      timeout_s: float, settle_s: float) -> dict[str, Any]:
-    before = runtime.status().get("program_hash")
+    status = runtime.status()
+    before, steps_before = status.get("program_hash"), status.get("download_steps") or {}
     quiet_since = time.monotonic_ns() - int(settle_s * 1e9)
     t_request = time.monotonic_ns()
     try:
@@ -72,12 +73,27 @@ def _download_online(runtime: LiveRuntime, api: ApiClient, text: str,
     t_reply = time.monotonic_ns()
     deadline = time.monotonic() + timeout_s
     # The swap shows on the status board even when the API gave up waiting (503).
-    while runtime.status().get("program_hash") == before:
+    while (status := runtime.status()).get("program_hash") == before:
         if time.monotonic() > deadline:
             raise RuntimeError(f"the online change did not happen within {timeout_s} s")
         time.sleep(0.02)
     return {"t_request_ns": t_request, "t_reply_ns": t_reply, "api": str(outcome),
-            "quiet_since_ns": quiet_since}
+            "quiet_since_ns": quiet_since,
+            "steps": _steps_of(steps_before, status.get("download_steps") or {}),
+            "reply": (status.get("compile_process") or {}).get("last_reply")}
+
+
+def _steps_of(before: dict[str, Any], after: dict[str, Any]) -> dict[str, Any]:
+    """This download's steps between scans, per stage (runtime/steplog.py: counts since the
+    scan process started; the longest is over its whole life)."""
+    out = {}
+    for stage, now in after.items():
+        was = before.get(stage, {})
+        out[stage] = {"steps": now["steps"] - was.get("steps", 0),
+                      "total_ms": round(now["total_ms"] - was.get("total_ms", 0), 2),
+                      "longest_us": now["longest_us"],
+                      "past_limit": now["past_limit"] - was.get("past_limit", 0)}
+    return out
 
 
 def _evaluate(request: dict[str, Any], record: ScanRecord, period_ns: int) -> dict[str, Any]:
@@ -102,7 +118,22 @@ def _evaluate(request: dict[str, Any], record: ScanRecord, period_ns: int) -> di
         if t0 - length >= quiet_from else None,
         "swap_scan_exec_ms": int(record.exec_ns[i]) / 1e6,  # compile + swap + first scan
         "transitions": change["transitions"], "api": request["api"],
+        "steps": request["steps"], "compile_reply": request["reply"],
+        "late_slots": _late_slots(record, span, period_ns),
     }
+
+
+def _late_slots(record: ScanRecord, span: Any, period_ns: int) -> list[dict[str, float]]:
+    """The scans of the change's window that missed slots or started over half a period
+    late, with their lateness and execution time, in ms from the window's start."""
+    at, late, ex, missed = (record.at_ns[span], record.late_ns[span], record.exec_ns[span],
+                            record.missed[span])
+    if not at.size:
+        return []
+    return [{"at_ms": round((int(at[k]) - int(at[0])) / 1e6, 1),
+             "late_ms": round(int(late[k]) / 1e6, 2), "exec_ms": round(int(ex[k]) / 1e6, 2),
+             "missed": int(missed[k])}
+            for k in range(at.size) if missed[k] or late[k] > period_ns // 2][:40]
 
 
 def split_cost_ms(old_transitions: int, new_transitions: int) -> dict[str, float]:

@@ -30,6 +30,7 @@ import pickle
 import resource
 import signal
 import threading
+import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from typing import Any
@@ -252,6 +253,7 @@ class CompileProcess:
         self.budgets = (memory_bytes, cpu_s)  # the compile process's, per process/download
         self.started = 0  # processes started, for status and tests
         self.last_failure = ""  # why the last one ended while compiling (status)
+        self.last_reply: dict[str, float] = {}  # its size, time to receive and to unpickle
         self._proc: Any = None
         self._conn: Connection | None = None
         self._lock = threading.Lock()
@@ -279,7 +281,8 @@ class CompileProcess:
 
     def info(self) -> dict[str, Any]:
         """For status: the process now, how many were started, the last failure."""
-        return {"pid": self.pid, "started": self.started, "last_failure": self.last_failure}
+        return {"pid": self.pid, "started": self.started, "last_failure": self.last_failure,
+                "last_reply": self.last_reply}
 
     def build(self, req: CommandRequest) -> Built:
         """Compile and analyse `req` in the compile process. Raises what the compile raised
@@ -302,7 +305,13 @@ class CompileProcess:
                 self.last_failure = (f"the compile process took longer than "
                                      f"{self.timeout_s:g} s; it was stopped")
                 raise CompilerFailed(self.last_failure)
-            kind, value = pickle.loads(conn.recv_bytes())
+            waited = time.monotonic_ns()
+            reply = conn.recv_bytes()
+            received = time.monotonic_ns()
+            kind, value = pickle.loads(reply)  # the interpreter lock held throughout
+            self.last_reply = {"bytes": len(reply), "receive_ms": (received - waited) / 1e6,
+                               "unpickle_ms": (time.monotonic_ns() - received) / 1e6}
+            del reply
         except (EOFError, OSError, ValueError):
             raise CompilerFailed(self._died()) from None
         if kind == "ended":  # its last reply (out of memory): the next download gets a new one

@@ -9,9 +9,8 @@ sent after a download waits until the download is decided, except stop and kill,
 never held: the downloads still being prepared ahead of one are withdrawn); the burial of a
 replaced net, a step at a time.
 What blocks runs on one helper thread, and only that: the exchange with the compile process
-(send, wait, receive: runtime/compileproc.py) and the opening of a new io image's devices and
-the staging of the boot program (runtime/prepare.py). It holds the interpreter lock only to
-move bytes and unpickle a reply whose big fields are bytes (program/wire.py).
+(runtime/compileproc.py) and the opening of a new io image's devices and the staging of the
+boot program (runtime/prepare.py). The steps' costs: runtime/steplog.py.
 Does not know: the PLC, the lifecycle, the channel, what compiling means (runtime/prepare.py).
 """
 
@@ -43,6 +42,7 @@ from softplc.runtime.prepare import (
     describe_error,
 )
 from softplc.runtime.realtime import background_thread
+from softplc.runtime.steplog import StepLog
 
 
 class Stage(Enum):
@@ -245,6 +245,7 @@ class Downloads:
         self._queue: deque[CommandRequest | DownloadJob] = deque()
         self._burials: deque[Steps[None]] = deque()
         self._executor: ThreadPoolExecutor | None = None
+        self.log = StepLog()  # status: download_steps
 
     def put(self, requests: Iterable[CommandRequest]) -> None:
         for request in requests:
@@ -271,22 +272,23 @@ class Downloads:
             isinstance(item, DownloadJob) and not item.decided for item in self._queue)
 
     def work(self, until_ns: int | None, now_ns: Callable[[], int]) -> None:
-        """Steps of every job, in arrival order, then of the burials, while a step can still
-        end before `until_ns` (None: until each waits or is done)."""
+        """Steps of every job in arrival order, then of the burials, while one can still end
+        before `until_ns` (None: until each waits or is done), each noted in `log`."""
         limit = None if until_ns is None else until_ns - STEP_NS
         for item in list(self._queue):
-            if not isinstance(item, DownloadJob):
-                continue
-            while not item.decided:
-                if limit is not None and now_ns() >= limit:
+            while isinstance(item, DownloadJob) and not item.decided:
+                if limit is not None and (began := now_ns()) >= limit:
                     return
-                if not item.step():
+                stage, stepped = item.stage.value, item.step()
+                if limit is not None:  # what it cost, against the scan's time (steplog.py)
+                    self.log.note(stage, began, now_ns(), until_ns)
+                if not stepped:
                     break
-        while self._burials and (limit is None or now_ns() < limit):
-            try:
-                next(self._burials[0])
-            except StopIteration:
+        while self._burials and (limit is None or (began := now_ns()) < limit):
+            if next(self._burials[0], self) is self:  # that burial is done
                 self._burials.popleft()
+            if limit is not None:
+                self.log.note("burying", began, now_ns(), until_ns)
 
     def take(self, turn: Turn = lambda _: None) -> list[Decided]:
         """The requests at the head of the queue that are decided, in arrival order; stops
@@ -336,11 +338,9 @@ class Downloads:
 
     def discard(self, box: list[Any]) -> None:
         """Let go of what `box` holds (a replaced net and its engine) a container at a time,
-        between scans (program/teardown.py): freed at once, a 10,000-transition net and
-        engine took 7.4 ms in one decref cascade. The box is emptied; the caller must hold no
-        other reference."""
-        held = box[:]
-        box.clear()
+        between scans (program/teardown.py; freed at once, a 10,000-transition net and engine
+        took 7.4 ms in one decref cascade). Emptied; the caller must hold no other reference."""
+        held, box[:] = box[:], []
         burial = burying(held)
         if self._threaded:
             self._burials.append(burial)
@@ -395,6 +395,6 @@ def refusal_of(error: BaseException,
     return kind, f"{DOWNLOAD_REFUSED}: {why}", (why,)
 
 
-# The longest a step takes (a piece of a net loaded: ~150 µs, a table block: ~200 µs, on a
-# loaded machine twice that): no step starts later than this before the loop's limit.
+# The longest a step takes (a net's piece loaded ~150 µs, a table block ~200 µs, loaded twice
+# that; steplog.py measures them): no step starts later than this before the loop's limit.
 STEP_NS = 300_000

@@ -26,6 +26,7 @@ from softplc.runtime.bootkeeper import BootKeeper
 from softplc.runtime.clock import Clock
 from softplc.runtime.compileproc import CompileProcess
 from softplc.runtime.config import LoopConfig
+from softplc.runtime.download import Downloads
 from softplc.runtime.retain import RetainWriter
 from softplc.runtime.runner import ScanRunner
 from softplc.runtime.stats import TimingStats, TimingSummary
@@ -69,6 +70,8 @@ class LoopView(Protocol):
     @property
     def compiler(self) -> CompileProcess | None: ...
     @property
+    def downloads(self) -> Downloads: ...
+    @property
     def events(self) -> Sequence[dict[str, Any]]: ...
 
 
@@ -110,6 +113,7 @@ def document(loop: LoopView) -> dict[str, Any]:
         "boot_problem": loop.boot.problem,
         "retain": loop.retain.info() if loop.retain else None,
         "compile_process": loop.compiler.info() if loop.compiler else None,
+        "download_steps": loop.downloads.log.as_dict(),  # between scans (runtime/steplog.py)
         "health": {name: h.value for name, h in loop.runner.health().items()},
         "diagnostics": list(plc.engine.diagnostics[-20:]) if plc.engine else [],
         "diagnostic_count": plc.engine.diagnostic_count if plc.engine else 0,
