@@ -58,10 +58,14 @@ class Subscriber:
         self.hold_seen: dict[str, list[tuple[float, bool]]] = {}
         self.metrics = 0
         self.client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="bench-host")
+        self.subscribed = threading.Event()
         self.client.on_connect = lambda c, u, f, r, p: c.subscribe("spBv1.0/bench/#")
+        self.client.on_subscribe = lambda c, u, m, r, p: self.subscribed.set()
         self.client.on_message = self._message
         self.client.connect("127.0.0.1", port)
         self.client.loop_start()
+        if not self.subscribed.wait(30.0):
+            raise RuntimeError("the bench's subscriber could not subscribe")
 
     def _message(self, client: Any, userdata: Any, message: mqtt.MQTTMessage) -> None:
         now = time.monotonic()
@@ -289,13 +293,16 @@ def _broker_gone(sub: Subscriber, brokers: list[subprocess.Popen[bytes]], port: 
     time.sleep(0.5)
     fresh = Subscriber(port)  # a host that came back after the nodes' births: asks them
     try:
-        time.sleep(1.0)
-        for node in births:
-            if node not in fresh.births:
+        deadline = time.monotonic() + 60.0
+        while len(fresh.births) < len(births):  # as a host does: Rebirth for the missing
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"nodes {sorted(set(births) - set(fresh.births))} not "
+                                   "born again within 60 s")
+            for node in set(births) - set(fresh.births):
                 fresh.client.publish(f"spBv1.0/bench/NCMD/{node}", codec.encode(
                     codec.Payload(int(time.time() * 1000), (codec.Metric(
                         "Node Control/Rebirth", codec.BOOLEAN, True),))))
-        _wait(lambda: len(fresh.births) == len(births), 60.0, "every node born again")
+            time.sleep(3.0)
     finally:
         fresh.close()
     progress(f"sparkplug: broker away {gone_s:g} s")

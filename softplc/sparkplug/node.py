@@ -121,12 +121,15 @@ class EdgeNode:
             return
         if self.client is None or not (self.connected and self.subscribed and self.host_online):
             return
+        due = time.monotonic() - self.last_data_s >= self.config.interval_s
+        if self.born and not self.rebirth and not due:
+            return
         board, image = self._read()
         changed_program = self.report is not None and \
             self.report.document.get("program_hash") != board.get("program_hash")
         if not self.born or self.rebirth or changed_program:
             self._birth(board, image)
-        elif time.monotonic() - self.last_data_s >= self.config.interval_s:
+        else:
             self._data(board, image)
 
     def close(self) -> None:

@@ -15,7 +15,8 @@ import contextlib
 import logging
 import os
 import signal
-from typing import Final
+import time
+from typing import Any, Final
 
 from softplc.core.snapshot import SnapshotUnavailable
 from softplc.runtime.board import StatusBoard
@@ -38,8 +39,39 @@ from softplc.sparkplug.node import EdgeNode, Reading
 log = logging.getLogger("softplc.sparkplug")
 
 STEP_S: Final = 0.02  # how long one step waits for the socket
+# The status board (symbols, fault reason: a JSON document) is read again at most this often,
+# or at once when the snapshot names another program; state and scan count come from the
+# snapshot of every read (the board is a JSON document of every symbol: BENCHMARKS.md,
+# Sparkplug, for what this saved).
+BOARD_S: Final = 0.5
 NICE: Final = 10
 NAME: Final = "softplc-sparkplug"
+
+
+class Reader:
+    """The status board (cached for BOARD_S) and the latest snapshot, for the node."""
+
+    def __init__(self, board: StatusBoard, source: FreshSource) -> None:
+        self._board, self._source = board, source
+        self._document: dict[str, Any] = {}
+        self._read_s = float("-inf")
+
+    def read(self) -> Reading:
+        snapshot = None
+        with contextlib.suppress(SnapshotUnavailable):
+            snapshot = self._source.latest()
+        now_s = time.monotonic()
+        hash_now = snapshot.status.program_hash if snapshot is not None else None
+        if now_s - self._read_s >= BOARD_S or (
+                hash_now is not None and hash_now != (self._document.get("program_hash") or "")):
+            with contextlib.suppress(TimeoutError):
+                self._document = self._board.read()
+                self._read_s = now_s
+        if snapshot is None:
+            return self._document, None
+        status = snapshot.status
+        return {**self._document, "state": status.state.name,
+                "scan_count": status.scan_count}, snapshot.image
 
 
 def process_main(config: SparkplugConfig, channel: Channel, shm_name: str, board_name: str,
@@ -53,17 +85,7 @@ def process_main(config: SparkplugConfig, channel: Channel, shm_name: str, board
     board = StatusBoard.attach(board_name)
     door = Door(config, channel, source, AuditTrail(config.state_dir))
 
-    def read() -> Reading:
-        try:
-            document = board.read()
-        except TimeoutError:
-            document = {}
-        image = None
-        with contextlib.suppress(SnapshotUnavailable):
-            image = source.latest().image
-        return document, image
-
-    node = EdgeNode(config, read, door.submit)
+    node = EdgeNode(config, Reader(board, source).read, door.submit)
     os.nice(NICE)
     ready.set()  # serving from now on: the broker may be away, the node keeps trying
     parent = supervisor_pid()
