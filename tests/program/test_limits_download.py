@@ -271,3 +271,50 @@ def test_a_bundle_manifest_of_4095_bytes_is_taken_and_4096_refused() -> None:
         else:
             with pytest.raises(bundles.BundleError, match=r"is larger than 4095 bytes$"):
                 bundles.unpack(blob)
+
+
+def test_a_bundle_member_that_cannot_be_read_or_appears_twice_is_refused() -> None:
+    manifest = json.dumps({"format": 1, "program": "main.yaml"}).encode()
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_STORED) as archive:
+        archive.writestr(bundles.MANIFEST, manifest)
+        archive.writestr("main.yaml", b"program: hello world\n")
+    damaged = out.getvalue().replace(b"hello world", b"hellO world")  # its CRC fails
+    with pytest.raises(bundles.BundleError,
+                       match=r"^bundle: 'main.yaml' cannot be read \(Bad CRC-32"):
+        bundles.unpack(damaged)
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as archive, pytest.warns(UserWarning, match="Duplicate"):
+        archive.writestr(bundles.MANIFEST, manifest)
+        archive.writestr("main.yaml", b"x")
+        archive.writestr("main.yaml", b"y")
+    with pytest.raises(bundles.BundleError, match=r"^bundle: 'main.yaml' appears twice$"):
+        bundles.unpack(out.getvalue())
+
+
+def test_a_bundle_unpacks_and_writes_out_files_in_folders(tmp_path: Path) -> None:
+    bundle = bundles.Bundle("main.yaml", {"main.yaml": b"m", "io/deep/p.yaml": b"p"})
+    program = bundles.extract(bundle, tmp_path / "unpacked")
+    assert program == tmp_path / "unpacked" / "main.yaml"
+    assert (tmp_path / "unpacked" / "io" / "deep" / "p.yaml").read_bytes() == b"p"
+    written = bundles.write_out(bundle, tmp_path / "out")
+    assert written == [tmp_path / "out" / "io" / "deep" / "p.yaml", tmp_path / "out" / "main.yaml"]
+    assert written[0].read_bytes() == b"p"
+
+
+def test_a_local_bundle_of_64_files_is_taken_and_65_refused(tmp_path: Path) -> None:
+    for subnets, taken in ((62, True), (63, False)):  # with main.yaml and io.yaml: 64, 65
+        directory = tmp_path / str(subnets)
+        directory.mkdir()
+        (directory / "io.yaml").write_text(IO)
+        (directory / "main.yaml").write_text("program: m\nio_image: io.yaml\nsubnets:\n" + "".join(
+            f"  s{n}: {{net: nets/s{n}.yaml}}\n" for n in range(subnets)))
+        (directory / "nets").mkdir()
+        for n in range(subnets):
+            (directory / "nets" / f"s{n}.yaml").write_text("places: {}\n")
+        if taken:
+            assert len(bundles.from_files(directory / "main.yaml").files) == 64
+        else:
+            with pytest.raises(bundles.BundleError,
+                               match=r"^bundle: 65 files, at most 64 expected$"):
+                bundles.from_files(directory / "main.yaml")
