@@ -6,6 +6,8 @@ operator with --sparkplug-commands (stop applied, reset denied: it needs enginee
 from __future__ import annotations
 
 import json
+import os
+import signal
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -41,6 +43,28 @@ def _trail(state: Path) -> list[dict[str, Any]]:
     path = state / "audit.jsonl"
     return [json.loads(x) for x in path.read_text().splitlines() if '"sparkplug"' in x] \
         if path.exists() else []
+
+
+def _sparkplug_pid(supervisor: int) -> int:
+    """The supervisor's child named softplc-sparkplug (procs.name_process: 15 bytes)."""
+    found = [int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit()
+             and _parent(p) == supervisor and _comm(p) == "softplc-sparkpl"]
+    assert len(found) == 1, found
+    return found[0]
+
+
+def _parent(proc: Path) -> int:
+    try:
+        return int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return -1
+
+
+def _comm(proc: Path) -> str:
+    try:
+        return (proc / "comm").read_text().strip()
+    except OSError:
+        return ""
 
 
 def _cmd(tahu: Tahu, name: str, type_name: str, value: object) -> bytes:
@@ -96,5 +120,15 @@ def test_operator_with_commands_stops_but_may_not_reset(
                       "engineer")
         assert wait_until(lambda: [(r["action"], r["outcome"]) for r in _trail(state)] == [
             ("stop", "applied"), ("reset", "denied")])
+        # the Sparkplug process alone killed: the broker's Will, the supervisor restarts it
+        # (a new CONNECT: the next bdSeq), the PLC went on
+        pid = _sparkplug_pid(plc.pid)
+        mark = h.count()
+        os.kill(pid, signal.SIGKILL)
+        _, death = h.wait("NDEATH", mark)
+        assert int(tahu.decode([death.payload])[0]["payload"]["metrics"][0]["value"]) == 0
+        _, reborn = h.wait("NBIRTH", mark)
+        assert int(metrics_of(tahu.decode([reborn.payload])[0])["bdSeq"]["value"]) == 1
+        assert _sparkplug_pid(plc.pid) != pid and plc.poll() is None
     finally:
         stop_plc(plc)
