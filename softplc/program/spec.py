@@ -222,6 +222,7 @@ class _Parser:
             w = self.where(data, "when", f"{where.path}.when")
             if isinstance(text, str) and text.strip().lower() in ("on", "off", "yes", "no"):
                 self.problem(w.line, w.path, f"guard {text!r}{trap_hint(text)}")
+                text = "false"  # reported: not also as an unknown name (one problem a mistake)
             self.count("expression_chars", len(str(text)), w)  # before it is parsed
             when = (self.expr(str(text).lower() if isinstance(text, bool) else str(text), w), w)
         actions = []
