@@ -221,3 +221,57 @@ def test_through_the_scan_a_limit_faults_the_plc_with_safe_outputs_and_it_stays_
     assert bench.get("r") == 0  # safe value of r (not driven by the faulted net)
     bench.scan(30 * 10_000_000)  # the PLC is alive and stays FAULTED
     assert bench.plc.state is PlcState.FAULTED
+
+
+# -- the limits at their edges (issue 43): exactly at the limit runs, one over faults ----------
+
+def test_a_place_holding_exactly_place_tokens_runs_and_one_round_more_faults(
+        tmp_path: Path) -> None:
+    net = compile_program(tmp_path, """
+limits: {place_tokens: 100}
+places:
+  src: {tokens: 1}
+  pile: {}
+transitions:
+  gen: {from: [src], to: [src, {pile: 25}]}
+""")
+    engine = Engine(net)
+    n, fault = rounds_until_fault(engine, 10)
+    assert (n, fault.code) == (5, FaultCode.LIMIT)  # 100 tokens after round 4 are allowed
+    assert fault.reason == "place pile: 125 tokens exceed the limit 100 (limits.place_tokens)"
+
+
+PAIRS = """
+limits: {{bindings_per_scan: {limit}}}
+places:
+  xs: {{tokens: [{records}]}}
+  ys: {{tokens: [{records}]}}
+  out: {{coloured: true}}
+transitions:
+  pair: {{from: [{{place: xs, var: x}}, {{place: ys, var: y}}], to: [out],
+          when: "x.id == 2 and y.id == 9"}}
+"""
+
+
+def test_a_binding_found_at_exactly_bindings_per_scan_tries_fires(tmp_path: Path) -> None:
+    records = ", ".join(f"{{id: {i}}}" for i in range(10))
+    # x = 2, y = 9 is the 30th pair tried (x0 y0, x0 y1, ..., x2 y9), searched twice in the
+    # round (is it enabled, then which binding fires): 60 tries
+    fired = compile_program(tmp_path, PAIRS.format(limit=60, records=records), name="at")
+    assert Engine(fired).fire_round(Ctx(), 0).fired == (0,)
+    over = compile_program(tmp_path, PAIRS.format(limit=59, records=records), name="over")
+    with pytest.raises(PlcFault, match="binding search exceeds the limit of 59 tries"):
+        Engine(over).fire_round(Ctx(), 0)
+
+
+def test_the_binding_budget_is_per_round_not_added_up_across_rounds(tmp_path: Path) -> None:
+    net = compile_program(tmp_path, """
+limits: {bindings_per_scan: 2}
+places:
+  loop: {tokens: [{n: 1}]}
+transitions:
+  turn: {from: [{place: loop, var: x}], to: [{place: loop, token: x}]}
+""")
+    engine = Engine(net)
+    for n in range(5):  # two tries a round (enabled? which?), five rounds: 10 in all
+        assert engine.fire_round(Ctx(), n * 1_000_000).fired == (0,)
