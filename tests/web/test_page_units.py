@@ -76,6 +76,13 @@ def test_tank_page_shows_units_and_takes_engineering_ranges(browser: Any, tmp_pa
         until(lambda: past("level") == "47.002 %", 15, "the recent past shows the level",
               show=lambda: past("level"))
         assert re.fullmatch(r"-?\d+\.\d °C", past("temperature")), past("temperature")
+        browser.find_element("id", "tl-name").send_keys("temperature")
+        browser.find_element("id", "tl-plot").click()
+        legend = until(lambda: js(browser, "const p = softplc.timeline.plot;"
+                                           "const s = p && p.series[1];"
+                                           "return s && s._raw && s.value(p, null, 1, "
+                                           "s._raw.length - 1)"), 10, "the plot's legend")
+        assert re.fullmatch(r"-?\d+\.\d °C", legend), legend  # the plot's legend too
 
         # The process image table fits its card at 1400 px: no horizontal scroll bar.
         fit = js(browser, "const card = document.querySelector('.image-card');"

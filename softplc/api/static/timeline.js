@@ -191,7 +191,7 @@
     const series = [{}, ...ls.map((l, i) => ({
       label: l.name, stroke: COLOURS[i % COLOURS.length], width: 1.5, paths: stepped,
       points: { show: false }, spanGaps: false,
-      value: (u, v, si, di) => (di == null || !u.series[si]._raw ? "" : String(u.series[si]._raw[di])),
+      value: (u, v, si, di) => (di == null || !u.series[si]._raw ? "" : shownValue(u.series[si]._raw[di], l.name)),
     }))];
     const lanesAt = ls.map((l) => l.base + 0.5);
     return new uPlot({
