@@ -228,6 +228,7 @@ _SCHEMAS: Final[dict[str, Any]] = {
             "type": {"type": "string", "enum": ["bool", "word"]},
             "direction": {"type": "string", "enum": ["in", "out", "memory"]},
             "value": {"type": ["boolean", "integer"]},
+            "raw": {"type": ["integer", "null"]},
         },
     },
     "Symbols": {

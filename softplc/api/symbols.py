@@ -1,9 +1,9 @@
 """The symbol routes: `GET /api/v1/symbols`, `GET` and `PUT /api/v1/symbols/{name}`.
 
 Owns: a symbol's view (name, address, type, direction, value: from the latest snapshot, or
-the board's value when no snapshot can be read, typed by core/present.py), and checking a
-write against the symbol's direction, `hmi_writable` and type before it is queued for the next
-scan (`write_raw`, which forces use too).
+the board's value when no snapshot can be read, typed by core/present.py; `raw`, the bits
+unconverted), and checking a write against the symbol's direction, `hmi_writable` and type
+before it is queued for the next scan (`write_raw`, which forces use too).
 Does not know: the image's layout (core/image.py parses addresses), the channel's pipes.
 """
 
@@ -35,7 +35,8 @@ def view(name: str, entry: Mapping[str, Any], image: Any) -> dict[str, Any]:
     """A symbol's answer: the board's entry, its value read from `image` when there is one,
     as its type reads (core/present.py): a negative int, a real as a decimal number."""
     answer = {"name": name, "address": entry.get("address"), "type": entry.get("type"),
-              "direction": entry.get("direction"), "value": value_of_entry(entry, image)}
+              "direction": entry.get("direction"), "value": value_of_entry(entry, image),
+              "raw": raw_of_entry(entry, image)}
     if "scale" in entry:  # the value is in engineering units (docs/programs.md, scaling)
         answer["unit"], answer["scale"] = entry.get("unit", ""), entry["scale"]
     return answer
@@ -50,6 +51,16 @@ def value_of_entry(entry: Mapping[str, Any], image: Any) -> Shown:
                          entry.get("scale"))
     value: Shown = entry.get("value", 0)
     return bool(value) if entry.get("type") == "bool" else value
+
+
+def raw_of_entry(entry: Mapping[str, Any], image: Any) -> int | None:
+    """The bits the symbol's location holds (a real's pattern, a scaled symbol's raw count as
+    the image stores it): from `image` when it can be read there, else the board's."""
+    if image is not None:
+        with contextlib.suppress(AddressError, TypeError, KeyError, IndexError):
+            return int(image.get(parse_address(str(entry["address"]))))
+    raw = entry.get("raw")
+    return raw if type(raw) is int else None
 
 
 def write_raw(name: str, entry: Mapping[str, Any] | None, body: Any) -> int:

@@ -16,8 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from softplc.core import present
-from softplc.core.datatypes import INFO, value_of
-from softplc.core.present import ValueRefused
+from softplc.core.datatypes import INFO, SymType, value_of
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,7 +45,8 @@ def symbol_vars(symbols: Mapping[str, Mapping[str, Any]],
 def symbol_var(name: str, entry: Mapping[str, Any], forced: bool = False) -> Var:
     """A symbol as live `why` and the VCD show it (core/present.py): a real as a real, a
     scaled symbol in engineering units at its scale's resolution with its unit; the stored
-    bits (a real's pattern, a scaled symbol's raw count) in its child `raw`."""
+    bits the API reads at its location (a real's pattern, a scaled symbol's raw count, not
+    converted back from the value: a clamped scale's out-of-range count shows) in `raw`."""
     kind, scale = entry.get("type"), entry.get("scale")
     value = entry.get("value")
     text = present.text(kind, value, scale) if isinstance(value, bool | int | float) \
@@ -56,24 +56,16 @@ def symbol_var(name: str, entry: Mapping[str, Any], forced: bool = False) -> Var
     where = " ".join(str(entry[k]) for k in ("type", "direction", "address") if entry.get(k))
     if entry.get("unit"):
         where += f" scaled, {entry['unit']}"
-    raw = _raw(name, entry)
+    raw = _raw(entry)
     return Var(name, text, where, (raw,) if raw is not None else ())
 
 
-def _raw(name: str, entry: Mapping[str, Any]) -> Var | None:
-    """The bits the API's typed value is stored as, by the presenter's own inverse (what a
-    write of that value stores); none for a value it refuses (NaN, an unknown type)."""
-    kind, value = entry.get("type"), entry.get("value")
-    if isinstance(value, bool) or kind == "bool":
-        return None  # a bit is its value
-    try:
-        bits = present.accepted(kind, value, name, entry.get("scale"))
-    except ValueRefused:
+def _raw(entry: Mapping[str, Any]) -> Var | None:
+    """What the symbol's location holds (the API's `raw`), unconverted; none for a bit."""
+    bits, t = entry.get("raw"), present.sym_type(entry.get("type"))
+    if type(bits) is not int or t is None or t is SymType.BOOL:
         return None
-    t = present.sym_type(kind)
-    if t is None:
-        return None
-    count = bits if INFO[t].is_float else value_of(t, bits)  # an int's count, signed
+    count = bits if INFO[t].is_float else value_of(t, bits)  # an integer's count, signed
     return Var("raw", f"{count} (0x{bits:0{INFO[t].bits // 4}X})",
                f"{'raw count' if 'scale' in entry else 'stored bits'} of {entry.get('address')}")
 

@@ -123,7 +123,7 @@ def test_symbols_read(api: ServerThread) -> None:
     assert download(api).status == 200
     symbols = eventually(lambda: _symbols(api))
     assert symbols["m1"] == {"name": "m1", "address": "%QX0.0", "type": "bool",
-                             "direction": "out", "value": False}
+                             "direction": "out", "value": False, "raw": 0}
     assert symbols["parts_delivered"]["value"] == 0
     one = get(api, "/symbols/hold")
     assert one.status == 200 and one.body["address"] == "%MX0.0"

@@ -70,7 +70,8 @@ def test_reads_show_typed_values(api: ServerThread, client: ApiClient) -> None:
     symbols = client.symbols()
     assert {name: symbols[name]["value"] for name in WRITTEN} == WRITTEN
     assert symbols["temp"] == {"name": "temp", "address": "%MD0", "type": "real",
-                               "direction": "memory", "value": 12.5}
+                               "direction": "memory", "value": 12.5,
+                               "raw": 0x41480000}  # 12.5's bits
     assert client.read_symbol("small") == -3 and client.read_symbol("count") == -70000
     assert client.read_symbol("out_t") == 0.1  # the stored single, as its shortest decimal
 

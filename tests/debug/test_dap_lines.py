@@ -58,14 +58,15 @@ def test_scopes_as_trees() -> None:
     assert marking[2].children[0].children[0].value == "3"
     scale = {"raw": [0, 100], "eng": [0.0, 1000.0], "unit": "degC"}
     symbols = symbol_vars({"t": {"value": 12.5, "type": "real", "direction": "memory",
-                                 "unit": "degC", "scale": scale},
-                           "x": {"value": True, "type": "bool"},
-                           "n": {"value": "NaN", "type": "real"}}, {"x": 1})
+                                 "unit": "degC", "scale": scale, "raw": 0x3FA00000},
+                           "x": {"value": True, "type": "bool", "raw": 1},
+                           "n": {"value": "NaN", "type": "real", "raw": 0x7FC00000}}, {"x": 1})
     assert [(v.name, v.value, v.type) for v in symbols] == [
         ("n", "NaN", "real"), ("t", "12.5 degC", "real memory scaled, degC"),
         ("x", "1 (forced)", "bool")]
-    assert [(c.name, c.value) for v in symbols for c in v.children] == [
-        ("raw", "1067450368 (0x3FA00000)")]  # 1.25 as a real's bits; none for NaN, a bit
+    assert [(v.name, c.name, c.value) for v in symbols for c in v.children] == [
+        ("n", "raw", "2143289344 (0x7FC00000)"),  # which NaN it is
+        ("t", "raw", "1067450368 (0x3FA00000)")]  # 1.25 as a real's bits; none for a bit
     why = why_vars({"verdict": "blocked", "reasons": [{"kind": "tokens", "text": "p: 0 of 1"}],
                     "feeders": [{"transition": "f", "verdict": "blocked",
                                  "reasons": [{"kind": "guard", "text": "guard x is false"}]}]})
