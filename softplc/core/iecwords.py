@@ -80,13 +80,14 @@ def rewrite(text: str) -> tuple[str, frozenset[str]]:
 
 def unrewrite(text: str) -> str:
     """ast.unparse's text of a rewritten tree back in IEC words, so that compiling it again
-    (a subnet's expression after parameter substitution) gives the same meaning."""
+    (a subnet's expression after parameter substitution, a part of a guard core/whyguard.py
+    shows) gives the same meaning. A compiled expression has `~` and `@` only as NOT and MOD."""
     tokens = _tokens(text)
     if tokens is None:
         return text
     starts = _offsets(text)
     edits = [(starts[t.start[0] - 1] + t.start[1], starts[t.end[0] - 1] + t.end[1],
-              {"~": " NOT ", "@": " MOD "}[t.string])
+              {"~": "NOT ", "@": "MOD"}[t.string])  # unparse spaces binary operators
              for t in tokens if t.type == tokenize.OP and t.string in ("~", "@")]
     for start, end, new in reversed(edits):
         text = text[:start] + new + text[end:]

@@ -16,6 +16,7 @@ from collections.abc import Mapping
 
 from softplc.core.engine.bindings import Bound
 from softplc.core.expr import Compiled, EvalContext, ExprError, NameKind, compile_expr, parse
+from softplc.core.iecwords import unrewrite
 from softplc.core.net import CompiledNet, NetState, Token, Transition
 from softplc.core.nonfinite import door
 from softplc.core.present import text as value_text
@@ -80,7 +81,7 @@ def _false_parts(guard: Compiled, ctx: EvalContext,
         return whole
     false = []
     for node in tree.values:
-        text = ast.unparse(node)
+        text = unrewrite(ast.unparse(node))  # NOT and MOD as written (core/iecwords.py)
         try:
             part = compile_expr(text, guard.scope)
             if not _eval(part, ctx, env):

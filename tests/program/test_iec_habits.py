@@ -99,3 +99,20 @@ def test_symbols_file_problems_name_it_as_the_program_is_named(tmp_path: Path) -
     with pytest.raises(ProgramError) as err:
         compile_file("sub/p.yaml")
     assert [p.file for p in err.value.problems] == ["sub/io.yaml"]  # before: absolute
+
+
+def test_why_names_the_false_part_of_an_iec_guard_as_written(tmp_path: Path) -> None:
+    from softplc.core.net import NetState
+    from softplc.core.why import explain
+    from tests.debug.nets import compile_net, context
+
+    net = compile_net(tmp_path, """
+places: {p: {tokens: 1}}
+transitions:
+  go: {from: [p], when: "NOT a AND level MOD 4 = 3"}
+""")
+    why = explain(net, NetState.initial(net), context(net, a=1, level=2), 0, "go")
+    # before: "~a" and "level @ 4 == 3" did not compile again, and were left out
+    assert [r.text for r in why.reasons] == [
+        "guard NOT a AND level MOD 4 = 3: NOT a is false with a = 1",
+        "guard NOT a AND level MOD 4 = 3: level MOD 4 == 3 is false with level = 2"]
