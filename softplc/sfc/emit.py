@@ -83,7 +83,8 @@ def _program(chart: Chart, io_name: str, out: _Text, problems: list[Problem]) ->
         if a.qualifier == "N" and a.statements:
             runs = Transition(f"{a.step}_runs_{a.name}", a.line, (a.step,), (a.step,),
                               f"action {a.name} (N) runs every scan while {a.step} is active")
-            _transition(chart, runs, -1, out, list(a.statements))
+            _transition(chart, runs, -1, out,
+                        [(f"{v} = {e}", str(a.line)) for v, e in a.statements])
 
 
 def _transition(chart: Chart, t: Transition, priority: int, out: _Text,
@@ -146,7 +147,7 @@ def _check_actions(chart: Chart, problems: list[Problem]) -> None:
             problems.append(Problem(chart.file, a.line, "", f"action {a.name} ({a.qualifier}) "
                             f"on the initial step {a.step}: it would run when the chart starts, "
                             "which no transition does; move it or use N"))
-        if a.qualifier == "N" and a.target in stored:
+        if a.qualifier == "N" and a.target and a.target in stored:
             problems.append(Problem(chart.file, a.line, "", f"{a.target} is both an N action "
                             "(on while the step is) and stored/pulsed elsewhere (S, R, P): "
                             "softplc drives it one way only"))

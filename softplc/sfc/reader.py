@@ -27,7 +27,7 @@ from softplc.sfc.xmlnodes import Node as XNode
 from softplc.sfc.xmlnodes import parse_xml
 
 BOOL_QUALIFIERS = {"N", "S", "R", "P", "P1", "P0"}
-CODE_QUALIFIERS = {"P1", "P0"}
+CODE_QUALIFIERS = {"N", "P1", "P0"}
 TIMED = {"L", "D", "SD", "DS", "SL", "DL"}
 
 
@@ -173,11 +173,12 @@ class _Reader:
         qual = (act.attrs.get("qualifier") or "N").upper()
         duration = act.attrs.get("duration", "")
         ref = act.child("reference")
-        name = ref.attrs.get("name", "") if ref is not None else f"{step}_inline"
+        name = ref.attrs.get("name", "") if ref is not None else f"{step}_inline{act.line}"
         if qual in TIMED:
             self.problem(act.line, f"action {name} of step {step}: qualifier {qual} "
                          f"{duration} needs an ACTION_CONTROL timer per action: not supported "
-                         "(supported: N, S, R, P, P1, P0 on BOOL variables; P1, P0 on ST)")
+                         "(supported: N, S, R, P, P1, P0 on BOOL variables; N, P1, P0 on ST "
+                         "bodies)")
             return
         var = self.chart.variables.get(name.upper()) if ref is not None else None
         if var is not None:
@@ -192,9 +193,9 @@ class _Reader:
             return
         if qual not in CODE_QUALIFIERS:
             why = "runs twice (the pulse and the final execution, IEC 2.6.4.5)" if qual == \
-                "P" else "runs every scan while active: softplc has no per-scan place code"
+                "P" else "is stored: it would run every scan until reset"
             self.problem(act.line, f"action {name} of step {step}: {qual} with an ST body "
-                         f"{why}; supported: P1/P0 bodies, or a BOOL variable as the action")
+                         f"{why}; supported: N, P1, P0 bodies, or a BOOL variable as the action")
             return
         try:
             stmts = [(v, self._assign(v, k, e)) for v, k, e, _ in

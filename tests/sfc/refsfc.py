@@ -1,0 +1,255 @@
+"""A reference SFC interpreter written from IEC 61131-3 (Ed.2 2.6, Ed.3 6.7), independent of
+softplc/sfc: it reads the PLCopen XML itself and runs the evolution rules directly, scan by
+scan, for comparison with the net the chart compiles to.
+
+Rules it implements (docs/sfc.md states the same choices for the net):
+- initial steps active at start; a transition is enabled when all its preceding steps are
+  active, clears when also its condition is true; clearable transitions clear together, a
+  selection divergence's branches walked left to right (XML priority, then position x, then
+  document order): a cleared transition deactivates its preceding steps at once, so a later
+  sibling finds them inactive;
+- conditions see the step activity and the variables at the start of the scan; Step.T is the
+  time since the first scan the step was active in;
+- after the clearing: N on a BOOL: true while a step holding it is active; S/R on entry (R
+  overrides); P/P1 on entry and P0 on exit pulse a BOOL for one scan; an N action with an ST
+  body runs in every scan its step is active and once more in the scan it is left (IEC's
+  final execution, Q falling); P1/P0 bodies run once on entry/exit.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from typing import Any
+
+import defusedxml.ElementTree as ET  # type: ignore[import-untyped]
+
+
+def _local(tag: str) -> str:
+    return tag.rpartition("}")[2]
+
+
+def _kids(node: Any, tag: str) -> list[Any]:
+    return [c for c in node if _local(c.tag) == tag]
+
+
+def _text(node: Any) -> str:
+    return "".join(node.itertext())
+
+
+@dataclass
+class RefTransition:
+    sources: list[str]
+    targets: list[str]
+    condition: str
+    key: tuple[int, float, int]
+
+
+@dataclass
+class RefChart:
+    steps: list[str]
+    initial: set[str]
+    transitions: list[RefTransition]
+    actions: list[tuple[str, str, str]]  # step, qualifier, name
+    bodies: dict[str, str]
+    types: dict[str, str] = field(default_factory=dict)
+
+
+def read(xml_text: str, pou_name: str | None = None) -> RefChart:
+    root = ET.fromstring(xml_text)
+    pous = [p for p in root.iter() if _local(p.tag) == "pou"
+            and any(_local(b.tag) == "SFC" for b in p.iter())]
+    pou = next(p for p in pous if pou_name is None or p.get("name") == pou_name)
+    sfc = next(b for b in pou.iter() if _local(b.tag) == "SFC")
+    objs = {o.get("localId"): o for o in sfc if o.get("localId")}
+    order = {lid: i for i, lid in enumerate(objs)}
+
+    def ins(o: Any) -> list[str]:
+        return [c.get("refLocalId") for pin in _kids(o, "connectionPointIn")
+                for c in _kids(pin, "connection")]
+
+    def back(lid: str) -> list[str]:
+        o = objs[lid]
+        if _local(o.tag) == "step":
+            return [o.get("name")]
+        return [s for p in ins(o) for s in back(p)]
+
+    def ahead(lid: str) -> list[str]:
+        out = []
+        for o_id, o in objs.items():
+            if lid in ins(o):
+                tag = _local(o.tag)
+                if tag == "step":
+                    out.append(o.get("name"))
+                elif tag == "jumpStep":
+                    out.append(o.get("targetName"))
+                elif tag.endswith(("Divergence", "Convergence")):
+                    out.extend(ahead(o_id))
+        return out
+
+    transitions = []
+    for lid, o in objs.items():
+        if _local(o.tag) != "transition":
+            continue
+        cond = _kids(o, "condition")[0]
+        text = _text(_kids(cond, "inline")[0])
+        pos = _kids(o, "position")
+        x = float(pos[0].get("x", 0)) if pos else 0.0
+        transitions.append(RefTransition(
+            [s for p in ins(o) for s in back(p)], ahead(lid), text,
+            (int(o.get("priority", 0)), x, order[lid])))
+    steps = [o.get("name") for o in objs.values() if _local(o.tag) == "step"]
+    initial = {o.get("name") for o in objs.values() if _local(o.tag) == "step"
+               and o.get("initialStep") == "true"}
+    actions = []
+    for o in objs.values():
+        if _local(o.tag) == "actionBlock":
+            step = objs[ins(o)[0]].get("name")
+            for a in _kids(o, "action"):
+                name = _kids(a, "reference")[0].get("name")
+                actions.append((step, a.get("qualifier", "N"), name))
+    bodies = {a.get("name"): _text(a) for a in pou.iter() if _local(a.tag) == "action"
+              and a.get("name")}
+    types = {v.get("name"): _local(next(iter(_kids(v, "type")[0])).tag)
+             for v in pou.iter() if _local(v.tag) == "variable"}
+    return RefChart(steps, initial, transitions, actions, bodies, types)
+
+
+# ---- a small ST evaluator (its own tokenizer and precedence climbing) ----
+
+_TOK = re.compile(r"\s*(T#[0-9a-zA-Z_.]+|\d+\.\d+|\d+|:=|<>|<=|>=|[A-Za-z_][A-Za-z0-9_]*"
+                  r"(?:\.[A-Za-z])?|[-+*/()<>=;,&])", re.IGNORECASE)
+_PREC = {"OR": 1, "XOR": 2, "AND": 3, "&": 3, "=": 4, "<>": 4, "<": 5, ">": 5, "<=": 5,
+         ">=": 5, "+": 6, "-": 6, "*": 7, "/": 7}
+
+
+def _ms(lit: str) -> int:
+    total = 0.0
+    for num, unit in re.findall(r"(\d+(?:\.\d+)?)(ms|h|m|s)", lit[2:].lower()):
+        total += float(num) * {"ms": 1, "s": 1000, "m": 60000, "h": 3600000}[unit]
+    return int(total)
+
+
+class Eval:
+    def __init__(self, text: str, env: dict[str, Any]) -> None:
+        self.toks = [t for t in _TOK.findall(text) if t]
+        self.i, self.env = 0, env
+
+    def peek(self) -> str:
+        return self.toks[self.i].upper() if self.i < len(self.toks) else ""
+
+    def expr(self, level: int = 1) -> Any:
+        left = self.unary()
+        while _PREC.get(self.peek(), 0) >= level:
+            op = self.peek()
+            self.i += 1
+            right = self.expr(_PREC[op] + 1)
+            left = _apply(op, left, right)
+        return left
+
+    def unary(self) -> Any:
+        tok = self.peek()
+        if tok == "NOT":
+            self.i += 1
+            return not self.unary()
+        if tok == "-":
+            self.i += 1
+            return -self.unary()
+        self.i += 1
+        if tok == "(":
+            value = self.expr()
+            self.i += 1
+            return value
+        if tok in ("TRUE", "FALSE"):
+            return tok == "TRUE"
+        if tok.startswith("T#"):
+            return _ms(tok)
+        if tok[0].isdigit():
+            return float(tok) if "." in tok else int(tok)
+        if self.peek() == "(":
+            self.i += 1
+            args = [self.expr()]
+            while self.peek() == ",":
+                self.i += 1
+                args.append(self.expr())
+            self.i += 1
+            return {"AND": all, "OR": any}[tok](args)
+        return self.env[self.toks[self.i - 1]]
+
+
+def _apply(op: str, a: Any, b: Any) -> Any:
+    if op in ("AND", "&"):
+        return bool(a) and bool(b)
+    if op == "OR":
+        return bool(a) or bool(b)
+    if op == "XOR":
+        return bool(a) != bool(b)
+    if op == "/":
+        return int(a / b) if isinstance(a, int) and isinstance(b, int) else a / b
+    return {"=": lambda: a == b, "<>": lambda: a != b, "<": lambda: a < b,
+            ">": lambda: a > b, "<=": lambda: a <= b, ">=": lambda: a >= b,
+            "+": lambda: a + b, "-": lambda: a - b, "*": lambda: a * b}[op]()
+
+
+def run_statements(text: str, env: dict[str, Any]) -> None:
+    for stmt in (s for s in text.split(";") if s.strip()):
+        target, _, expr = stmt.partition(":=")
+        env[target.strip()] = Eval(expr, env).expr()
+
+
+class RefSfc:
+    """The chart's state; `scan(now_ms, inputs)` runs one cycle."""
+
+    def __init__(self, chart: RefChart) -> None:
+        self.c = chart
+        self.active = set(chart.initial)
+        self.since: dict[str, int | None] = dict.fromkeys(chart.initial, None)
+        self.env: dict[str, Any] = {v: (False if t == "BOOL" else 0)
+                                    for v, t in chart.types.items()}
+        self.pulsed: set[str] = set()
+
+    def scan(self, now_ms: int, inputs: dict[str, Any]) -> None:
+        self.env.update(inputs)
+        for s in self.active:
+            if self.since[s] is None:
+                self.since[s] = now_ms  # the first scan the step is active in
+        env = dict(self.env)
+        for s in self.c.steps:
+            env[f"{s}.X"] = s in self.active
+            start = self.since.get(s)
+            env[f"{s}.T"] = now_ms - start if s in self.active and start is not None else 0
+        left, entered, free = set(), set(), set(self.active)
+        for t in sorted(self.c.transitions, key=lambda t: t.key):
+            if all(s in free for s in t.sources) and Eval(t.condition, env).expr():
+                free -= set(t.sources)
+                left |= set(t.sources)
+                entered |= set(t.targets)
+        before = set(self.active)
+        self.active = (self.active - left) | entered
+        for s in entered:
+            self.since[s] = None
+        self._actions(before, left - entered, entered - (before - left))
+
+    def _actions(self, before: set[str], gone: set[str], new: set[str]) -> None:
+        for var in self.pulsed:
+            self.env[var] = False
+        self.pulsed = set()
+        for step, qual, name in self.c.actions:
+            body = self.c.bodies.get(name)
+            runs = (qual == "N" and (step in self.active or step in gone)) or \
+                (qual == "P1" and step in new) or (qual == "P0" and step in gone)
+            if body is not None and runs:
+                run_statements(body, self.env)
+        for qual, value in (("S", True), ("R", False)):
+            for step, q, name in self.c.actions:
+                if q == qual and step in new:
+                    self.env[name] = value
+        for step, qual, name in self.c.actions:
+            if name not in self.c.bodies and ((qual in ("P", "P1") and step in new) or
+                                              (qual == "P0" and step in gone)):
+                self.env[name] = True
+                self.pulsed.add(name)
+        for _step, qual, name in self.c.actions:
+            if qual == "N" and name not in self.c.bodies:
+                self.env[name] = any(s in self.active for s, q, n in self.c.actions
+                                     if q == "N" and n == name)

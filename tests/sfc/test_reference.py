@@ -1,0 +1,46 @@
+"""The net a chart compiles to and a reference SFC interpreter written from the standard
+(refsfc.py, reading the XML itself) agree scan by scan: on every example chart and on
+generated charts, with hypothesis-generated inputs (counts scale with SOFTPLC_FUZZ_SCALE)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import strategies as st
+
+from tests.fuzz.budget import scaled
+from tests.sfc.chartxml import chart_xml
+from tests.sfc.compare import compare
+from tests.sfc.gencharts import charts, inputs
+
+EXAMPLES = Path(__file__).parent / "examples"
+RUNNABLE = sorted(p for p in EXAMPLES.glob("*.xml") if not p.name.startswith("refused_"))
+# No shrinking: a failure prints its chart (the assertion message) and stays fast.
+SETTINGS = settings(max_examples=scaled(15), deadline=None, derandomize=True,
+                    phases=[Phase.explicit, Phase.reuse, Phase.generate],
+                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+
+
+@pytest.mark.parametrize("path", RUNNABLE, ids=lambda p: p.name)
+@SETTINGS
+@given(data=st.data())
+def test_example_charts_agree_with_the_reference(path: Path, data: st.DataObject) -> None:
+    from tests.sfc.refsfc import read
+    names = [n for n, t in read(path.read_text(encoding="utf-8")).types.items()
+             if t == "BOOL"]
+    scans = data.draw(st.lists(st.fixed_dictionaries({n: st.booleans() for n in names
+                                                       if n.startswith(("i", "I"))}),
+                               min_size=30, max_size=30))
+    assert compare(path, scans) is None
+
+
+@SETTINGS
+@given(spec=charts(), scans=inputs(40))
+def test_generated_charts_agree_with_the_reference(tmp_path_factory: pytest.TempPathFactory,
+                                                   spec: object, scans: list[dict[str, bool]]
+                                                   ) -> None:
+    path = tmp_path_factory.mktemp("chart") / "chart.xml"
+    path.write_text(chart_xml(spec), encoding="utf-8")  # type: ignore[arg-type]
+    assert compare(path, scans) is None, spec
