@@ -22,6 +22,7 @@ from softplc.core.image import parse_address
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet, NetState
 from softplc.core.plc import ProgramCommand
+from softplc.core.problems import PlcFault
 from softplc.core.snapshot import HmiWrite
 from softplc.program.compiler import compile_text
 from tests.core.helpers import Bench, Ctx, compile_program, write_io
@@ -1187,3 +1188,78 @@ def test_the_first_100_diagnostics_are_kept_and_every_one_counted(tmp_path: Path
         assert engine.diagnostic_count == count
         assert engine.diagnostics[-1].startswith("scan 0: ") and " transition t99: " in \
             engine.diagnostics[-1]
+
+
+# -- edges the engine's fast tests did not sit on (issue 43) ----------------------------------
+
+@pytest.mark.parametrize("bound", ["capacity", "coloured"])
+def test_an_inhibitor_at_exactly_its_weight_blocks_a_capped_or_coloured_transition(
+        tmp_path: Path, bound: str) -> None:
+    src = "{tokens: [{n: 1}, {n: 2}]}" if bound == "coloured" else "{tokens: 2}"
+    arc = "{place: r, var: v}" if bound == "coloured" else "r"
+    net = compile_program(tmp_path, f"""
+places:
+  x: {{tokens: 1}}
+  r: {src}
+  y: {{capacity: 5}}
+transitions:
+  below_two: {{inhibit: {{x: 2}}, from: [{arc}], to: [y, x]}}
+""")
+    engine = Engine(net)
+    assert fired_names(net, engine.fire_round(Ctx(), 0)) == ["below_two"]  # x held 1
+    assert fired_names(net, engine.fire_round(Ctx(), 1)) == []  # x holds 2: blocked
+    assert engine.state.marking_by_name(net) == {"x": 2, "r": 1, "y": 1}
+
+
+def test_a_timed_source_fires_again_each_time_it_completes(tmp_path: Path) -> None:
+    net = compile_program(tmp_path, """
+places:
+  x: {}
+transitions:
+  make: {to: [x], duration: 10ns}
+""")
+    engine = Engine(net)
+    fired = [fired_names(net, engine.fire_round(Ctx(), now)) for now in range(0, 50, 5)]
+    # completes at 10, 25, 40; starts again the round after each
+    assert fired == [["make"], [], [], ["make"], [], [], ["make"], [], [], ["make"]]
+    assert engine.state.marking_by_name(net) == {"x": 3}
+
+
+@pytest.mark.parametrize("marked", [True, False])
+def test_an_output_pulsed_and_driven_by_a_place_follows_the_place_after_the_pulse(
+        tmp_path: Path, marked: bool) -> None:
+    net = compile_program(tmp_path, f"""
+places:
+  s: {{tokens: 1}}
+  on: {{outputs: [r]}}
+  off: {{}}
+transitions:
+  t: {{from: [s], to: [{'on' if marked else 'off'}], do: [pulse r]}}
+""")
+    bench = Bench(net)  # t fires in the first scan: r pulsed; `on` drives r when marked
+    values = [bench.get("r")]
+    for now in (10, 20):
+        bench.scan(now)
+        values.append(bench.get("r"))
+    assert values == [1, 1, 1] if marked else [1, 0, 0]  # the marking decides after the pulse
+
+
+def test_a_timed_coloured_completion_is_held_to_the_coloured_place_limit(tmp_path: Path) -> None:
+    net = compile_program(tmp_path, """
+limits: {coloured_place: 2}
+places:
+  a: {tokens: [{n: 1}]}
+  b: {tokens: [{n: 2}, {n: 3}]}
+  out: {coloured: true}
+transitions:
+  move: {from: [{place: a, var: v}], to: [{place: out, token: v}], duration: 10ns}
+  fill: {from: [{place: b, var: v}], to: [{place: out, token: v}]}
+""")
+    engine = Engine(net)  # move's record is not in `out` while it is busy; fill fills `out`
+    engine.fire_round(Ctx(), 0)
+    engine.fire_round(Ctx(), 5)
+    assert engine.state.tokens[net.place_index["out"]] == [{"n": 2}, {"n": 3}]
+    with pytest.raises(PlcFault) as err:
+        engine.fire_round(Ctx(), 10)
+    assert err.value.reason == ("place out: 3 coloured tokens exceed the limit 2 "
+                                "(limits.coloured_place; transition move completing)")

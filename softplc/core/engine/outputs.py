@@ -58,10 +58,8 @@ class Outputs:
         net, st = self._net, self._live.state
         writes: Writes = []
         symbols: set[str] = set()
-        for sym in sorted(self._pulsed):
-            if sym in net.moore_drivers or sym in net.busy_drivers:
-                symbols.add(sym)
-            else:
+        for sym in sorted(self._pulsed):  # a place-driven one is in _remoore: rewritten below
+            if sym not in net.moore_drivers and sym not in net.busy_drivers:
                 writes.append((sym, 0))
         self._pulsed = set()
         for p in changed:
