@@ -12,6 +12,7 @@ Does not know: how YAML is parsed or compiled (the caller compiles the text it w
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -84,7 +85,7 @@ def _program(chart: Chart, io_name: str, out: _Text, problems: list[Problem]) ->
             runs = Transition(f"{a.step}_runs_{a.name}", a.line, (a.step,), (a.step,),
                               f"action {a.name} (N) runs every scan while {a.step} is active")
             _transition(chart, runs, -1, out,
-                        [(f"{v} = {e}", str(a.line)) for v, e in a.statements])
+                        sequential([(f"{v} = {e}", str(a.line)) for v, e in a.statements]))
 
 
 def _transition(chart: Chart, t: Transition, priority: int, out: _Text,
@@ -132,6 +133,28 @@ def _do(chart: Chart, t: Transition) -> list[tuple[str, str]]:
         if a.target and a.qualifier in ("P1", "P"):
             out.append((f"pulse {a.target}", str(a.line)))
         out.extend((f"{v} = {e}", str(a.line)) for v, e in a.statements)
+    return sequential(out)
+
+
+_WORD = re.compile(r"(?<![\w.])([A-Za-z_]\w*)(?![\w(])")
+
+
+def sequential(statements: list[tuple[str, str]]) -> list[tuple[str, str]]:
+    """ST statements see the assignments before them; softplc's `do:` reads the image as it
+    was: each read of a variable written earlier in the list becomes that written expression
+    (`Cnt := Cnt + 1; OUT := Cnt;` -> `OUT = (Cnt + 1)`)."""
+    pending: dict[str, str] = {}
+    out = []
+    for text, line in statements:
+        word, _, rest = text.partition(" ")
+        if word in ("set", "reset", "pulse"):
+            pending[rest] = "false" if word == "reset" else "true"
+            out.append((text, line))
+            continue
+        var, _, expr = text.partition(" = ")
+        expr = _WORD.sub(lambda m: f"({pending[m[1]]})" if m[1] in pending else m[1], expr)
+        pending[var] = expr
+        out.append((f"{var} = {expr}", line))
     return out
 
 

@@ -91,8 +91,7 @@ def read(xml_text: str, pou_name: str | None = None) -> RefChart:
     for lid, o in objs.items():
         if _local(o.tag) != "transition":
             continue
-        cond = _kids(o, "condition")[0]
-        text = _text(_kids(cond, "inline")[0])
+        text = _condition(_kids(o, "condition")[0], pou, objs)
         pos = _kids(o, "position")
         x = float(pos[0].get("x", 0)) if pos else 0.0
         transitions.append(RefTransition(
@@ -101,18 +100,38 @@ def read(xml_text: str, pou_name: str | None = None) -> RefChart:
     steps = [o.get("name") for o in objs.values() if _local(o.tag) == "step"]
     initial = {o.get("name") for o in objs.values() if _local(o.tag) == "step"
                and o.get("initialStep") == "true"}
-    actions = []
+    actions, inline = [], {}
     for o in objs.values():
         if _local(o.tag) == "actionBlock":
             step = objs[ins(o)[0]].get("name")
             for a in _kids(o, "action"):
-                name = _kids(a, "reference")[0].get("name")
-                actions.append((step, a.get("qualifier", "N"), name))
+                if _kids(a, "inline"):
+                    name = f"inline{len(inline)}"
+                    inline[name] = _text(a)
+                else:
+                    name = _kids(a, "reference")[0].get("name")
+                actions.append((step, a.get("qualifier") or "N", name))
     bodies = {a.get("name"): _text(a) for a in pou.iter() if _local(a.tag) == "action"
-              and a.get("name")}
+              and a.get("name")} | inline
     types = {v.get("name"): _local(next(iter(_kids(v, "type")[0])).tag)
              for v in pou.iter() if _local(v.tag) == "variable"}
     return RefChart(steps, initial, transitions, actions, bodies, types)
+
+
+def _condition(cond: Any, pou: Any, objs: dict[str, Any]) -> str:
+    """Inline ST, a named transition's `:= expr;` body, or a wired inVariable's expression."""
+    if _kids(cond, "inline"):
+        text = _text(_kids(cond, "inline")[0])
+    elif _kids(cond, "reference"):
+        name = _kids(cond, "reference")[0].get("name")
+        body = next(t for t in pou.iter() if _local(t.tag) == "transition"
+                    and t.get("name") == name)
+        text = _text(body).split(":=", 1)[-1].strip().rstrip(";")
+    else:
+        pins = _kids(cond, "connectionPointIn") or [cond]
+        ref = _kids(pins[0], "connection")[0].get("refLocalId")
+        text = _text(next(e for e in objs[ref] if _local(e.tag) == "expression"))
+    return f"NOT ({text})" if cond.get("negated") == "true" else text
 
 
 # ---- a small ST evaluator (its own tokenizer and precedence climbing) ----
@@ -133,7 +152,7 @@ def _ms(lit: str) -> int:
 class Eval:
     def __init__(self, text: str, env: dict[str, Any]) -> None:
         self.toks = [t for t in _TOK.findall(text) if t]
-        self.i, self.env = 0, env
+        self.i, self.env = 0, {k.upper(): v for k, v in env.items()}  # ST ignores case
 
     def peek(self) -> str:
         return self.toks[self.i].upper() if self.i < len(self.toks) else ""
@@ -174,7 +193,7 @@ class Eval:
                 args.append(self.expr())
             self.i += 1
             return {"AND": all, "OR": any}[tok](args)
-        return self.env[self.toks[self.i - 1]]
+        return self.env[tok]
 
 
 def _apply(op: str, a: Any, b: Any) -> Any:

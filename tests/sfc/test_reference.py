@@ -10,6 +10,7 @@ import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
+from softplc.program.compiler import compile_file
 from tests.fuzz.budget import scaled
 from tests.sfc.chartxml import chart_xml
 from tests.sfc.compare import compare
@@ -27,12 +28,11 @@ SETTINGS = settings(max_examples=scaled(15), deadline=None, derandomize=True,
 @SETTINGS
 @given(data=st.data())
 def test_example_charts_agree_with_the_reference(path: Path, data: st.DataObject) -> None:
-    from tests.sfc.refsfc import read
-    names = [n for n, t in read(path.read_text(encoding="utf-8")).types.items()
-             if t == "BOOL"]
-    scans = data.draw(st.lists(st.fixed_dictionaries({n: st.booleans() for n in names
-                                                       if n.startswith(("i", "I"))}),
-                               min_size=30, max_size=30))
+    io = compile_file(path).io
+    names = [n for n, s in io.symbols.items() if str(s.address).startswith("%I")]
+    kinds = {n: st.booleans() if io.symbols[n].type.value == "bool" else st.integers(0, 20)
+             for n in names}
+    scans = data.draw(st.lists(st.fixed_dictionaries(kinds), min_size=40, max_size=40))
     assert compare(path, scans) is None
 
 
