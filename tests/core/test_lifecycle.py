@@ -22,6 +22,7 @@ from softplc.core.lifecycle import (
     PlcState,
     Stage,
     accepting,
+    next_stage,
 )
 from softplc.core.net import CompiledNet
 from softplc.core.plc import FAULT_WATCHDOG, Plc, ProgramCommand
@@ -232,3 +233,15 @@ def test_the_states_each_command_is_accepted_in_as_refusals_name_them() -> None:
         "step": "RUNNING (paused at a breakpoint)",
         "continue": "RUNNING (paused at a breakpoint)",
     }
+
+
+def test_a_refusal_prints_as_its_reason() -> None:
+    """Issue 43: clients and logs print the exception; it must read as the reason, not as the
+    tuple of its arguments."""
+    with pytest.raises(CommandRejected) as caught:
+        next_stage(S.EMPTY, C.START)
+    assert str(caught.value) == caught.value.reason == (
+        "start is not accepted in state EMPTY (accepted in STOPPED (ready: initial marking))")
+    assert caught.value.args == (caught.value.reason,)
+    plain = CommandRejected(PlcState.KILLED, C.STOP)
+    assert str(plain) == "stop is not accepted in state KILLED (accepted in RUNNING)"
