@@ -30,7 +30,7 @@ from tests.support import ROOT, free_port
 
 NODE_DIR = Path(__file__).parent / "node"
 CACHE = ROOT / ".venv" / "sparkplug-js"
-WAIT_S = 20.0  # for any one message (a PLC start beside busy loops takes seconds)
+WAIT_S = 45.0  # for any one message (a PLC start beside busy loops takes seconds)
 
 
 @pytest.fixture(scope="session")

@@ -36,7 +36,7 @@ def _await_string(tahu: Tahu, host: Host, start: int, alias: int, want: str) -> 
         seen[:] = _ndata_strings(tahu, host, start, alias)
         return any(want in s for s in seen)
 
-    assert wait_until(found, 15.0, 0.3), f"no {want!r} in NDATA; saw {seen}"
+    assert wait_until(found, 30.0, 0.3), f"no {want!r} in NDATA; saw {seen}"
 
 
 def _trail(state: Path) -> list[dict[str, Any]]:

@@ -64,7 +64,7 @@ def _status_metric(tahu: Tahu, host: Host, start: int, alias: int, want: str) ->
                     seen.append(metric["stringValue"])
         return any(want in s for s in seen)
 
-    assert wait_until(found, 15.0, 0.3), f"no status {want!r} in NDATA; saw {seen}"
+    assert wait_until(found, 30.0, 0.3), f"no status {want!r} in NDATA; saw {seen}"
     return next(s for s in seen if want in s)
 
 
@@ -116,7 +116,7 @@ def test_edge_node_against_mosquitto(tmp_path: Path, tahu: Tahu,
         ncmd = tahu.encode({"timestamp": 1, "metrics": [
             {"name": "fill_to", "type": "Float", "value": 55.5}]})
         h.send(TOPIC % "NCMD", ncmd)
-        assert wait_until(lambda: _symbol(api, "fill_to") == 55.5, 10.0, 0.05)
+        assert wait_until(lambda: _symbol(api, "fill_to") == 55.5, 30.0, 0.05)
         assert wait_until(lambda: any(r["action"] == "write" and r["outcome"] == "queued"
                                       for r in _audit(state)), 10.0, 0.05)
         record = next(r for r in _audit(state) if r["outcome"] == "queued")
