@@ -288,3 +288,32 @@ def test_the_store_keeps_the_two_newest_snapshots(tmp_path: Path) -> None:
         assert snapshot_seqs(store) == [3, 2]  # a third write deletes the oldest
     finally:
         store.close()
+
+
+PAUSED = """
+places:
+  idle: {tokens: 1}
+  busy: {}
+  early: {tokens: 1}
+  late: {}
+transitions:
+  go:   {from: [idle], to: [busy]}
+  tick: {from: [early], to: [late], delay: 20ms}
+  back: {from: [busy], to: [idle], delay: 50ms}
+"""
+
+
+def test_a_capture_while_paused_moves_the_timers_past_the_pause(tmp_path: Path) -> None:
+    """A snapshot taken at a breakpoint holds the net as it will run on: `back`'s delay,
+    started at 10 ms, moves by the 30 ms paused (the pause at 20 ms, the last scan at 50)."""
+    ms = 1_000_000
+    bench = Bench(compile_program(tmp_path, PAUSED))
+    bench.scan(10 * ms, [ProgramCommand(Command.BREAK, symbol="fire:tick", value=1)])
+    for now in (20, 30, 40, 50):
+        bench.scan(now * ms)
+    assert bench.plc.debug.pause is not None and bench.plc.engine is not None
+    back = bench.net.transitions[2].index
+    assert bench.plc.engine.state.enabled_since == {back: 10 * ms}
+    cap = retain.capture(bench.plc, 50 * ms, {})
+    assert cap is not None and cap.net_state.enabled_since == {back: 40 * ms}
+    assert bench.plc.engine.state.enabled_since == {back: 10 * ms}  # the PLC's own: unchanged
