@@ -41,7 +41,7 @@ from softplc.runtime.prepare import (
     Preparer,
     describe_error,
 )
-from softplc.runtime.realtime import background_thread
+from softplc.runtime.realtime import NORMAL, Realtime, background_thread
 from softplc.runtime.steplog import StepLog
 
 
@@ -237,11 +237,10 @@ class Downloads:
     """`put()` what the channel drained; `work()` between scans; `take()` at each scan
     boundary what may apply now, in arrival order."""
 
-    def __init__(self, prep: Preparer, threaded: bool = True) -> None:
-        """`threaded`: blocking parts on the helper thread (a real clock); else here and now
-        (a virtual clock: simulation and tests, deterministic)."""
-        self.prep = prep
-        self._threaded = threaded
+    def __init__(self, prep: Preparer, threaded: bool = True, realtime: Realtime = NORMAL) -> None:
+        """`threaded`: blocking parts on the helper thread (a real clock, kept off a pinned
+        scan's CPU); else here and now (a virtual clock: simulation and tests, deterministic)."""
+        self.prep, self._realtime, self._threaded = prep, realtime, threaded
         self._queue: deque[CommandRequest | DownloadJob] = deque()
         self._burials: deque[Steps[None]] = deque()
         self._executor: ThreadPoolExecutor | None = None
@@ -358,7 +357,8 @@ class Downloads:
             return future
         if self._executor is None:
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="download",
-                                                initializer=background_thread)
+                                                initializer=background_thread,
+                                                initargs=(self._realtime,))
         return self._executor.submit(work)
 
     def close(self) -> None:

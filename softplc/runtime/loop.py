@@ -81,7 +81,7 @@ class ScanLoop:
         self.compiler = CompileProcess(config) if real else None
         self.prep = Preparer(config, lambda: self.runner.plc.net, lambda: self._driver_specs,
                              self.compiler)
-        self.downloads = Downloads(self.prep, threaded=real)
+        self.downloads = Downloads(self.prep, threaded=real, realtime=config.realtime)
         self._paced = False  # run() steps downloads between scans; by hand: at the boundary
         self._driver_specs: tuple[object, ...] = ()
         self.retain: RetainWriter | None = None

@@ -65,15 +65,17 @@ def recommended() -> Realtime:
     return Realtime(priority=50, cpu=cpus[-1] if len(cpus) > 1 else None)
 
 
-def background_thread() -> None:
+def background_thread(rt: Realtime = NORMAL) -> None:
     """In a helper thread of the scan process (compiler, retain writer): back to normal
-    scheduling on any CPU. Linux threads inherit the creator's policy and CPU, and a FIFO
-    helper on the scan's CPU would not yield to the scan when its deadline comes."""
+    scheduling on any CPU, but `rt`'s scan CPU. Linux threads inherit the creator's policy and
+    CPU, and a FIFO helper on the scan's CPU would not yield to the scan when its deadline
+    comes (nor a normal one to a busy-waiting scan for the rest of a tick)."""
     try:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         os.sched_setaffinity(0, range(os.cpu_count() or 1))
     except OSError:
         pass  # still the process's own policy: only as good as the scan's
+    keep_off_scan_cpu(0, rt)  # 0: this thread
 
 
 def keep_off_scan_cpu(pid: int, rt: Realtime) -> None:
