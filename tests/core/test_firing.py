@@ -1263,3 +1263,20 @@ transitions:
         engine.fire_round(Ctx(), 10)
     assert err.value.reason == ("place out: 3 coloured tokens exceed the limit 2 "
                                 "(limits.coloured_place; transition move completing)")
+
+
+def test_an_engine_runs_a_state_whose_marking_is_a_plain_list(tmp_path: Path) -> None:
+    """core/engine/live.py's fallback: a marking that is not a buffer is used as it is."""
+    net = compile_program(tmp_path, """
+places:
+  p: {tokens: 2}
+  q: {}
+transitions:
+  t: {from: [p], to: [q]}
+""")
+    engine = Engine(net)
+    state = NetState.initial(net)
+    engine.state = replace(state, marking=[int(n) for n in state.marking])  # type: ignore[arg-type]
+    engine.invalidate()
+    assert [engine.fire_round(Ctx(), n).fired for n in range(3)] == [(0,), (0,), ()]
+    assert engine.state.marking == [0, 2]
