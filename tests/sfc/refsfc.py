@@ -100,7 +100,8 @@ def read(xml_text: str, pou_name: str | None = None) -> RefChart:
     steps = [o.get("name") for o in objs.values() if _local(o.tag) == "step"]
     initial = {o.get("name") for o in objs.values() if _local(o.tag) == "step"
                and o.get("initialStep") == "true"}
-    actions, inline = [], {}
+    actions: list[tuple[str, str, str]] = []
+    inline: dict[str, str] = {}
     for o in objs.values():
         if _local(o.tag) == "actionBlock":
             step = objs[ins(o)[0]].get("name")

@@ -1,0 +1,100 @@
+"""check/analyze on a chart report the SFC errors in the chart's terms: step and transition
+names, XML lines, a witness path; every command refuses such a chart (the download gate
+included: the program does not compile)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from softplc.core.problems import ProgramError
+from softplc.program.compiler import compile_file
+from tests.sfc.chartxml import ChartSpec, chart_xml
+
+IO = {"go": ("BOOL", "%IX0.0"), "x": ("BOOL", "%IX0.1"), "y": ("BOOL", "%IX0.2"),
+      "lamp": ("BOOL", "%QX0.0")}
+
+
+def write(tmp_path: Path, spec: ChartSpec, name: str = "chart.xml") -> Path:
+    path = tmp_path / name
+    path.write_text(chart_xml(spec), encoding="utf-8")
+    return path
+
+
+def problems(path: Path) -> list[str]:
+    with pytest.raises(ProgramError) as info:
+        compile_file(path)
+    return [str(p) for p in info.value.problems]
+
+
+def line_of(path: Path, text: str) -> int:
+    return next(i for i, line in enumerate(path.read_text().splitlines(), 1) if text in line)
+
+
+def test_a_jump_out_of_a_parallel_branch_is_an_unsafe_chart_naming_the_step(
+        tmp_path: Path) -> None:
+    spec = ChartSpec(["Start", "Left", "Right", "Joined"], ["Start"], [
+        (["Start"], ["Left", "Right"], "go"),
+        (["Left"], ["Start"], "x"),          # leaves the parallel branch: the standard's error
+        (["Left", "Right"], ["Joined"], "y"),
+        (["Joined"], ["Start"], "TRUE")], variables=IO)
+    path = write(tmp_path, spec)
+    found = problems(path)
+    assert len(found) == 1
+    step_line = line_of(path, 'name="Right"')
+    assert found[0].startswith(f"{path}:{step_line}: unsafe chart: step Right is activated "
+                               "while it is active (two tokens)")
+    assert "witness: Start_to_Left_Right -> Left_to_Start -> Start_to_Left_Right" in found[0]
+
+
+def test_a_step_without_exit_is_a_deadlock_with_its_witness(tmp_path: Path) -> None:
+    spec = ChartSpec(["Start", "Fill", "Stuck"], ["Start"], [
+        (["Start"], ["Fill"], "go"), (["Fill"], ["Stuck"], "x")],
+        actions=[("Fill", "N", "lamp")], variables=IO)
+    path = write(tmp_path, spec)
+    (found,) = problems(path)
+    stuck = line_of(path, 'name="Stuck"')
+    assert found == (f"{path}:{stuck}: deadlock: once Stuck is active "
+                     "no transition can clear; witness: Start_to_Fill -> Fill_to_Stuck")
+
+
+def test_unreachable_steps_and_transitions_that_never_clear_are_named(tmp_path: Path) -> None:
+    spec = ChartSpec(["Start", "Run", "Orphan", "After"], ["Start"], [
+        (["Start"], ["Run"], "go"), (["Run"], ["Start"], "NOT go"),
+        (["Run", "Orphan"], ["After"], "x"),  # waits for a step nothing activates
+        (["After"], ["Start"], "FALSE")], variables=IO)
+    path = write(tmp_path, spec)
+    found = problems(path)
+    orphan = line_of(path, 'name="Orphan"')
+    assert f"{path}:{orphan}: unreachable step Orphan: no sequence " \
+        "of transitions from the initial steps activates it" in found
+    assert any("unreachable step After" in p for p in found)
+    assert any("transition Run_Orphan_to_After can never clear: its preceding steps Run, "
+               "Orphan are never active together" in p for p in found)
+    assert any("transition After_to_Start can never clear: its condition is FALSE" in p
+               for p in found)
+
+
+def test_check_on_the_command_line_reports_the_chart_and_fails(tmp_path: Path) -> None:
+    spec = ChartSpec(["Start", "Stuck"], ["Start"], [(["Start"], ["Stuck"], "go")],
+                     variables=IO)
+    path = write(tmp_path, spec)
+    run = subprocess.run([sys.executable, "-m", "softplc.cli", "check", str(path)],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 1
+    assert "deadlock: once Stuck is active" in run.stderr
+
+
+def test_a_sound_chart_compiles_with_places_and_transitions_at_their_xml_lines(
+        tmp_path: Path) -> None:
+    spec = ChartSpec(["Start", "Run"], ["Start"], [(["Start"], ["Run"], "go"),
+                                                   (["Run"], ["Start"], "NOT go")],
+                     actions=[("Run", "N", "lamp")], variables=IO)
+    path = write(tmp_path, spec)
+    net = compile_file(path)
+    assert net.place_names == ("Start", "Run")
+    assert net.place_where[1] == (str(path), line_of(path, 'name="Run"'))
+    assert net.transition_where[0][1] == line_of(path, "<![CDATA[go]]>")
