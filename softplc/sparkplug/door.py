@@ -22,6 +22,7 @@ import logging
 import queue
 import threading
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any, Final, Protocol
 
 from softplc.core.image import split_registers
@@ -42,7 +43,7 @@ from softplc.security.roles import Act
 from softplc.sparkplug import codec
 from softplc.sparkplug.codec import Metric
 from softplc.sparkplug.config import SparkplugConfig
-from softplc.sparkplug.metrics import COMMAND, Report, SymbolMetric
+from softplc.sparkplug.metrics import COMMAND, NODE, STATUS, Report, SymbolMetric
 
 log = logging.getLogger(__name__)
 
@@ -82,6 +83,10 @@ class Door:
 
     def submit(self, report: Report, metric: Metric) -> None:
         """A host's NCMD metric (from the node's thread): queued for the worker."""
+        if metric.name is None:  # by alias: a node metric's name, else a symbol's
+            names = {alias: name for name, alias in report.node_alias.items()}
+            if metric.alias in names:
+                metric = replace(metric, name=names[metric.alias])
         symbol = report.by_name.get(metric.name or "") if metric.name is not None \
             else report.by_alias.get(metric.alias or -1)
         program = str(report.document.get("program_hash") or "")
@@ -117,6 +122,8 @@ class Door:
         target = metric.name if metric.name is not None else f"alias {metric.alias}"
         if metric.name == COMMAND:
             action, outcome, why = self._program_command(metric.value)
+        elif metric.name in NODE or metric.name == STATUS:
+            action, outcome, why = "write", "refused", f"{target} is read only"
         elif symbol is None:
             action, outcome, why = "write", "refused", f"no metric {target} in the last NBIRTH"
         else:

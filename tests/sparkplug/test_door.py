@@ -115,7 +115,9 @@ def test_operator_with_commands_stops_but_may_not_reset(
         h.send(TOPIC % "NCMD", _cmd(tahu, "Node Control/Command", "String", "stop"))
         _await_string(tahu, h, 0, status, "stop Node Control/Command: applied")
         _await_string(tahu, h, 0, state_alias, "STOPPED")
-        h.send(TOPIC % "NCMD", _cmd(tahu, "Node Control/Command", "String", "reset"))
+        command = int(metrics["Node Control/Command"]["alias"])  # by alias, as Ignition does
+        h.send(TOPIC % "NCMD", tahu.encode({"timestamp": 1, "metrics": [
+            {"alias": command, "type": "String", "value": "reset"}]}))
         _await_string(tahu, h, 0, status, "reset Node Control/Command: denied (reset needs "
                       "engineer")
         assert wait_until(lambda: [(r["action"], r["outcome"]) for r in _trail(state)] == [

@@ -132,6 +132,9 @@ def test_edge_node_against_mosquitto(tmp_path: Path, tahu: Tahu,
         _status_metric(tahu, h, mark, status_alias, "write high_switch: refused")
         assert wait_until(lambda: any(r["detail"]["metric"] == "high_switch"
                                       and r["outcome"] == "refused" for r in _audit(state)))
+        h.send(TOPIC % "NCMD", tahu.encode({"timestamp": 2, "metrics": [
+            {"name": "PLC/State", "type": "String", "value": "RUNNING"}]}))
+        _status_metric(tahu, h, mark, status_alias, "PLC/State: refused (PLC/State is read only)")
         # program commands are off by default: refused and audited
         h.send(TOPIC % "NCMD", tahu.encode({"timestamp": 3, "metrics": [
             {"name": "Node Control/Command", "type": "String", "value": "stop"}]}))
