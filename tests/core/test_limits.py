@@ -275,3 +275,14 @@ transitions:
     engine = Engine(net)
     for n in range(5):  # two tries a round (enabled? which?), five rounds: 10 in all
         assert engine.fire_round(Ctx(), n * 1_000_000).fired == (0,)
+
+
+def test_a_net_without_places_runs_its_limit_checks_on_nothing(tmp_path: Path) -> None:
+    net = compile_program(tmp_path, """
+transitions:
+  t: {when: a, do: [set m]}
+""")
+    engine = Engine(net)
+    steps = [engine.fire_round(Ctx({"a": 1}), n * 1_000_000) for n in range(3)]
+    assert [s.fired for s in steps] == [(0,), (0,), (0,)]
+    assert steps[0].writes == (("m", 1),)
