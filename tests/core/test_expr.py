@@ -550,3 +550,12 @@ def test_iec_comparisons_equal_and_not_equal() -> None:
     assert run("w<>7") is False
     with pytest.raises(ExprError, match="syntax error"):
         compile_expr("w < > 7", SCOPE)  # <> is one operator: no space inside
+
+
+def test_a_bool_symbol_reads_as_true_or_false_not_as_its_raw_bit() -> None:
+    """Issue 43: a BOOL symbol stored as 1 is True (an action's `b == True`, a text made of
+    it), a WORD stored as 1 stays 1."""
+    assert run("a") is True and run("b") is False
+    assert run("a == True") is True and run("w") == 7
+    ctx = Ctx({"a": 1, "w": 1})
+    assert run("a", ctx) is True and run("w", ctx) == 1 and run("w", ctx) is not True
