@@ -1280,3 +1280,14 @@ transitions:
     engine.invalidate()
     assert [engine.fire_round(Ctx(), n).fired for n in range(3)] == [(0,), (0,), ()]
     assert engine.state.marking == [0, 2]
+
+
+def test_a_diagnostic_that_names_no_transition_is_kept_unlocated(tmp_path: Path) -> None:
+    from softplc.core.engine.diagnostics import Diagnostics
+    diag = Diagnostics(_failing_guards(tmp_path, 1))
+    diag.report("output r = 5 failed (out of range)")  # outputs.py's, no transition's name
+    diag.report("t0: qw = 'x' failed (text)")
+    assert diag.messages == ["scan 0: transition output r = 5 failed (out of range)",
+                             f"scan 0: {tmp_path / 'prog.yaml'}:6: transition t0: qw = 'x' "
+                             "failed (text)"]
+    assert diag.count == 2
