@@ -247,3 +247,23 @@ def test_planned_writes_read_back_after_publish(
         src.sink(w)
     src.publish()
     assert m.read(src.latest(), table, address, count) == values
+
+
+def test_a_tiny_image_puts_the_input_long_words_after_its_double_words() -> None:
+    """Issue 43: words = 8 (below the status block's 20): %ID after the status block at 28,
+    its 8 double words take 16 registers, so %IL starts at 44, past 4 * words (32)."""
+    from softplc.hmi.map import long_bases
+    hr, ir = Table.HOLDING_REGISTERS, Table.INPUT_REGISTERS
+    bases = {f"%{area.value}{width.value}": at for (area, width), at in
+             long_bases(ImageSizes(bits=16, words=8)).items()}
+    assert bases == {"%MD": (hr, 16), "%ML": (hr, 32), "%QD": (hr, 64), "%QL": (hr, 80),
+                     "%ID": (ir, 28), "%IL": (ir, 44)}
+
+
+def test_where_names_the_iec_address_at_a_modbus_address() -> None:
+    m = RegisterMap(ImageSizes())
+    hr, ir = Table.HOLDING_REGISTERS, Table.INPUT_REGISTERS
+    assert m.where(hr, 1028) == "%MW4"  # the write audit's example
+    assert m.where(hr, 2052) == m.where(hr, 2053) == "%MD2"  # by its first register
+    assert m.where(ir, 5000) == "%IL226"
+    assert m.where(hr, 4095) is None  # past %MD's 256 double words, before %ML
