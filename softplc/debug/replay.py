@@ -32,7 +32,10 @@ class ReplayResult:
         return self.divergence is None
 
 
-def _commands(record: dict[str, Any], net: CompiledNet) -> tuple[list[ProgramCommand], str]:
+def trace_commands(record: dict[str, Any], net: CompiledNet
+                   ) -> tuple[list[ProgramCommand], str]:
+    """The commands one scan's record applied (a download: `net` again), and a note when the
+    trace ran another program than `net`."""
     commands, note = [], ""
     for entry in record.get("cmd", []):
         command = Command(entry["c"])
@@ -47,7 +50,8 @@ def _commands(record: dict[str, Any], net: CompiledNet) -> tuple[list[ProgramCom
     return commands, note
 
 
-def _apply_inputs(image: ProcessImage, changes: dict[str, dict[str, int]]) -> None:
+def apply_inputs(image: ProcessImage, changes: dict[str, dict[str, int]]) -> None:
+    """One scan record's input changes ({area: {index: value}}) into `image`."""
     for area, values in changes.items():
         arr = getattr(image, area)
         for index, value in values.items():
@@ -63,8 +67,8 @@ def replay(trace_path: str | Path, net: CompiledNet) -> ReplayResult:
     recorded: dict[str, int] = {}  # output symbols as the trace gave them ("q"; newer traces)
     for count, record in enumerate(read_trace(trace_path), 1):
         recorded.update(record.get("q") or {})
-        _apply_inputs(inputs, record.get("in", {}))
-        commands, why = _commands(record, net)
+        apply_inputs(inputs, record.get("in", {}))
+        commands, why = trace_commands(record, net)
         note = note or why
         hmi = [HmiWrite(parse_address(a), tuple(v)) for a, v in record.get("hmi", [])]
         # Device answers, watchdog overruns and stalls were judged by the scan: fed back, the

@@ -26,7 +26,7 @@ from softplc.core.result import ScanResult
 from softplc.core.scan import scan
 from softplc.core.snapshot import HmiWrite
 from softplc.core.why import Why, run_round, why
-from softplc.debug.replay import _apply_inputs, _commands
+from softplc.debug.replay import apply_inputs, trace_commands
 from softplc.runtime.runner import observed_from
 from softplc.runtime.trace import image_digest, read_trace
 
@@ -65,8 +65,8 @@ def walk(trace_path: str | Path, net: CompiledNet,
     inputs = ProcessImage(net.io.sizes)
     drivers = list(net.io.drivers)
     for record in read_trace(trace_path):
-        _apply_inputs(inputs, record.get("in", {}))
-        commands, _ = _commands(record, net)
+        apply_inputs(inputs, record.get("in", {}))
+        commands, _ = trace_commands(record, net)
         hmi = [HmiWrite(parse_address(a), tuple(v)) for a, v in record.get("hmi", [])]
         observed = observed_from(record.get("obs", {}), drivers)
         rounds: list[Capture] = []
