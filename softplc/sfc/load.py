@@ -1,6 +1,6 @@
 """The one door from a PLCopen XML file to the program compiler: read, verify, translate.
 
-Owns: `FILE.xml#POU` naming, the optional `FILE.io.yaml` beside the chart (its drivers:,
+Owns: `FILE.xml#POU` naming, the optional `FILE.io.yml` beside the chart (its drivers:,
 image: and events: head the generated symbols file: the XML has no notion of a driver), and
 putting the compiler's findings and the net's place/transition locations back on XML lines.
 Does not know: how the YAML it hands over is compiled (program/compiler.py calls it).
@@ -31,7 +31,7 @@ class ChartProgram:
     chart: Chart
     file: str  # the XML file
     emitted: Emitted
-    sidecar: str | None  # FILE.io.yaml when one was read
+    sidecar: str | None  # FILE.io.yml when one was read
 
     @property
     def program_text(self) -> str:
@@ -96,7 +96,7 @@ def load_chart(path: str | Path, pou: str | None = None, io_name: str = "") -> C
             from None
     chart = read_chart(data, name, pou)
     problems = verify(chart)
-    sidecar = Path(name).with_suffix(".io.yaml")
+    sidecar = Path(name).with_suffix(".io.yml")  # not .yaml: programs/*.yaml are nets
     head = ""
     if sidecar.is_file():
         head = sidecar.read_text(encoding="utf-8")

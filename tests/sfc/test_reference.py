@@ -17,7 +17,8 @@ from tests.sfc.compare import compare
 from tests.sfc.gencharts import charts, inputs
 
 EXAMPLES = Path(__file__).parent / "examples"
-RUNNABLE = sorted(p for p in EXAMPLES.glob("*.xml") if not p.name.startswith("refused_"))
+PROGRAMS = Path(__file__).parents[2] / "programs"
+RUNNABLE = sorted([*EXAMPLES.glob("*.xml"), *PROGRAMS.glob("*_sfc.xml")])
 # No shrinking: a failure prints its chart (the assertion message) and stays fast.
 SETTINGS = settings(max_examples=scaled(15), deadline=None, derandomize=True,
                     phases=[Phase.explicit, Phase.reuse, Phase.generate],
