@@ -59,3 +59,33 @@ def test_named_on_the_command_line_an_empty_directory_refuses_from_the_start(
     with pytest.raises(ProgramRefused, match="none there"):
         ProgramGate(tmp_path, trusted, required=True).admit(BODY, None)
     assert ProgramGate(tmp_path, trusted).admit(BODY, None) is None  # never asked: open
+
+
+def test_an_unversioned_signed_download_runs_as_version_0(keys: Path, tmp_path: Path) -> None:
+    """Issue 43: an unversioned signature records version 0, so the next unversioned one is
+    not older and a versioned one is newer."""
+    from softplc.security import versions
+    trusted = tmp_path / "trusted"
+    trusted.mkdir()
+    shutil.copy(keys / "alice.pub", trusted)
+    gate = ProgramGate(tmp_path, trusted)
+    line = signed(keys, "alice")
+    assert gate.admit(BODY, line) == "alice"
+    assert gate.applied(BODY, line, "alice") == ""  # no version to name
+    assert versions.read(tmp_path).version == 0
+    assert gate.admit(BODY, line) == "alice"  # the same again: not older
+    one = signing.sign(BODY, signing.load_private(keys / "alice.key"), 1)
+    assert gate.applied(BODY, one, "alice") == ", version 1"
+    with pytest.raises(ProgramRefused, match=r"signed version 0 \(signed without --version\) "
+                       "is older than the running 1"):
+        gate.admit(BODY, line)
+
+
+def test_the_signers_of_the_last_64_bodies_are_remembered(keys: Path, tmp_path: Path) -> None:
+    gate = ProgramGate(tmp_path, tmp_path / "trusted")
+    for n in range(65):  # KEEP, 64, and one more: the oldest is forgotten
+        gate.remember(b"body %d" % n, f"signer{n}")
+        if n == 63:
+            assert len(gate.signers()) == 64
+    kept = gate.signers()
+    assert len(kept) == 64 and list(kept.values()) == [f"signer{n}" for n in range(1, 65)]
