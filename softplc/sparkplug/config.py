@@ -9,12 +9,14 @@ Does not know: the run options (options.py), MQTT sessions, payloads, symbols.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Final
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Final
 from urllib.parse import unquote, urlsplit
 
-from softplc.core.image import ImageSizes
 from softplc.security.roles import Role
+
+if TYPE_CHECKING:  # numpy: not for `softplc run --help`
+    from softplc.core.image import ImageSizes
 
 _FORBIDDEN: Final = frozenset("+/#")  # MQTT wildcards and the level separator (spec 4.1)
 
@@ -36,7 +38,7 @@ class SparkplugConfig:
     deadband: float = 0.0  # a real (or scaled) metric changes by more than this to be sent
     state_dir: str = "state"
     keepalive_s: int = 10
-    sizes: ImageSizes = field(default_factory=ImageSizes)
+    sizes: ImageSizes | None = None  # None: the runtime's default sizes
     # The process entry the supervisor starts (options.py sets it: sparkplug/process.py);
     # runtime never imports this room.
     main: Callable[..., None] | None = None

@@ -17,7 +17,6 @@ from typing import Any, Final
 
 from softplc.security.roles import Role
 from softplc.sparkplug.config import SparkplugConfig, parse_url
-from softplc.sparkplug.process import process_main
 
 PASSWORD_ENV: Final = "SOFTPLC_SPARKPLUG_PASSWORD"
 
@@ -88,6 +87,8 @@ def from_args(args: Any) -> SparkplugConfig | None:
     ca = getattr(args, "sparkplug_ca", None)
     if ca is not None and not Path(ca).is_file():
         raise ValueError(f"--sparkplug-ca {ca}: no such file")
+    from softplc.sparkplug.process import process_main  # the runtime: only when it is on
+
     return replace(base, password=password, ca_file=ca, role=args.sparkplug_role,
                    commands=bool(args.sparkplug_commands), tls=base.tls or ca is not None,
                    primary_host=args.sparkplug_primary_host, interval_s=interval,

@@ -18,6 +18,7 @@ import signal
 import time
 from typing import Any, Final
 
+from softplc.core.image import ImageSizes
 from softplc.core.snapshot import SnapshotUnavailable
 from softplc.runtime.board import StatusBoard
 from softplc.runtime.channel import Channel
@@ -80,7 +81,7 @@ def process_main(config: SparkplugConfig, channel: Channel, shm_name: str, board
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, once(stop.set))
     die_with_parent()
-    mapping = SnapshotReader.attach(shm_name, config.sizes)
+    mapping = SnapshotReader.attach(shm_name, config.sizes or ImageSizes())
     source = FreshSource(mapping)
     board = StatusBoard.attach(board_name)
     door = Door(config, channel, source, AuditTrail(config.state_dir))
