@@ -73,11 +73,11 @@ class ServiceProcess:
     and restart history."""
 
     name: str
-    config: Any  # a CommConfig, or what `main` takes (sparkplug/config.py)
+    config: Any  # a CommConfig, or what `main` takes (sparkplug/config.py SparkplugConfig)
     stop: StopFlag = field(default_factory=StopFlag)
     proc: Any = None
     restarts: deque[float] = field(default_factory=deque)
-    main: Callable[..., None] = comm_process_main  # another room's (sparkplug/config.py main)
+    main: Callable[..., None] = comm_process_main  # or the entry the CLI resolved (sparkplug)
 
     @property
     def title(self) -> str:
