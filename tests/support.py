@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -41,6 +43,30 @@ def free_port() -> int:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 
+
+
+def npm_modules(package_dir: Path, cache: Path, what: str) -> Path:
+    """The node modules package_dir/package.json names, installed once from the npm registry into
+    cache (again when package.json changes); the caller's test skips, saying why, where node or
+    npm is missing (.ci/run installs them). The independent clients of tests/opcua (node-opcua)
+    and tests/sparkplug (Eclipse Tahu JS) come this way."""
+    import pytest
+
+    node, npm = shutil.which("node"), shutil.which("npm")
+    if node is None or npm is None:
+        pytest.skip("node/npm not installed (apt-get install nodejs npm; .ci/run does)")
+    package = (package_dir / "package.json").read_bytes()
+    stamp = cache / "installed.sha256"
+    digest = hashlib.sha256(package).hexdigest()
+    if not stamp.exists() or stamp.read_text() != digest:
+        cache.mkdir(parents=True, exist_ok=True)
+        (cache / "package.json").write_bytes(package)
+        done = subprocess.run([npm, "install", "--no-audit", "--no-fund", "--prefix", str(cache)],
+                              capture_output=True, text=True, timeout=300, check=False)
+        if done.returncode != 0:
+            pytest.fail(f"npm install of {what} failed:\n{done.stderr[-2000:]}")
+        stamp.write_text(digest)
+    return cache / "node_modules"
 
 def wait_until(predicate: Callable[[], object], timeout_s: float = 10.0,
                step_s: float = 0.01) -> bool:

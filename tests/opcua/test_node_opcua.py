@@ -7,7 +7,6 @@ the test skips, saying why, when node or npm is missing (.ci/run installs them).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -20,6 +19,7 @@ import pytest
 
 from tests.opcua.conftest import ROOT, Plc, start_plc, stop_plc
 from tests.opcua.pids import listener_pid
+from tests.support import npm_modules
 
 NODE_DIR = Path(__file__).resolve().parent / "node"
 CACHE = ROOT / ".venv" / "node-opcua"
@@ -32,21 +32,7 @@ TRANSITION_EVENT = "ns=0;i=2378"  # ProgramTransitionEventType
 def node_modules() -> Path:
     """node-opcua's client at the pinned version, installed once (re-installed when
     package.json changes)."""
-    node, npm = shutil.which("node"), shutil.which("npm")
-    if node is None or npm is None:
-        pytest.skip("node/npm not installed (apt-get install nodejs npm; .ci/run does)")
-    package = (NODE_DIR / "package.json").read_bytes()
-    stamp = CACHE / "installed.sha256"
-    digest = hashlib.sha256(package).hexdigest()
-    if not stamp.exists() or stamp.read_text() != digest:
-        CACHE.mkdir(parents=True, exist_ok=True)
-        (CACHE / "package.json").write_bytes(package)
-        done = subprocess.run([npm, "install", "--no-audit", "--no-fund", "--prefix", str(CACHE)],
-                              capture_output=True, text=True, timeout=300, check=False)
-        if done.returncode != 0:
-            pytest.fail(f"npm install of node-opcua failed:\n{done.stderr[-2000:]}")
-        stamp.write_text(digest)
-    return CACHE / "node_modules"
+    return npm_modules(NODE_DIR, CACHE, "node-opcua")
 
 
 @pytest.fixture

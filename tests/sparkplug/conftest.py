@@ -8,7 +8,6 @@ that a test can SIGKILL the whole PLC)."""
 from __future__ import annotations
 
 import base64
-import hashlib
 import json
 import os
 import shutil
@@ -26,7 +25,7 @@ import paho.mqtt.client as mqtt
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
-from tests.support import ROOT, free_port
+from tests.support import ROOT, free_port, npm_modules
 
 NODE_DIR = Path(__file__).parent / "node"
 CACHE = ROOT / ".venv" / "sparkplug-js"
@@ -35,21 +34,7 @@ WAIT_S = 45.0  # for any one message (a PLC start beside busy loops takes second
 
 @pytest.fixture(scope="session")
 def node_modules() -> Path:
-    node, npm = shutil.which("node"), shutil.which("npm")
-    if node is None or npm is None:
-        pytest.skip("node/npm not installed (apt-get install nodejs npm; .ci/run does)")
-    package = (NODE_DIR / "package.json").read_bytes()
-    stamp = CACHE / "installed.sha256"
-    digest = hashlib.sha256(package).hexdigest()
-    if not stamp.exists() or stamp.read_text() != digest:
-        CACHE.mkdir(parents=True, exist_ok=True)
-        (CACHE / "package.json").write_bytes(package)
-        done = subprocess.run([npm, "install", "--no-audit", "--no-fund", "--prefix", str(CACHE)],
-                              capture_output=True, text=True, timeout=300, check=False)
-        if done.returncode != 0:
-            pytest.fail(f"npm install of sparkplug-payload failed:\n{done.stderr[-2000:]}")
-        stamp.write_text(digest)
-    return CACHE / "node_modules"
+    return npm_modules(NODE_DIR, CACHE, "sparkplug-payload")
 
 
 class Tahu:
