@@ -56,7 +56,8 @@ class BootKeeper:
             return None, None
         loaded = compiled is not None and net.program_hash == compiled.program_hash
         analysis = compiled.analysis if loaded else prep.analyse(net, gate=False)
-        self.started = {"compiled_by": "compile process" if loaded else "scan process",
+        self.started = {"compiled_by": f"softplc run (pid {compiled.compiled_by})" if loaded
+                        else "scan process",
                         "ready_ms": round((time.monotonic_ns() - began) / 1e6, 1)}
         return net, analysis
 
