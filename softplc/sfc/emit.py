@@ -80,12 +80,16 @@ def _program(chart: Chart, io_name: str, out: _Text, problems: list[Problem]) ->
               if sum(s in u.sources for u in chart.transitions) > 1}
     for t in chart.transitions:
         _transition(chart, t, top - t.rank if shared & set(t.sources) else 0, out)
-    for a in chart.actions:
-        if a.qualifier == "N" and a.statements:
-            runs = Transition(f"{a.step}_runs_{a.name}", a.line, (a.step,), (a.step,),
-                              f"action {a.name} (N) runs every scan while {a.step} is active")
-            _transition(chart, runs, -1, out,
-                        sequential([(f"{v} = {e}", str(a.line)) for v, e in a.statements]))
+    for step in chart.steps:  # one self-loop per step: two would take turns at one token
+        bodies = [a for a in chart.actions if a.step == step.name and a.qualifier == "N"
+                  and a.statements]
+        if bodies:
+            names = ", ".join(a.name for a in bodies)
+            runs = Transition(f"{step.name}_runs_N_actions", bodies[0].line, (step.name,),
+                              (step.name,), f"N actions {names} run every scan while "
+                              f"{step.name} is active")
+            _transition(chart, runs, -1, out, sequential(
+                [(f"{v} = {e}", str(a.line)) for a in bodies for v, e in a.statements]))
 
 
 def _transition(chart: Chart, t: Transition, priority: int, out: _Text,

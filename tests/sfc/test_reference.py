@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from softplc.program.compiler import compile_file
 from tests.fuzz.budget import scaled
-from tests.sfc.chartxml import chart_xml
+from tests.sfc.chartxml import ChartSpec, chart_xml
 from tests.sfc.compare import compare
 from tests.sfc.gencharts import charts, inputs
 
@@ -45,3 +45,15 @@ def test_generated_charts_agree_with_the_reference(tmp_path_factory: pytest.Temp
     path = tmp_path_factory.mktemp("chart") / "chart.xml"
     path.write_text(chart_xml(spec), encoding="utf-8")  # type: ignore[arg-type]
     assert compare(path, scans) is None, spec
+
+
+def test_two_n_bodies_on_one_step_both_run_every_scan(tmp_path: Path) -> None:
+    spec = ChartSpec(["S0", "S1"], ["S0"], [(["S0"], ["S1"], "i0"), (["S1"], ["S0"], "i1")],
+                     [("S1", "N", "a"), ("S1", "N", "b")],
+                     {"i0": ("BOOL", "%IX0.0"), "i1": ("BOOL", "%IX0.1"),
+                      "c0": ("INT", "%QW0"), "c1": ("INT", "%QW1")},
+                     {"a": "c0 := c0 + 1;", "b": "c1 := c1 + 2;"})
+    path = tmp_path / "two.xml"
+    path.write_text(chart_xml(spec), encoding="utf-8")
+    scans = [{"i0": k == 1, "i1": k == 8} for k in range(12)]
+    assert compare(path, scans) is None
