@@ -1,7 +1,8 @@
 """Issue 39, item 2, as a property: on random nets with enabling delays and timed firings,
 paused at a random scan, live `why` (the explanation GET /api/v1/why builds from the status
-board, api/debug.explain_board) predicts exactly the transitions the next `step` fires,
-and again at each of the following pauses. The PLC is a real ScanLoop on a virtual clock
+board, api/debug.explain_board) predicts exactly the transitions the next `step` fires, and
+the status board's countdowns exactly the timed firings it ends, at each of the following
+pauses. The PLC is a real ScanLoop on a virtual clock
 (10 ms period) whose wall clock runs on while it is paused: a view on the wall clock would
 count delays and firings down during the pause and predict firings that do not happen.
 
@@ -25,6 +26,7 @@ from tests.debug.nets import IO
 
 SCALE = max(1, int(os.environ.get("SOFTPLC_FUZZ_SCALE", "1")))
 MS = 1_000_000
+PERIOD_MS = 10
 PAUSED_CYCLES = 7  # wall-clock periods that pass while paused, before each step
 CHECKS = 6  # pauses compared per net
 
@@ -96,7 +98,7 @@ def test_live_why_predicts_what_the_next_step_fires(tmp_path: Path, body: str,
                                                     first: int) -> None:
     (tmp_path / "io.yaml").write_text(IO, encoding="utf-8")
     (tmp_path / "t.yaml").write_text(f"program: t\nio_image: io.yaml\n{body}", encoding="utf-8")
-    config = LoopConfig(program=str(tmp_path / "t.yaml"), start=True, period_ns=10 * MS)
+    config = LoopConfig(program=str(tmp_path / "t.yaml"), start=True, period_ns=PERIOD_MS * MS)
     loop = ScanLoop(config, None, None, VirtualClock(0))  # type: ignore[arg-type]
     stepper = Stepper(loop, first)
     loop.run(stepper)  # type: ignore[arg-type]
@@ -110,3 +112,10 @@ def test_live_why_predicts_what_the_next_step_fires(tmp_path: Path, body: str,
         predicted = {n for n in names if explain_board(net, before, n).fires}
         assert predicted == fired, (f"scan {before['scan_count']}: why said {sorted(predicted)}"
                                     f" fire, the step fired {sorted(fired)}\n{body}")
+        # The status countdown of a timed firing counts to the next scan's net time (the
+        # 70 ms paused do not count): it ends in the step iff nothing is left.
+        busy = [(board["net_live"].get("busy") or {}) for board in (before, after)]
+        ending = {n for n, times in busy[0].items() if times["remaining_ms"] <= 0}
+        ended = {n for n in busy[0] if n not in busy[1] or n in fired}
+        assert ending == ended, (f"scan {before['scan_count']}: the countdown said "
+                                 f"{sorted(ending)} end, the step ended {sorted(ended)}\n{body}")
