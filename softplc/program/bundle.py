@@ -87,6 +87,8 @@ def _walk(program: str | Path) -> list[Path]:
         if path in seen:
             continue
         seen.append(path)
+        if path.suffix.lower() == ".xml" and path.with_suffix(".io.yml").is_file():
+            pending.append(path.with_suffix(".io.yml"))  # an SFC chart's drivers: docs/sfc.md
         try:
             data, _ = load_yaml(path.read_text(encoding="utf-8"), str(path))
         except (OSError, UnicodeDecodeError):
