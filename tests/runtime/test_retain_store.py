@@ -317,3 +317,17 @@ def test_a_capture_while_paused_moves_the_timers_past_the_pause(tmp_path: Path) 
     cap = retain.capture(bench.plc, 50 * ms, {})
     assert cap is not None and cap.net_state.enabled_since == {back: 40 * ms}
     assert bench.plc.engine.state.enabled_since == {back: 10 * ms}  # the PLC's own: unchanged
+
+
+def test_restore_starts_a_retain_none_memory_symbol_anew(tmp_path: Path) -> None:
+    """restore()'s own contract (docs/retain.md): a `retain: none` memory symbol restarts at
+    its `init:` whatever the snapshot holds; a retained one takes the snapshot's value."""
+    (tmp_path / "io.yaml").write_text("""sizes: {bits: 16, words: 16}
+symbols:
+  scratch_w: {address: '%MW0', retain: none, init: 5}
+  setpoint: {address: '%MW1'}
+""")
+    bench = Bench(compile_program(tmp_path, "places:\n  p: {tokens: 1}\n"))
+    bench.plc.image.mw[:2] = (11, 22)  # as HMI writes would leave them
+    again = _restored(tmp_path, bench, resume=True)
+    assert (int(again.plc.image.mw[0]), int(again.plc.image.mw[1])) == (5, 22)
