@@ -331,3 +331,23 @@ symbols:
     bench.plc.image.mw[:2] = (11, 22)  # as HMI writes would leave them
     again = _restored(tmp_path, bench, resume=True)
     assert (int(again.plc.image.mw[0]), int(again.plc.image.mw[1])) == (5, 22)
+
+
+def test_restore_starts_a_retain_none_coloured_place_with_its_initial_records(
+        tmp_path: Path) -> None:
+    bench = Bench(compile_program(tmp_path, """
+places:
+  src: {tokens: [{n: 1}, {n: 2}]}
+  seen: {retain: none, tokens: [{n: 0}]}
+transitions:
+  look: {from: [{place: src, var: v}], to: [{place: seen, token: v}]}
+"""))
+    bench.scan(10)
+    assert bench.plc.engine is not None
+    seen = bench.net.place_index["seen"]
+    assert len(bench.plc.engine.state.tokens[seen]) > 1  # look moved records into it
+    again = _restored(tmp_path, bench, resume=True)
+    assert again.plc.engine is not None
+    assert again.plc.engine.state.tokens[seen] == [{"n": 0}]
+    assert again.plc.engine.state.tokens[bench.net.place_index["src"]] == \
+        bench.plc.engine.state.tokens[bench.net.place_index["src"]]

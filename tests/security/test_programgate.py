@@ -89,3 +89,15 @@ def test_the_signers_of_the_last_64_bodies_are_remembered(keys: Path, tmp_path: 
             assert len(gate.signers()) == 64
     kept = gate.signers()
     assert len(kept) == 64 and list(kept.values()) == [f"signer{n}" for n in range(1, 65)]
+
+
+def test_a_trusted_directory_that_cannot_be_read_refuses_saying_so(
+        keys: Path, tmp_path: Path) -> None:
+    trusted = tmp_path / "trusted"
+    trusted.mkdir()
+    shutil.copy(keys / "alice.pub", trusted)
+    gate = ProgramGate(tmp_path, trusted)
+    assert gate.admit(BODY, signed(keys, "alice")) == "alice"
+    (trusted / "broken.pub").mkdir()  # reading it fails (EISDIR), even as root
+    with pytest.raises(ProgramRefused, match=r"no trusted key can be read in .* \(unreadable\)"):
+        gate.admit(BODY, signed(keys, "alice"))
