@@ -70,14 +70,13 @@ class Stepper:
             return False
         if plc.debug.pause is None:
             return self.cycle > 10_000
-        doc = self.loop.document()
-        if doc["scan_count"] != self.last_scan:  # a new pause: keep its board, wait
-            self.last_scan, self.idle = doc["scan_count"], 0
+        if plc.scan_count != self.last_scan:  # a new pause: keep its board, wait
+            self.last_scan, self.idle = plc.scan_count, 0
             if self.first:  # the random scan to start from
                 self.loop.pending.append(ProgramCommand(Command.STEP, value=self.first))
                 self.first = 0
                 return False
-            self.boards.append(doc)
+            self.boards.append(self.loop.document())
             return len(self.boards) > CHECKS
         self.idle += 1
         if self.idle == PAUSED_CYCLES:
@@ -91,7 +90,7 @@ class Stepper:
         return self.is_set()
 
 
-@settings(max_examples=5 * SCALE, deadline=None,
+@settings(max_examples=10 * SCALE, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(body=nets(), first=st.integers(1, 25))
 def test_live_why_predicts_what_the_next_step_fires(tmp_path: Path, body: str,
