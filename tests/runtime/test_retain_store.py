@@ -351,3 +351,28 @@ transitions:
     assert again.plc.engine.state.tokens[seen] == [{"n": 0}]
     assert again.plc.engine.state.tokens[bench.net.place_index["src"]] == \
         bench.plc.engine.state.tokens[bench.net.place_index["src"]]
+
+
+def test_a_cold_start_keeps_only_the_persistent_memory_the_snapshot_kept_the_same(
+        tmp_path: Path) -> None:
+    """restore_persistent: a persistent symbol is taken back only when the snapshot's program
+    kept the same variable there (name, address, type, scale): `other` became an INT."""
+    import json
+    io = """sizes: {{bits: 16, words: 16}}
+symbols:
+  total_w: {{address: '%MW2', retain: persistent}}
+  other: {{address: '%MW3', retain: persistent{kind}}}
+"""
+    benches = []
+    for name, kind in (("v1", ""), ("v2", ", type: int")):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "io.yaml").write_text(io.format(kind=kind))
+        benches.append(Bench(compile_program(tmp_path / name, "places:\n  p: {tokens: 1}\n"),
+                            start=False))
+    old, new = benches
+    old.plc.image.mw[2:4] = (33, 44)
+    cap = retain.capture(old.plc, 0, {})
+    assert cap is not None
+    payload = json.loads(json.dumps(retain.encode(cap, 1, 0)))
+    assert retain.restore_persistent(new.plc, payload) == ["total_w"]
+    assert (int(new.plc.image.mw[2]), int(new.plc.image.mw[3])) == (33, 0)

@@ -101,3 +101,17 @@ def test_a_trusted_directory_that_cannot_be_read_refuses_saying_so(
     (trusted / "broken.pub").mkdir()  # reading it fails (EISDIR), even as root
     with pytest.raises(ProgramRefused, match=r"no trusted key can be read in .* \(unreadable\)"):
         gate.admit(BODY, signed(keys, "alice"))
+
+
+def test_a_version_that_cannot_be_recorded_is_said_and_logged_with_the_reason(
+        keys: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    trusted = tmp_path / "trusted"
+    trusted.mkdir()
+    shutil.copy(keys / "alice.pub", trusted)
+    gate = ProgramGate(tmp_path, trusted)
+    (tmp_path / "signed_version.json").mkdir()  # the version file cannot be written
+    one = signing.sign(BODY, signing.load_private(keys / "alice.key"), 1)
+    said = gate.applied(BODY, one, "alice")
+    assert said == (f", version 1 (not recorded: {tmp_path / 'signed_version.json'} cannot "
+                    "be written)")
+    assert "cannot be written (Is a directory): version 1 is not recorded" in caplog.text
