@@ -267,3 +267,14 @@ def test_where_names_the_iec_address_at_a_modbus_address() -> None:
     assert m.where(hr, 2052) == m.where(hr, 2053) == "%MD2"  # by its first register
     assert m.where(ir, 5000) == "%IL226"
     assert m.where(hr, 4095) is None  # past %MD's 256 double words, before %ML
+
+
+def test_half_a_double_word_written_is_refused_naming_it() -> None:
+    m = RegisterMap(ImageSizes())
+    hr = Table.HOLDING_REGISTERS
+    assert m.plan_write(hr, 2052, [1, 2]) == [HmiWrite(parse_address("%MD2"), (1, 2))]
+    for address, count in ((2053, 1), (2052, 1), (2053, 2)):
+        with pytest.raises(MapError, match=r"^%MD2 is written whole: its 2 registers in one "
+                           "request$") as err:
+            m.plan_write(hr, address, [1] * count)
+        assert err.value.code is ExceptionCode.ILLEGAL_DATA_ADDRESS
