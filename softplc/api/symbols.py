@@ -21,6 +21,7 @@ from softplc.api.service import ApiService
 from softplc.core.image import AddressError, parse_address, split_registers
 from softplc.core.present import Shown, ValueRefused, accepted, shown
 from softplc.core.snapshot import ChannelFull, HmiWrite
+from softplc.security.writes import symbol_refusal
 
 
 def register(app: web.Application, api: ApiService) -> None:
@@ -108,11 +109,9 @@ class _Routes:
 
     async def write(self, request: web.Request) -> web.Response:
         name, entry = await self._lookup(request)
-        if entry.get("direction") == "in":
-            raise ApiProblem(403, f"symbol {name} ({entry.get('address')}) is an input: "
-                                  "inputs belong to the drivers")
-        if entry.get("hmi_writable") is False:
-            raise ApiProblem(403, f"symbol {name} is declared hmi_writable: false")
+        refusal = symbol_refusal(name, entry)
+        if refusal is not None:
+            raise ApiProblem(403, refusal)
         raw = write_raw(name, entry, await json_body(request))
         try:
             address = parse_address(str(entry.get("address")))

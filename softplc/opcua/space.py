@@ -22,6 +22,7 @@ from softplc.core.image import Address, AddressError, parse_address
 from softplc.core.lifecycle import PlcState, Stage, stage_of
 from softplc.opcua.ids import numeric_id, string_id
 from softplc.opcua.typed import UNKNOWN, Refusal, TypedSymbol, eu_information, eu_range
+from softplc.security.writes import policy_refusal
 
 NAMESPACE_URI: Final = "urn:softplc"
 PLC: Final = "PLC"
@@ -108,13 +109,6 @@ STATUS_VARIABLES: Final[Mapping[str, tuple[ua.VariantType, Any]]] = {
 }
 
 
-def writable_symbol(entry: Mapping[str, Any], policy: str) -> bool:
-    """The Modbus write policy (comm.ModbusWrites) applied to one symbol of the board."""
-    if entry.get("direction") == "in" or policy == "none":
-        return False
-    return policy == "open" or entry.get("hmi_writable", True) is True
-
-
 class Space:
     """The nodes of the server, built once (status, Program) and per program (symbols,
     marking). `build_program` replaces the per-program folders."""
@@ -192,7 +186,7 @@ class Space:
     async def _symbol(self, folder: Node, name: str, entry: Mapping[str, Any],
                       policy: str) -> SymbolNode:
         typed = TypedSymbol.of(entry)
-        writable = writable_symbol(entry, policy) and typed.vtype is not UNKNOWN
+        writable = policy_refusal(name, entry, policy) is None and typed.vtype is not UNKNOWN
         raw = entry.get("raw")
         variant = typed.variant(raw if isinstance(raw, int) else 0)  # the snapshot's next
         node = await _variable(folder, self.nid(symbol_id(name)), f"{self.ns}:{name}",

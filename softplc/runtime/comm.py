@@ -24,9 +24,9 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Final, Literal, Protocol, get_args
+from typing import TYPE_CHECKING, Any, Final, Protocol
 
-from softplc.core.image import Address, AddressError, ImageSizes, parse_address
+from softplc.core.image import Address, ImageSizes
 from softplc.core.snapshot import HmiWrite, SnapshotSource
 from softplc.hmi.admission import Limits
 from softplc.hmi.eng import EngSource
@@ -37,6 +37,7 @@ from softplc.runtime.procs import Flag as Event
 from softplc.runtime.procs import supervisor_pid
 from softplc.runtime.shm import SnapshotReader
 from softplc.runtime.timeslice import request_slice
+from softplc.security.writes import WRITE_POLICIES, WritePolicy, locations
 
 if TYPE_CHECKING:
     from softplc.hmi.secure import SecureModbusSlave
@@ -45,11 +46,9 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("softplc.comm")
 
-# "open": OpenPLC's behaviour, every coil and holding register (outputs and memory);
-# "symbols": only the addresses of the running program's out/memory symbols that are not
-# declared `hmi_writable: false`; "none": the slave is read-only. Inputs are never writable.
-ModbusWrites = Literal["open", "symbols", "none"]
-MODBUS_WRITES: Final[tuple[str, ...]] = get_args(ModbusWrites)
+# The write policy and the symbol rule every door applies: security/writes.py.
+ModbusWrites = WritePolicy
+MODBUS_WRITES: Final[tuple[str, ...]] = WRITE_POLICIES
 RECHECK_S: Final = 0.001  # one program check per write request, not per written address
 # All services stop together, bounded: the supervisor kills what runs 2 s after a signal.
 STOP_SERVICES_S: Final = 1.0
@@ -125,49 +124,45 @@ def modbus_limits(args: Any) -> dict[str, Any]:
             "modbus_idle_timeout_s": getattr(args, "modbus_idle_timeout", 60_000_000_000) / 1e9}
 
 
-def _writable_addresses(document: dict[str, Any]) -> frozenset[Address]:
-    """Every image location of a symbol the board marks as HMI-writable (bits one by one)."""
-    allowed: set[Address] = set()
-    for entry in (document.get("symbols") or {}).values():
-        if not isinstance(entry, dict) or entry.get("direction") == "in":
-            continue
-        if entry.get("hmi_writable", True) is not True:
-            continue
-        try:
-            allowed.add(parse_address(str(entry.get("address"))))
-        except AddressError:
-            continue
-    return frozenset(allowed)
-
-
 class ProgramWritable:
-    """The Writable predicate of `modbus_writes="symbols"`: follows downloads. The snapshot
-    says which program runs (its hash, every scan); the board (refreshed about every 50 ms)
-    lists its symbols. While the board still describes another program, nothing is
-    writable: a stale list must not open an address of the old program."""
+    """The Writable predicate of the policies "symbols" (only the running program's symbols
+    that may be written) and "open" (everything but the locations of its symbols declared
+    `hmi_writable: false`): follows downloads. The snapshot says which program runs (its
+    hash, every scan); the board (refreshed about every 50 ms) lists its symbols. While the
+    board still describes another program, nothing is writable: a stale list must not open an
+    address of the old program, nor forget one the new program closes."""
 
-    def __init__(self, read_board: Callable[[], dict[str, Any]], source: SnapshotSource) -> None:
+    def __init__(self, read_board: Callable[[], dict[str, Any]], source: SnapshotSource,
+                 policy: WritePolicy = "symbols") -> None:
         self._read_board = read_board
         self._source = source
+        self._open = policy == "open"
         self._program_hash: str | None = None
-        self._allowed: frozenset[Address] = frozenset()
+        self._listed: frozenset[Address] = frozenset()  # writable ("symbols") or closed ("open")
+        self._fresh = False
         self._checked_s = float("-inf")
 
     def __call__(self, address: Address) -> bool:
-        return address in self._current()
+        listed = address in self._current()
+        if not self._fresh:
+            return False
+        return not listed if self._open else listed
 
     def _current(self) -> frozenset[Address]:
         now_s = time.monotonic()
         if now_s - self._checked_s < RECHECK_S:
-            return self._allowed
+            return self._listed
         self._checked_s = now_s
         running = self._source.latest().status.program_hash
-        if running != self._program_hash:
+        if not running:  # no program: nothing is declared, so "open" closes nothing
+            self._program_hash, self._listed, self._fresh = None, frozenset(), self._open
+        elif running != self._program_hash:
             document = self._read_board()
-            fresh = bool(running) and document.get("program_hash") == running
-            self._allowed = _writable_addresses(document) if fresh else frozenset()
-            self._program_hash = running if fresh else None
-        return self._allowed
+            self._fresh = document.get("program_hash") == running
+            self._listed = (locations(document.get("symbols") or {}, writable=not self._open)
+                            if self._fresh else frozenset())
+            self._program_hash = running if self._fresh else None
+        return self._listed
 
 
 class _Service(Protocol):
@@ -185,8 +180,8 @@ def modbus_slave(config: CommConfig, source: SnapshotSource, sink: Callable[[Hmi
     if config.modbus is None:
         raise ValueError("Modbus is off in this configuration")
     host, port = config.modbus
-    writable = (ProgramWritable(read_board, source) if config.modbus_writes == "symbols"
-                else None)
+    writable = (ProgramWritable(read_board, source, config.modbus_writes)
+                if config.modbus_writes != "none" else None)
     audit = WritesAudited(AuditTrail(Path(config.state_dir)), config.modbus_writes)
     return ModbusSlave(source, sink, sizes=config.sizes, host=host, port=port,
                        writable=writable, read_only=config.modbus_writes == "none",
@@ -212,8 +207,8 @@ def secure_modbus_slave(config: CommConfig, source: SnapshotSource,
     state = Path(config.state_dir)
     cert, key, _ = certificate(TlsSettings(), state / MODBUS_TLS_DIR, host)
     tls = TlsConfig(cert, key, TrustList(state, MODBUS_TLS_DIR), AuditTrail(state))
-    writable = (ProgramWritable(read_board, source) if config.modbus_writes == "symbols"
-                else None)
+    writable = (ProgramWritable(read_board, source, config.modbus_writes)
+                if config.modbus_writes != "none" else None)
     return SecureModbusSlave(source, sink, tls=tls, sizes=config.sizes, host=host, port=port,
                              writable=writable, read_only=config.modbus_writes == "none",
                              max_connections=config.modbus_max_connections,

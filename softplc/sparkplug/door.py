@@ -146,8 +146,8 @@ class Door:
         decision = granted(self.who, Act.WRITE)
         if not decision.allowed:
             return "denied", decision.reason() + " (--sparkplug-role)"
-        if not symbol.writable:
-            return "refused", f"{symbol.name} is an input or hmi_writable: false"
+        if symbol.refusal is not None:
+            return "refused", symbol.refusal
         with contextlib.suppress(SnapshotUnavailable):
             if self._source.latest().status.program_hash != program:
                 return "refused", "the program changed: use the metrics of the next NBIRTH"

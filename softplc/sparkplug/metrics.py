@@ -20,6 +20,7 @@ from typing import Any, Final
 from softplc.core.datatypes import SymType
 from softplc.core.image import AddressError, ProcessImage, parse_address
 from softplc.core.present import scaling_of, sym_type, value
+from softplc.security.writes import symbol_refusal
 from softplc.sparkplug import codec
 from softplc.sparkplug.codec import Metric, Value
 
@@ -48,8 +49,12 @@ class SymbolMetric:
     type_name: str
     address: Any  # core.image.Address
     scale: Any
-    writable: bool
+    refusal: str | None  # why no client may write it (security/writes.py), None: writable
     properties: tuple[tuple[str, int, Value], ...]
+
+    @property
+    def writable(self) -> bool:
+        return self.refusal is None
 
     def read(self, image: ProcessImage) -> Value:
         number = value(self.type_name, image.get(self.address), self.scale)
@@ -72,15 +77,15 @@ def symbol_metrics(document: Mapping[str, Any], first_alias: int) -> list[Symbol
             continue
         scale = scaling_of(entry.get("scale"), entry.get("type"))
         datatype = codec.DOUBLE if scale is not None and t is not SymType.BOOL else DATATYPES[t]
-        writable = entry.get("direction") != "in" and entry.get("hmi_writable", True) is True
-        props: list[tuple[str, int, Value]] = [("readOnly", codec.BOOLEAN, not writable)]
+        refusal = symbol_refusal(str(name), entry)
+        props: list[tuple[str, int, Value]] = [("readOnly", codec.BOOLEAN, refusal is not None)]
         if scale is not None and t is not SymType.BOOL:
             props += [("engUnit", codec.STRING, scale.unit),
                       ("engLow", codec.DOUBLE, float(min(scale.eng))),
                       ("engHigh", codec.DOUBLE, float(max(scale.eng)))]
         found.append(SymbolMetric(str(name), first_alias + len(found), datatype,
                                   str(entry.get("type")), address, entry.get("scale"),
-                                  writable, tuple(props)))
+                                  refusal, tuple(props)))
     return found
 
 

@@ -1,7 +1,8 @@
 """Modbus write restriction end to end: CommConfig.modbus_writes -> the slave that the
 communication process builds (runtime/comm.py) -> a real socket, in front of a live scan.
 
-"open" (default, OpenPLC): outputs and memory writable; "symbols": only the running
+"open" (default, OpenPLC): outputs and memory writable but the locations of symbols declared
+`hmi_writable: false` (refused at every door: security/writes.py); "symbols": only the running
 program's out/memory symbols not declared `hmi_writable: false`, following downloads;
 "none": read-only. A refused write is exception 02 and the image does not change.
 """
@@ -88,10 +89,14 @@ def accepted(reply: bytes, function_code: int) -> bool:
 def test_open_is_the_default_and_writes_outputs_and_memory(plc: LivePlc) -> None:
     assert CommConfig().modbus_writes == "open"
     with _slave(plc, "open") as slave, connect(slave.port) as sock:
-        assert accepted(write_register(sock, WORDS + 5, 77), 6)  # speed, hmi_writable: false
+        assert accepted(write_register(sock, WORDS + 4, 42), 6)  # setpoint
         assert accepted(write_register(sock, WORDS + 300, 9), 6)  # no symbol there
         assert accepted(write_coil(sock, BITS + 1), 5)  # %MX0.1, no symbol
-        assert image_value(plc, "%MW5") == 77
+        # speed is declared hmi_writable: false: no door writes it, Modbus "open" neither
+        eventually(lambda: refused(write_register(sock, WORDS + 5, 77), 6))
+        assert refused(write_registers(sock, WORDS + 4, [1, 2]), 16)  # all or nothing
+        assert image_value(plc, "%MW4") == 42
+        assert image_value(plc, "%MW5") == 0
         assert image_value(plc, "%MW300") == 9
         assert image_value(plc, "%MX0.1") == 1
 
