@@ -376,3 +376,25 @@ symbols:
     payload = json.loads(json.dumps(retain.encode(cap, 1, 0)))
     assert retain.restore_persistent(new.plc, payload) == ["total_w"]
     assert (int(new.plc.image.mw[2]), int(new.plc.image.mw[3])) == (33, 0)
+
+
+def test_a_cold_start_takes_back_a_persistent_coloured_place_with_its_records(
+        tmp_path: Path) -> None:
+    import json
+    net = compile_program(tmp_path, """
+places:
+  src: {tokens: [{n: 1}]}
+  kept: {retain: persistent, tokens: [{n: 0}]}
+transitions:
+  keep: {from: [{place: src, var: v}], to: [{place: kept, token: v}]}
+""")
+    old = Bench(net)
+    old.scan(10)
+    cap = retain.capture(old.plc, 10, {})
+    assert cap is not None
+    payload = json.loads(json.dumps(retain.encode(cap, 1, 0)))
+    new = Bench(net, start=False)
+    assert retain.restore_persistent(new.plc, payload) == ["kept"]
+    assert new.plc.engine is not None
+    assert new.plc.engine.state.tokens[net.place_index["kept"]] == [{"n": 0}, {"n": 1}]
+    assert new.marking() == {"src": 1, "kept": 2}  # src is not persistent: initial
