@@ -21,11 +21,6 @@ from softplc.sfc.reader import read_chart
 from softplc.sfc.verify import verify
 
 
-def is_chart(path: str | Path) -> bool:
-    """A PLCopen chart by its name: `x.xml` or `x.xml#POU`."""
-    return str(path).partition("#")[0].lower().endswith(".xml")
-
-
 @dataclass(frozen=True, slots=True)
 class ChartProgram:
     chart: Chart

@@ -1,0 +1,53 @@
+"""`softplc export --format plcopen`: a net that is a chart is written as PLCopen XML that
+reads back to the same net; a net that is not is refused with a located reason per place or
+transition."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+from softplc.program.compiler import compile_file
+from tests.sfc.chartxml import ChartSpec, chart_xml
+
+ROOT = Path(__file__).parents[2]
+
+
+def export(program: Path | str, out: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "softplc.cli", "export", str(program),
+                           "--format", "plcopen", "-o", str(out)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=60)
+
+
+def test_a_chart_goes_out_and_back_to_the_same_net(tmp_path: Path) -> None:
+    spec = ChartSpec(["Idle", "A", "B", "C", "D"], ["Idle"], [
+        (["Idle"], ["A", "B"], "go AND NOT stop"), (["A"], ["C"], "x"),
+        (["A"], ["C"], "y AND B.X"), (["B", "C"], ["D"], "TRUE"),
+        (["D"], ["Idle"], "D.T >= T#50ms")], [("A", "N", "lamp"), ("D", "N", "lamp")],
+        {"go": ("BOOL", "%IX0.0"), "stop": ("BOOL", "%IX0.1"), "x": ("BOOL", "%IX0.2"),
+         "y": ("BOOL", "%IX0.3"), "lamp": ("BOOL", "%QX0.0"), "n": ("INT", "%MW3")})
+    chart = tmp_path / "chart.xml"
+    chart.write_text(chart_xml(spec), encoding="utf-8")
+    back = tmp_path / "back.xml"
+    done = export(chart, back)
+    assert done.returncode == 0, done.stderr
+    first, second = compile_file(chart), compile_file(back)
+    assert first.place_names == second.place_names
+    assert [replace(t, line=0) for t in first.transitions] == \
+        [replace(t, line=0) for t in second.transitions]
+    assert first.order == second.order and first.place_outputs == second.place_outputs
+    assert {n: str(s.address) for n, s in first.io.symbols.items()} == \
+        {n: str(s.address) for n, s in second.io.symbols.items()}
+
+
+def test_a_net_that_is_not_a_chart_is_refused_with_the_reasons(tmp_path: Path) -> None:
+    done = export("programs/drilling.yaml", tmp_path / "d.xml")
+    assert done.returncode == 1
+    assert not (tmp_path / "d.xml").exists()
+    lines = done.stderr.splitlines()
+    assert "programs/drilling.yaml:19: not an SFC: place counter holds coloured tokens (a step " \
+        "holds no data)" in lines
+    assert "programs/drilling.yaml:34: not an SFC: transition drill has a duration (an SFC " \
+        "transition clears at once)" in lines
