@@ -221,10 +221,16 @@ def accepted(type_name: str | None, value: object, symbol: str,
         raise refused from None
 
 
+def _article(t: SymType) -> str:
+    """'an int', 'an lreal' ('el-real'), 'a word', 'a dint', 'a udint' ('you-dint')."""
+    return "an" if t in (SymType.INT, SymType.LREAL) else "a"
+
+
 def _scaled(t: SymType, scaling: Scaling, value: object, symbol: str) -> int:
     (e0, e1), unit = scaling.eng, f" {scaling.unit}" if scaling.unit else ""
     refused = ValueRefused(
-        f"symbol {symbol} is scaled ({min(e0, e1):g}..{max(e0, e1):g}{unit} on a {t.value}): "
+        f"symbol {symbol} is scaled ({min(e0, e1):g}..{max(e0, e1):g}{unit} "
+        f"on {_article(t)} {t.value}): "
         f"the value must be a finite number in engineering units that scales into the "
         f"{t.value}'s range, not {_text(value)}")
     if isinstance(value, bool) or not isinstance(value, int | float):

@@ -189,7 +189,7 @@ def test_a_scaled_symbol_is_read_written_and_forced_in_engineering_units(
     assert client.forces() == {"pct": 25.0}
     client.unforce()
     status, body = put(api, "/symbols/pct", b'{"value": 200.0}')  # raw 55296: past an int
-    assert status == 422 and "pct is scaled (0..100 % on a int)" in body["error"]
+    assert status == 422 and "pct is scaled (0..100 % on an int)" in body["error"]
 
 
 def raw_count(api: ServerThread) -> int:

@@ -198,8 +198,10 @@ def test_a_scaled_symbol_is_shown_and_given_in_engineering_units() -> None:
     signed = {"raw": [-500, 1500], "eng": [-50.0, 150.0], "unit": "°C"}
     assert shown("int", 0xFFFF - 29, signed) == -3.0  # raw -30 tenths
     assert accepted("int", -3.0, "temperature", signed) == 0xFFFF - 29
-    with pytest.raises(ValueRefused, match=r"temperature is scaled \(-50..150 °C on a int\)"):
+    with pytest.raises(ValueRefused, match=r"temperature is scaled \(-50..150 °C on an int\)"):
         accepted("int", 4000.0, "temperature", signed)  # raw 40000: past an int
+    with pytest.raises(ValueRefused, match=r"is scaled \(-50..150 °C on a word\)"):
+        accepted("word", -60.0, "temperature", signed)  # raw -600: below a word
     with pytest.raises(ValueRefused, match="engineering units"):
         accepted("int", "hot", "temperature", signed)
     assert shown("int", 7, {"raw": "?"}) == 7  # a scale this version cannot read: unscaled

@@ -42,7 +42,7 @@ EXPECTED = [
     f"true/false or 0/1, not \"on\" ('on' {TRAP})",
     "{F}:7: symbols.level.init: init 101 is outside the scale's eng span [0, 100] (clamp: true "
     "would store its end instead)",
-    "{F}:9: symbols.far.init: init 150 refused: symbol far is scaled (0..100 on a int): the "
+    "{F}:9: symbols.far.init: init 150 refused: symbol far is scaled (0..100 on an int): the "
     "value must be a finite number in engineering units that scales into the int's range, "
     "not 150",
     "{F}:10: symbols.text.init: init 'fifty' refused: symbol text is a word: the value must be "
