@@ -64,7 +64,7 @@ _TITLES: Final = {"modbus": ("softplc-modbus", "Modbus process"),
                   "modbus-tls": ("softplc-mbtls", "Modbus/TCP Security process"),
                   "http": ("softplc-http", "HTTP process"),
                   "opcua": ("softplc-opcua", "OPC UA process"),
-                  "sparkplug": ("softplc-sparkplug", "Sparkplug process")}
+                  "sparkplug": ("softplc-spb", "Sparkplug process")}
 
 
 @dataclass(eq=False)

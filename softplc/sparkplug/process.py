@@ -1,4 +1,4 @@
-"""The Sparkplug process (`softplc-sparkplug`): one edge node over the published snapshot, the
+"""The Sparkplug process (`softplc-spb`): one edge node over the published snapshot, the
 status board and the command channel, started and restarted alone by the supervisor like
 the other service processes (runtime/supervisor.py).
 
@@ -46,7 +46,7 @@ STEP_S: Final = 0.02  # how long one step waits for the socket
 # Sparkplug, for what this saved).
 BOARD_S: Final = 0.5
 NICE: Final = 10
-NAME: Final = "softplc-sparkplug"
+NAME: Final = "softplc-spb"
 
 
 class Reader:

@@ -46,9 +46,9 @@ def _trail(state: Path) -> list[dict[str, Any]]:
 
 
 def _sparkplug_pid(supervisor: int) -> int:
-    """The supervisor's child named softplc-sparkplug (procs.name_process: 15 bytes)."""
+    """The supervisor's child named softplc-spb (Linux keeps 15 bytes of a name)."""
     found = [int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit()
-             and _parent(p) == supervisor and _comm(p) == "softplc-sparkpl"]
+             and _parent(p) == supervisor and _comm(p) == "softplc-spb"]
     assert len(found) == 1, found
     return found[0]
 
