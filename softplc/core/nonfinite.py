@@ -7,10 +7,13 @@ neither does a typed write at any door (HTTP, OPC UA, force, sim scripts, the de
 all go through core/present.py `accepted`). Two ways remain for the bits of one to reach a
 symbol: a Modbus register write (raw bits, hmi/map.py refuses it with exception 03 unless the
 symbol says `finite: false`) and a device input (the device's value: it cannot be refused).
+A device input's is said on arrival: `arrived`, once a scan after the inputs latch, makes the
+event `not_finite:SYMBOL:device:DRIVER` when a real/lreal input's latched value is not finite
+and was finite the scan before (the previous image), whether a guard reads it or not.
 A guard or an action that reads one reads it as IEEE 754 says (every comparison with NaN is
-false: a backstop `or high_switch` still works), and the scan says it once, as the event
-`not_finite:SYMBOL:DOOR` (core/context.py notes the read, `said` makes the event), and live
-`why` shows the door beside the value (core/whyguard.py).
+false: a backstop `or high_switch` still works), and the scan says any other symbol's once,
+as the event `not_finite:SYMBOL:modbus` (core/context.py notes the read, `said` makes the
+event), and live `why` shows the door beside the value (core/whyguard.py).
 Does not know: the net, the scan, the doors' protocols.
 """
 
@@ -19,8 +22,11 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 
+import numpy as np
+
 from softplc.core.context import ScanContext
 from softplc.core.datatypes import INFO, SymType, value_of
+from softplc.core.image import ProcessImage
 from softplc.core.symbols import Direction, Symbol
 
 
@@ -64,7 +70,8 @@ def said(ctx: ScanContext, symbols: Mapping[str, Symbol]) -> tuple[str, ...]:
     for name in [n for n in ctx.reported if n not in ctx.unusable]:
         if name not in symbols or _finite_now(ctx, name):
             ctx.reported.discard(name)
-    fresh = sorted(n for n in ctx.unusable - ctx.reported if n in symbols)
+    fresh = sorted(n for n in ctx.unusable - ctx.reported
+                   if n in symbols and symbols[n].direction is not Direction.IN)  # `arrived`
     ctx.reported |= ctx.unusable
     ctx.unusable.clear()
     return tuple(f"not_finite:{name}:{door_word(symbols[name])}" for name in fresh)
@@ -74,3 +81,41 @@ def _finite_now(ctx: ScanContext, name: str) -> bool:
     area, index = ctx.locations[name]
     t = ctx.typed.get(name)
     return t is None or math.isfinite(value_of(t, int(getattr(ctx.image, area)[index])))
+
+
+class _Watch:
+    """The real and lreal input symbols of one io image, by area: names and indices."""
+
+    __slots__ = ("areas", "symbols")
+
+    def __init__(self, symbols: Mapping[str, Symbol]) -> None:
+        self.symbols = symbols
+        found: dict[str, list[Symbol]] = {}
+        for sym in symbols.values():
+            if sym.direction is Direction.IN and INFO[sym.type].is_float:
+                found.setdefault(sym.address.attr, []).append(sym)
+        self.areas = tuple((attr, np.dtype(np.float32 if attr == "id" else np.float64),
+                            np.array([s.address.index for s in syms], dtype=np.intp),
+                            tuple(syms)) for attr, syms in sorted(found.items()))
+
+
+_WATCHES: list[_Watch] = []  # the last few io images' (a process runs one or two at a time)
+
+
+def arrived(image: ProcessImage, prev: ProcessImage,
+            symbols: Mapping[str, Symbol]) -> tuple[str, ...]:
+    """`not_finite:SYMBOL:device:DRIVER` for each real/lreal input whose latched value in
+    `image` is a NaN or an infinity and whose value in `prev` (the scan before) was finite;
+    () in a few microseconds when none is (one vectorised test per input area)."""
+    watch = next((w for w in _WATCHES if w.symbols is symbols), None)
+    if watch is None:
+        watch = _Watch(symbols)
+        _WATCHES[:] = [watch, *_WATCHES[:3]]
+    out: list[str] = []
+    for attr, dtype, at, syms in watch.areas:
+        now = ~np.isfinite(getattr(image, attr)[at].view(dtype))
+        if now.any():
+            before = ~np.isfinite(getattr(prev, attr)[at].view(dtype))
+            out += (f"not_finite:{s.name}:{door_word(s)}"
+                    for s, new in zip(syms, now & ~before, strict=True) if new)
+    return tuple(out)

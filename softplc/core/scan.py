@@ -117,9 +117,12 @@ def _scan_body(plc: Plc, inputs: ProcessImage, now_ns: int,
     if plc.debug.paused and plc.state is PlcState.RUNNING:  # at a breakpoint (docs/debug.md)
         return pausing.paused_cycle(plc, now_ns, commands, len(hmi), replies)
     running = plc.state is PlcState.RUNNING and plc.engine is not None and plc.net is not None
+    arrived = nonfinite.arrived(plc.image, plc.prev, plc.net.io.symbols) if plc.net else ()
     waiting = _startup_gate(plc, running, answering, now_ns)
     occurred = _conditions(plc, running) if not waiting else ()
     done = _fire(plc, now_ns, occurred) if running and not waiting else _no_round(plc, occurred)
+    if arrived:  # a device input's NaN or infinity, said on arrival (core/nonfinite.py)
+        done = done._replace(occurred=(*arrived, *done.occurred))
     outputs_changed = _outputs(plc, done, bool(commands or hmi))
     return _publish(plc, done, replies, outputs_changed)
 
