@@ -1291,3 +1291,14 @@ def test_a_diagnostic_that_names_no_transition_is_kept_unlocated(tmp_path: Path)
                              f"scan 0: {tmp_path / 'prog.yaml'}:6: transition t0: qw = 'x' "
                              "failed (text)"]
     assert diag.count == 2
+
+
+def test_refresh_outputs_rewrites_a_busy_transitions_output(tmp_path: Path) -> None:
+    """After an outside write (an HMI's, a force's end) every place-driven and busy output is
+    written again from the net: a transition busy in its duration drives its output on."""
+    net = compile_program(tmp_path, DURATION)
+    engine = Engine(net)
+    assert ("r", 1) in engine.fire_round(Ctx(), 0).writes  # work starts: busy, r on
+    assert engine.fire_round(Ctx(), 10).writes == ()  # nothing changed: nothing written
+    engine.refresh_outputs()
+    assert ("r", 1) in engine.fire_round(Ctx(), 20).writes  # still busy: r on again
