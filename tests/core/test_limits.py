@@ -286,3 +286,25 @@ transitions:
     steps = [engine.fire_round(Ctx({"a": 1}), n * 1_000_000) for n in range(3)]
     assert [s.fired for s in steps] == [(0,), (0,), (0,)]
     assert steps[0].writes == (("m", 1),)
+
+
+@pytest.mark.parametrize(("guard", "fires"), [("x.id == 9 and y.id == 99", True),
+                                              ("x.id == 10 and y.id == 0", False)])
+def test_a_transitions_binding_search_stops_after_exactly_1000_tries(
+        tmp_path: Path, guard: str, fires: bool) -> None:
+    """MAX_BINDINGS: x = 9, y = 99 is the 1000th pair tried (11 x 100 records), found;
+    x = 10, y = 0 the 1001st, never tried: the search stops, said once a round."""
+    xs = ", ".join(f"{{id: {i}}}" for i in range(11))
+    ys = ", ".join(f"{{id: {i}}}" for i in range(100))
+    net = compile_program(tmp_path, f"""
+places:
+  xs: {{tokens: [{xs}]}}
+  ys: {{tokens: [{ys}]}}
+  out: {{coloured: true}}
+transitions:
+  pair: {{from: [{{place: xs, var: x}}, {{place: ys, var: y}}], to: [out], when: "{guard}"}}
+""")
+    engine = Engine(net)
+    assert engine.fire_round(Ctx(), 0).fired == ((0,) if fires else ())
+    stopped = [d for d in engine.diagnostics if "stopped after 1000 tries" in d]
+    assert bool(stopped) is not fires
