@@ -65,3 +65,58 @@ def test_only_the_command_run_is_imported() -> None:
               "softplc.api.admincmds", "softplc.api.signcmds", "softplc.api.trustcmds",
               "softplc.cli.local", "softplc.cli.runargs"}
     assert not modules & others, sorted(modules & others)
+
+
+# Taken off the client path (issue 40 item 1), each a cost of every start: typing and
+# dataclasses (with inspect, ast, dis) by cli/table.py, core/ and the client; difflib (only a
+# mistyped command); the server's hmac and secrets (security/auth.py); the TLS settings and
+# context modules (only for an https URL).
+TRIMMED = ("typing", "dataclasses", "inspect", "difflib", "hmac", "secrets",
+           "softplc.security.tls", "softplc.security.settings", "softplc.api.secopts")
+
+
+@pytest.mark.parametrize("argv", [("status", "--json", "--api", "URL"), ("--help",),
+                                  ("--version",)])
+def test_the_client_path_stays_trimmed(argv: tuple[str, ...]) -> None:
+    url = f"http://127.0.0.1:{free_port()}"
+    code, modules = imported_by(*(url if arg == "URL" else arg for arg in argv))
+    assert code in (0, 2), code
+    back = sorted(modules & set(TRIMMED))
+    assert not back, f"softplc {' '.join(argv)} imported {back}"
+
+
+@pytest.mark.parametrize("argv", [("--help",), ("--version",)])
+def test_help_and_version_import_no_http_client(argv: tuple[str, ...]) -> None:
+    code, modules = imported_by(*argv)
+    assert code == 0
+    client = sorted(modules & {"softplc.api.client", "urllib.request", "http.client", "ssl",
+                               "email", "pathlib"})  # json: the wrapper imports it
+    assert not client, client
+
+
+def test_version_builds_no_parser() -> None:
+    """`softplc --version` prints without the parser of 30 commands (argparse's help
+    formatter imports shutil when it is made)."""
+    code, modules = imported_by("--version")
+    assert code == 0 and "shutil" not in modules
+
+
+@pytest.mark.parametrize(("argv", "top"), [(["status", "extra"], True),
+                                           (["status", "--jsn"], True),
+                                           (["stop", "--api"], False), (["force"], False)])
+def test_a_usage_error_after_a_command_is_worded_as_before(
+        argv: list[str], top: bool, capsys: pytest.CaptureFixture[str]) -> None:
+    """A command is parsed by a parser of that command alone; its usage errors are worded by
+    the whole parser, as before: the top level's usage line names every command."""
+    from softplc.cli import parse
+    from softplc.cli.table import COMMANDS
+
+    with pytest.raises(SystemExit) as stopped:
+        parse(argv)
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1, err
+    if top:  # unrecognized arguments: the top level's error
+        assert "{" + ",".join(COMMANDS) + "}" in err, err
+    else:
+        assert err.startswith(f"usage: softplc {argv[0]} "), err

@@ -10,9 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Final
 
 from softplc.api.client import (
     DEFAULT_URL,
@@ -24,6 +22,11 @@ from softplc.api.client import (
 )
 from softplc.core.lifecycle import Command
 from softplc.security.auth import TOKEN_ENV
+
+TYPE_CHECKING = False  # typing costs every client command's start (issue 40); mypy reads it
+if TYPE_CHECKING:
+    from collections.abc import Callable
+    from typing import Any, Final
 
 EXIT_OK: Final = 0
 EXIT_REFUSED: Final = 1

@@ -20,13 +20,15 @@ import time
 import urllib.error
 import urllib.parse
 import urllib.request
-from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any, Final
 
-from softplc.api import secopts
 from softplc.core.errors import SoftplcError
-from softplc.security import auth, tls
+from softplc.security import auth
+
+TYPE_CHECKING = False  # typing costs a client command's start (issue 40); TLS: https only
+if TYPE_CHECKING:
+    from collections.abc import Iterator, Sequence
+    from typing import Any, Final
 
 DEFAULT_URL: Final = "http://127.0.0.1:8080"
 URL_ENV: Final = "SOFTPLC_API"  # every client command's --api default (docs/api.md)
@@ -99,6 +101,7 @@ class ApiClient:
                                                       _NoRedirect()]
         self.ca: Path | None = None  # what an https server is verified against (None: system)
         if parts.scheme == "https":
+            from softplc.security import tls
             self.ca = server_ca(ca, state_dir, url if local else None)
             handlers.append(urllib.request.HTTPSHandler(context=tls.client_context(self.ca)))
         self._opener = urllib.request.build_opener(*handlers)
@@ -350,6 +353,8 @@ def server_ca(ca: Path | str | None, state_dir: Path | str | None,
         state_dir = auth.indexed_state_dir(url)
     if state_dir is None:
         return None
+    from softplc.api import secopts
+    from softplc.security import tls
     given = secopts.load(Path(state_dir)).tls.cert
     cert = Path(given) if given else tls.generated_paths(Path(state_dir))[0]
     return cert if cert.is_file() else None

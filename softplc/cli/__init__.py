@@ -10,7 +10,6 @@ Does not know: any command's arguments or how it works.
 from __future__ import annotations
 
 import argparse
-import difflib
 import importlib
 import os
 import sys
@@ -18,6 +17,11 @@ from collections.abc import Iterable, Sequence
 
 from softplc import __version__
 from softplc.cli.table import COMMANDS
+from softplc.core.errors import SoftplcError
+
+TYPE_CHECKING = False  # typing costs every start (issue 40); mypy reads it
+if TYPE_CHECKING:
+    from typing import NoReturn
 
 DESCRIPTION = (
     "softplc: a soft PLC whose control programs are Petri nets. Check a program and its "
@@ -27,12 +31,24 @@ DESCRIPTION = (
     "`softplc COMMAND --help` gives a command's options.")
 
 
-def _parser(full: Iterable[str]) -> argparse.ArgumentParser:
-    """Every command listed with its help; the commands in `full` with their arguments too."""
-    parser = argparse.ArgumentParser(prog="softplc", description=DESCRIPTION)
+class _Retry(SoftplcError):
+    """A usage error of the quick parser (one command listed): parsed again by the whole one,
+    whose message lists every command."""
+
+
+class _Quick(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        raise _Retry(message)
+
+
+def _parser(full: Iterable[str], listed: Iterable[str] = COMMANDS,
+            kind: type[argparse.ArgumentParser] = argparse.ArgumentParser
+            ) -> argparse.ArgumentParser:
+    """The commands `listed` with their help; those in `full` with their arguments too."""
+    parser = kind(prog="softplc", description=DESCRIPTION)
     parser.add_argument("--version", action="version", version=f"softplc {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-    stubs = {name: sub.add_parser(name, help=entry.help) for name, entry in COMMANDS.items()}
+    stubs = {name: sub.add_parser(name, help=COMMANDS[name].help) for name in listed}
     for name in full:
         entry = COMMANDS[name]
         getattr(importlib.import_module(entry.module), entry.add)(stubs[name])
@@ -52,9 +68,19 @@ def _command_of(argv: Sequence[str]) -> str | None:
 
 def parse(argv: Sequence[str]) -> argparse.Namespace:
     """Parse `argv`, building only the parser of the command it names."""
+    if list(argv) == ["--version"]:  # as argparse's version action prints it, with no parser
+        print(f"softplc {__version__}")
+        raise SystemExit(0)
     command = _command_of(argv)
+    if command in COMMANDS and argv[0] == command:  # no top-level option: -h lists them all
+        try:  # a parser of this command alone: the other 30 stubs cost ~8 ms (issue 40)
+            return _parser([command], [command], _Quick).parse_args(argv)
+        except _Retry:
+            pass  # a usage error, worded below as always (the usage line lists every command)
     if command is None or command in COMMANDS:
         return _parser([command] if command else []).parse_args(argv)
+    import difflib  # only for a mistyped command
+
     near = difflib.get_close_matches(command, COMMANDS, n=1)
     hint = f" (did you mean {near[0]!r}?)" if near else ""
     _parser([]).error(f"unknown command {command!r}{hint}; `softplc --help` lists them")

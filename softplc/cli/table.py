@@ -8,19 +8,21 @@ Does not know: any command's arguments.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Final
-
 from softplc.core.lifecycle import Command, accepting
 
+TYPE_CHECKING = False  # typing costs every start (`softplc --help`); mypy reads it
+if TYPE_CHECKING:
+    from typing import Final
 
-@dataclass(frozen=True, slots=True)
+
 class Entry:
-    """`module.add(parser)` adds the command's arguments and sets `func`, its handler."""
+    """`module.add(parser)` adds the command's arguments and sets `func`, its handler.
+    A plain class: `dataclasses` costs `inspect`, `ast` and `dis` at every start."""
 
-    module: str
-    add: str
-    help: str
+    __slots__ = ("add", "help", "module")
+
+    def __init__(self, module: str, add: str, help: str) -> None:
+        self.module, self.add, self.help = module, add, help
 
 
 def _lifecycle(command: str, what: str) -> Entry:

@@ -9,18 +9,16 @@ Does not know: any particular error.
 
 from __future__ import annotations
 
-from typing import Any
-
 
 class SoftplcError(Exception):
     """An error of softplc's own: a refused program, command, write, request or file."""
 
-    def __reduce__(self) -> tuple[Any, ...]:
+    def __reduce__(self) -> tuple[object, ...]:
         return _rebuilt, (type(self), self.args, dict(vars(self)))
 
 
-def _rebuilt(cls: type[SoftplcError], args: tuple[Any, ...],
-             attributes: dict[str, Any]) -> SoftplcError:
+def _rebuilt(cls: type[SoftplcError], args: tuple[object, ...],
+             attributes: dict[str, object]) -> SoftplcError:
     """The error as it was, without calling its __init__ again (whose arguments may differ
     from the args it passed on)."""
     error = cls.__new__(cls, *args)

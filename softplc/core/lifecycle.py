@@ -9,9 +9,12 @@ Does not know: what a program is, how a scan runs, where commands come from.
 from __future__ import annotations
 
 import enum
-from typing import Final
 
 from softplc.core.errors import SoftplcError
+
+TYPE_CHECKING = False  # typing costs a client command's start (issue 40)
+if TYPE_CHECKING:
+    from typing import Final
 
 
 class PlcState(enum.IntEnum):

@@ -13,19 +13,20 @@ token.
 from __future__ import annotations
 
 import contextlib
-import hmac
 import ipaddress
 import json
 import os
 import re
-import secrets
 import stat
 import tempfile
 from pathlib import Path
-from typing import Final
 from urllib.parse import urlsplit
 
 from softplc.core.errors import SoftplcError
+
+TYPE_CHECKING = False  # a client command (issue 40) imports neither typing nor the
+if TYPE_CHECKING:  # server's hmac and secrets: those are imported where used
+    from typing import Final
 
 TOKEN_FILE: Final = "api_token"
 TOKEN_ENV: Final = "SOFTPLC_API_TOKEN"
@@ -83,6 +84,8 @@ def load_or_create_token(state_dir: Path) -> str:
     A file left readable by others is tightened to 0600 before it is used."""
     state_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
     path = state_dir / TOKEN_FILE
+    import secrets
+
     token = "-"
     while token.startswith("-"):  # `--token -x...` would read as an option
         token = secrets.token_urlsafe(_TOKEN_BYTES)
@@ -129,6 +132,8 @@ def bearer_matches(header: str | None, token: str) -> bool:
     scheme, _, given = header.partition(" ")
     if scheme.lower() != "bearer":
         return False
+    import hmac
+
     return hmac.compare_digest(given.strip().encode(), token.encode())
 
 
