@@ -17,6 +17,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 from softplc.core.problems import Problem
+from softplc.sfc import timed
 from softplc.sfc.model import IEC_TYPES, Action, Chart, Transition, Variable
 from softplc.sfc.st import time_ms
 
@@ -73,13 +74,18 @@ def _program(chart: Chart, io_name: str, out: _Text, problems: list[Problem]) ->
             fields.append(f"outputs: [{', '.join(dict.fromkeys(moore[s.name]))}]")
         out.add(f"  {s.name}: {{{', '.join(fields)}}}  # step {s.name}"
                 f"{' (initial)' if s.initial else ''}, {chart.file}:{s.line}", s.line)
+    for name, comment, line in timed.places(chart):
+        out.add(f"  {name}: {{}}  # {comment}", line)
     _check_actions(chart, problems)
+    timed.check(chart, problems)
     out.add("transitions:")
     top = max((t.rank for t in chart.transitions), default=0)
     shared = {s for t in chart.transitions for s in t.sources
               if sum(s in u.sources for u in chart.transitions) > 1}
     for t in chart.transitions:
         _transition(chart, t, top - t.rank if shared & set(t.sources) else 0, out)
+    for t, body in timed.transitions(chart):  # above the chart: their writes come first
+        _transition(chart, t, top + 1, out, body)
     for step in chart.steps:  # one self-loop per step: two would take turns at one token
         bodies = [a for a in chart.actions if a.step == step.name and a.qualifier == "N"
                   and a.statements]
@@ -97,7 +103,9 @@ def _transition(chart: Chart, t: Transition, priority: int, out: _Text,
     out.add(f"  {t.name}:  # {chart.file}:{t.line}: {' '.join(t.condition.split())[:70]}",
             t.line)
     out.add(f"    from: [{', '.join(t.sources)}]", t.line)
-    out.add(f"    to: [{', '.join(t.targets)}]", t.line)
+    entered = [s for s in t.targets if s not in t.sources]
+    out.add(f"    to: [{', '.join([*t.targets, *timed.entered_places(chart, entered)])}]",
+            t.line)
     if t.reads:
         out.add(f"    read: [{', '.join(dict.fromkeys(t.reads))}]", t.line)
     if t.inhibits:
@@ -130,6 +138,8 @@ def _do(chart: Chart, t: Transition) -> list[tuple[str, str]]:
         if a.target and a.qualifier == "P0":
             out.append((f"pulse {a.target}", str(a.line)))
         out.extend((f"{v} = {e}", str(a.line)) for v, e in a.statements)
+    out.extend(timed.on_leave(chart, left))
+    out.extend(timed.on_enter(chart, entered))
     for a in acts(entered, ("S", "R")):
         if a.target:
             out.append((f"{'set' if a.qualifier == 'S' else 'reset'} {a.target}", str(a.line)))

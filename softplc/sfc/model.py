@@ -64,7 +64,8 @@ class Action:
     line: int
     target: str | None  # a BOOL variable driven by the action
     statements: tuple[tuple[str, str], ...] = ()  # (variable, softplc expression)
-    duration: str = ""
+    duration: str = ""  # as written (L, D, DS)
+    duration_ms: int = 0
 
 
 @dataclass(slots=True)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from softplc.core.problems import Problem, ProgramError
 from softplc.sfc.graph import Wiring
-from softplc.sfc.model import Action, Chart, Transition
+from softplc.sfc.model import Action, Chart, Transition, Variable
 from softplc.sfc.pous import choose_pou, variables
 from softplc.sfc.st import (
     TIME,
@@ -22,13 +22,15 @@ from softplc.sfc.st import (
     emit,
     parse_condition,
     parse_statements,
+    time_ms,
 )
 from softplc.sfc.xmlnodes import Node as XNode
 from softplc.sfc.xmlnodes import parse_xml
 
 BOOL_QUALIFIERS = {"N", "S", "R", "P", "P1", "P0"}
 CODE_QUALIFIERS = {"N", "P1", "P0"}
-TIMED = {"L", "D", "SD", "DS", "SL", "DL"}
+TIMED = {"L", "D", "DS"}  # on BOOL variables, with an action timer (timed.py)
+REFUSED_TIMED = {"SD", "SL", "DL"}
 
 
 def read_chart(data: bytes, filename: str, pou_name: str | None = None) -> Chart:
@@ -174,11 +176,15 @@ class _Reader:
         duration = act.attrs.get("duration", "")
         ref = act.child("reference")
         name = ref.attrs.get("name", "") if ref is not None else f"{step}_inline{act.line}"
-        if qual in TIMED:
+        if qual in REFUSED_TIMED:
             self.problem(act.line, f"action {name} of step {step}: qualifier {qual} "
-                         f"{duration} needs an ACTION_CONTROL timer per action: not supported "
-                         "(supported: N, S, R, P, P1, P0 on BOOL variables; N, P1, P0 on ST "
-                         "bodies)")
+                         f"{duration} needs a latch and a timer that outlive the step and that "
+                         "R cancels: not supported (supported: N, S, R, P, P1, P0, and L, D, DS "
+                         "with a duration, on BOOL variables; N, P1, P0 on ST bodies)")
+            return
+        var = self.chart.variables.get(name.upper()) if ref is not None else None
+        if qual in TIMED:
+            self._timed(step, qual, name, duration, var, act.line)
             return
         var = self.chart.variables.get(name.upper()) if ref is not None else None
         if var is not None:
@@ -204,6 +210,24 @@ class _Reader:
             self.problem(line + text[:exc.offset].count("\n"), f"action {name}: {exc.message}")
             return
         self.chart.actions.append(Action(step, qual, name, act.line, None, tuple(stmts)))
+
+    def _timed(self, step: str, qual: str, name: str, duration: str,
+                var: Variable | None, line: int) -> None:
+        if var is None or var.kind != "bool":
+            self.problem(line, f"action {name} of step {step}: {qual} {duration} is supported "
+                         "on a BOOL variable only (an ST body would need a per-scan timer)")
+            return
+        try:
+            ms = time_ms(duration.strip(), 0) if duration.strip() else 0
+        except StError as exc:
+            self.problem(line, f"action {name} of step {step}: duration: {exc.message}")
+            return
+        if ms <= 0:
+            self.problem(line, f"action {name} of step {step}: qualifier {qual} needs a "
+                         f"positive duration (duration=\"T#2s\"), got {duration!r}")
+            return
+        self.chart.actions.append(Action(step, qual, var.name, line, var.name,
+                                         duration=duration.strip(), duration_ms=ms))
 
     def _assign(self, var: str, kind: str, expr: Expr) -> str:
         text, got = emit(expr)

@@ -86,7 +86,9 @@ def chart_xml(spec: ChartSpec, ns: str = "tc6_0201") -> str:
                 out.append(f'<jumpStep localId="{next(ids)}" targetName="{s}"><connectionPointIn>'
                            f'<connection refLocalId="{d}"/></connectionPointIn></jumpStep>')
     for step, qual, name in spec.actions:
-        q = f' qualifier="{qual}"' if qual != "N" else ""
+        qual, _, duration = qual.partition("@")  # "L@T#30ms": qualifier L, duration T#30ms
+        q = (f' qualifier="{qual}"' if qual != "N" else "") + \
+            (f' duration="{duration}"' if duration else "")
         out.append(f'<actionBlock localId="{next(ids)}"><connectionPointIn><connection '
                    f'refLocalId="{step_id[step]}"/></connectionPointIn><action localId="0"{q}>'
                    f'<reference name="{name}"/></action></actionBlock>')

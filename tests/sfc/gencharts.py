@@ -3,8 +3,9 @@
 A chart is a loop of blocks from the initial step back to it: a plain step, a selection
 divergence of 2-3 one-step branches, or a simultaneous divergence of 2 branches of 1-2 steps
 joined again. Conditions are random ST over four BOOL inputs, sometimes `Step.T >= T#..`.
-Actions: N on BOOL outputs, S/R on one output, P1/P0 pulses, and ST bodies (N, P1, P0), each
-body writing its own counter so the order of bodies within a scan cannot matter.
+Actions: N on BOOL outputs, S/R on one output, P1/P0 pulses, ST bodies (N, P1, P0), each
+body writing its own counter so the order of bodies within a scan cannot matter, and timed
+L, D, DS actions on BOOLs of their own.
 """
 
 from __future__ import annotations
@@ -101,6 +102,16 @@ def _actions(draw: st.DrawFn, steps: list[str]
                 variables[var] = ("INT", f"%QW{len(bodies)}")
                 bodies[name] = f"{var} := {var} + 1;"
                 actions.append((step, qual, name))
+    # Timed actions (L, D, DS), each on its own BOOL after S0 (one association per BOOL); the
+    # DS one is reset in S0, which no parallel branch overlaps.
+    for i, qual in enumerate(("L", "D", "DS")):
+        variables[f"t{i}"] = ("BOOL", f"%QX1.{i}")
+        if len(steps) > 1 and draw(st.booleans()):
+            step = draw(st.sampled_from(steps[1:]))
+            ms = draw(st.sampled_from([10, 20, 50]))
+            actions.append((step, f"{qual}@T#{ms}ms", f"t{i}"))
+            if qual == "DS":
+                actions.append(("S0", "R", f"t{i}"))
     return actions, variables, bodies
 
 

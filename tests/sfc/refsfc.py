@@ -13,7 +13,12 @@ Rules it implements (docs/sfc.md states the same choices for the net):
 - after the clearing: N on a BOOL: true while a step holding it is active; S/R on entry (R
   overrides); P/P1 on entry and P0 on exit pulse a BOOL for one scan; an N action with an ST
   body runs in every scan its step is active and once more in the scan it is left (IEC's
-  final execution, Q falling); P1/P0 bodies run once on entry/exit.
+  final execution, Q falling); P1/P0 bodies run once on entry/exit;
+- timed actions on a BOOL, each its own ACTION_CONTROL timer started with the step (on the
+  same clock as Step.T): L true while the step is active and its time is below the duration,
+  D true while it is active and its time has reached it, DS stored (until an R) once the
+  step has been active for the duration; evaluated after the clearing, before S and R (R
+  overrides the stored DS).
 """
 
 from __future__ import annotations
@@ -53,6 +58,7 @@ class RefChart:
     actions: list[tuple[str, str, str]]  # step, qualifier, name
     bodies: dict[str, str]
     types: dict[str, str] = field(default_factory=dict)
+    durations: dict[tuple[str, str], int] = field(default_factory=dict)  # (step, name) -> ms
 
 
 def read(xml_text: str, pou_name: str | None = None) -> RefChart:
@@ -101,6 +107,7 @@ def read(xml_text: str, pou_name: str | None = None) -> RefChart:
     initial = {o.get("name") for o in objs.values() if _local(o.tag) == "step"
                and o.get("initialStep") == "true"}
     actions: list[tuple[str, str, str]] = []
+    durations: dict[tuple[str, str], int] = {}
     inline: dict[str, str] = {}
     for o in objs.values():
         if _local(o.tag) == "actionBlock":
@@ -112,11 +119,14 @@ def read(xml_text: str, pou_name: str | None = None) -> RefChart:
                 else:
                     name = _kids(a, "reference")[0].get("name")
                 actions.append((step, a.get("qualifier") or "N", name))
+                if a.get("duration"):
+                    lit = a.get("duration")
+                    durations[(step, name)] = _ms(lit if "#" in lit else f"T#{lit}")
     bodies = {a.get("name"): _text(a) for a in pou.iter() if _local(a.tag) == "action"
               and a.get("name")} | inline
     types = {v.get("name"): _local(next(iter(_kids(v, "type")[0])).tag)
              for v in pou.iter() if _local(v.tag) == "variable"}
-    return RefChart(steps, initial, transitions, actions, bodies, types)
+    return RefChart(steps, initial, transitions, actions, bodies, types, durations)
 
 
 def _condition(cond: Any, pou: Any, objs: dict[str, Any]) -> str:
@@ -145,7 +155,7 @@ _PREC = {"OR": 1, "XOR": 2, "AND": 3, "&": 3, "=": 4, "<>": 4, "<": 5, ">": 5, "
 
 def _ms(lit: str) -> int:
     total = 0.0
-    for num, unit in re.findall(r"(\d+(?:\.\d+)?)(ms|h|m|s)", lit[2:].lower()):
+    for num, unit in re.findall(r"(\d+(?:\.\d+)?)(ms|h|m|s)", lit.partition("#")[2].lower()):
         total += float(num) * {"ms": 1, "s": 1000, "m": 60000, "h": 3600000}[unit]
     return int(total)
 
@@ -248,12 +258,22 @@ class RefSfc:
         self.active = (self.active - left) | entered
         for s in entered:
             self.since[s] = None
-        self._actions(before, left - entered, entered - (before - left))
+        self._actions(before, left - entered, entered - (before - left), now_ms)
 
-    def _actions(self, before: set[str], gone: set[str], new: set[str]) -> None:
+    def _actions(self, before: set[str], gone: set[str], new: set[str], now: int) -> None:
         for var in self.pulsed:
             self.env[var] = False
         self.pulsed = set()
+        for step, qual, name in self.c.actions:
+            if qual not in ("L", "D", "DS"):
+                continue
+            start = self.since.get(step)
+            elapsed = now - start if step in self.active and start is not None else 0
+            done = step in self.active and elapsed >= self.c.durations[(step, name)]
+            if qual == "L":
+                self.env[name] = step in self.active and not done
+            elif qual == "D" or done:
+                self.env[name] = done
         for step, qual, name in self.c.actions:
             body = self.c.bodies.get(name)
             runs = (qual == "N" and (step in self.active or step in gone)) or \

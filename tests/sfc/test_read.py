@@ -79,23 +79,44 @@ def _problems(path: Path | str) -> list[str]:
 
 
 def test_refusals_are_located_at_the_xml_line_with_what_is_supported(tmp_path: Path) -> None:
-    path = _chart(tmp_path, actions=[("Run", "D", "lamp"), ("Run", "S", "bump")],
+    path = _chart(tmp_path, actions=[("Run", "SD@T#2s", "lamp"), ("Run", "S", "bump")],
                   transitions=[(["Start"], ["Run"], "go AND n MOD 2 = 0"),
                                (["Run"], ["Start"], "NOT go")], bodies={"bump": "n := 1;"})
     lines = path.read_text().splitlines()
     found = _problems(path)
     cond = next(i for i, t in enumerate(lines, 1) if "MOD" in t)
-    timed = next(i for i, t in enumerate(lines, 1) if 'qualifier="D"' in t)
+    timed = next(i for i, t in enumerate(lines, 1) if 'qualifier="SD"' in t)
     stored = next(i for i, t in enumerate(lines, 1) if 'qualifier="S"' in t)
     assert found == sorted([
         f"{path}:{cond}: transition Start_to_Run: MOD truncates toward zero in ST and floors "
         "in softplc; not translated",
-        f"{path}:{timed}: action lamp of step Run: qualifier D  needs an ACTION_CONTROL timer "
-        "per action: not supported (supported: N, S, R, P, P1, P0 on BOOL variables; N, P1, "
-        "P0 on ST bodies)",
+        f"{path}:{timed}: action lamp of step Run: qualifier SD T#2s needs a latch and a timer "
+        "that outlive the step and that R cancels: not supported (supported: N, S, R, P, P1, "
+        "P0, and L, D, DS with a duration, on BOOL variables; N, P1, P0 on ST bodies)",
         f"{path}:{stored}: action bump of step Run: S with an ST body is stored: it would run "
         "every scan until reset; supported: N, P1, P0 bodies, or a BOOL variable as the action",
     ])
+
+
+def test_timed_actions_are_refused_where_their_timer_would_be_wrong(tmp_path: Path) -> None:
+    path = _chart(tmp_path, actions=[("Run", "D", "lamp"), ("Start", "L@T#1s", "go"),
+                                     ("Run", "DS@T#1x", "n"), ("Run", "L@2s", "lamp")])
+    lines = path.read_text().splitlines()
+    at = {q: next(i for i, t in enumerate(lines, 1) if f'qualifier="{q}"' in t)
+          for q in ("D", "L")}
+    found = _problems(path)
+    assert f"{path}:{at['D']}: action lamp of step Run: qualifier D needs a positive duration " \
+        "(duration=\"T#2s\"), got ''" in found
+    assert f"{path}:{at['D'] + 2}: action n of step Run: DS T#1x is supported on a BOOL " \
+        "variable only (an ST body would need a per-scan timer)" in found
+    path = _chart(tmp_path, actions=[("Start", "L@T#1s", "lamp"), ("Run", "N", "lamp")])
+    line = next(i for i, t in enumerate(path.read_text().splitlines(), 1) if "T#1s" in t)
+    assert _problems(path) == [
+        f"{path}:{line}: action lamp (L T#1s) of step Start: lamp is also driven by N in step "
+        f"Run (line {line + 1}); a timed action must be the only one driving its BOOL (R of a "
+        "DS excepted)",
+        f"{path}:{line}: action lamp (L T#1s) of step Start: on the initial step no transition "
+        "starts its timer; move it to a later step"]
 
 
 def test_a_file_with_several_charts_needs_the_pou_named(tmp_path: Path) -> None:

@@ -15,6 +15,7 @@ from tests.fuzz.budget import scaled
 from tests.sfc.chartxml import ChartSpec, chart_xml
 from tests.sfc.compare import compare
 from tests.sfc.gencharts import charts, inputs
+from tests.sfc.refsfc import RefSfc, read
 
 EXAMPLES = Path(__file__).parent / "examples"
 PROGRAMS = Path(__file__).parents[2] / "programs"
@@ -57,3 +58,27 @@ def test_two_n_bodies_on_one_step_both_run_every_scan(tmp_path: Path) -> None:
     path.write_text(chart_xml(spec), encoding="utf-8")
     scans = [{"i0": k == 1, "i1": k == 8} for k in range(12)]
     assert compare(path, scans) is None
+
+
+def test_timed_actions_l_d_ds_agree_with_the_reference(tmp_path: Path) -> None:
+    spec = ChartSpec(["S0", "S1", "S2", "S3"], ["S0"],
+                     [(["S0"], ["S1"], "i0"), (["S1"], ["S2"], "i1"), (["S2"], ["S3"], "i2"),
+                      (["S3"], ["S0"], "TRUE")],
+                     [("S1", "L@T#30ms", "q0"), ("S1", "D@T#20ms", "q1"),
+                      ("S2", "DS@20ms", "q2"), ("S0", "R", "q2")],
+                     {"i0": ("BOOL", "%IX0.0"), "i1": ("BOOL", "%IX0.1"),
+                      "i2": ("BOOL", "%IX0.2"), "q0": ("BOOL", "%QX0.0"),
+                      "q1": ("BOOL", "%QX0.1"), "q2": ("BOOL", "%QX0.2")})
+    path = tmp_path / "timed.xml"
+    path.write_text(chart_xml(spec), encoding="utf-8")
+    # S1 held 6 scans (L runs out, D comes on), then 2 (neither runs out); S2 held long
+    # enough to store q2 (R in S0), then left in the very scan its timer runs out: no store.
+    scans = [{"i0": k in (1, 26), "i1": k in (7, 28), "i2": k in (20, 31)} for k in range(34)]
+    assert compare(path, scans) is None
+    assert {"S1_L_q0", "S1_D_q1", "S2_DS_q2"} <= set(compile_file(path).place_names)
+    ref, seen = RefSfc(read(path.read_text(encoding="utf-8"))), []
+    for k, values in enumerate(scans):
+        ref.scan(k * 10, values)
+        seen.append("".join("1" if ref.env[q] else "0" for q in ("q0", "q1", "q2")))
+    assert (seen[2], seen[4], seen[6], seen[15], seen[21], seen[28], seen[31]) == \
+        ("100", "110", "010", "001", "000", "000", "000")
