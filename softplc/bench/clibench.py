@@ -1,6 +1,7 @@
-"""How fast the CLI answers: `softplc status --json` against a running PLC and `softplc
---help`, each paired with the same venv's bare `python -c pass` in the same run (issue 40:
-at most 5x the bare interpreter).
+"""How fast the CLI answers: `softplc status --json` against a running PLC, `softplc --help`
+and `softplc --version`, each paired with the same venv's bare `python -c pass` in the same
+run (issue 40: at most 5x the bare interpreter); and, for each, what does not depend on the
+machine's load: the number of modules imported and the `-X importtime` total.
 
 Owns: the `cli` section of `softplc bench`. Does not know: what the commands import.
 """
@@ -57,6 +58,23 @@ def _start_plc(state: str) -> tuple[subprocess.Popen[bytes], str]:
     raise RuntimeError("softplc run did not answer RUNNING within 60 s")
 
 
+def _imports(argv: list[str], times: int) -> dict[str, float]:
+    """Modules imported and the sum of `-X importtime`'s self times (ms, the least of `times`:
+    load only ever adds to it)."""
+    # the console script is a Python file: `python -X importtime SCRIPT ARGS`
+    command = [sys.executable, "-X", "importtime",
+               *(argv[1:] if argv[0] == sys.executable else argv)]
+    runs: list[tuple[int, float]] = []
+    for _ in range(times):
+        done = subprocess.run(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                              timeout=60, check=False, text=True)
+        rows = [line.split("|")[0].split(":")[1] for line in done.stderr.splitlines()
+                if line.startswith("import time:") and "self [us]" not in line]
+        runs.append((len(rows), sum(int(us) for us in rows) / 1000))
+    return {"modules": runs[-1][0],
+            "importtime_ms": round(min(t for _, t in runs), 1)}
+
+
 def _summary(samples: list[float]) -> dict[str, float]:
     got = figures(samples)
     return {"median_ms": round(got.median, 1), "p99_ms": round(got.p99, 1),
@@ -72,6 +90,7 @@ def run(quick: bool, progress: Progress, runs: int | None = None) -> dict[str, A
     proc, url = _start_plc(state)
     commands = {"bare": [sys.executable, "-c", "pass"],
                 "help": [*_softplc(), "--help"],
+                "version": [*_softplc(), "--version"],
                 "status_json": [*_softplc(), "status", "--json", "--api", url]}
     samples: dict[str, list[float]] = {name: [] for name in commands}
     try:
@@ -81,6 +100,7 @@ def run(quick: bool, progress: Progress, runs: int | None = None) -> dict[str, A
             progress(f"cli: run {k + 1}/{runs}")
             for name, argv in commands.items():
                 samples[name].append(_wall_ms(argv))
+        imports = {name: _imports(argv, 5 if quick else 10) for name, argv in commands.items()}
     finally:
         end_run(proc)
         shutil.rmtree(state, ignore_errors=True)
@@ -91,6 +111,8 @@ def run(quick: bool, progress: Progress, runs: int | None = None) -> dict[str, A
         "command": " ".join(Path(a).name if i == 0 else a
                             for i, a in enumerate(commands["status_json"])),
         **{f"{name}_{key}": value for name, got in shown.items() for key, value in got.items()},
+        **{f"{name}_{key}": value for name, got in imports.items() for key, value in got.items()},
         "help_over_bare": round(shown["help"]["median_ms"] / bare, 2),
+        "version_over_bare": round(shown["version"]["median_ms"] / bare, 2),
         "status_json_over_bare": round(shown["status_json"]["median_ms"] / bare, 2),
     }
