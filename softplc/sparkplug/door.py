@@ -78,22 +78,30 @@ class Door:
         self._waiting: queue.Queue[Callable[[], None] | None] = queue.Queue(MAX_WAITING)
         self._done: queue.Queue[str] = queue.Queue()
         self.refused_busy = 0
+        self._busy_unaudited = 0  # refused as busy, not yet in the audit trail
+        self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._work, name="sparkplug-door", daemon=True)
         self._thread.start()
 
-    def submit(self, report: Report, metric: Metric) -> None:
-        """A host's NCMD metric (from the node's thread): queued for the worker."""
-        if metric.name is None:  # by alias: a node metric's name, else a symbol's
-            names = {alias: name for name, alias in report.node_alias.items()}
-            if metric.alias in names:
-                metric = replace(metric, name=names[metric.alias])
-        symbol = report.by_name.get(metric.name or "") if metric.name is not None \
-            else report.by_alias.get(metric.alias or -1)
-        program = str(report.document.get("program_hash") or "")
+    def submit(self, report: Report | None, metric: Metric) -> None:
+        """A host's NCMD metric (from the node's thread): queued for the worker. `report`:
+        the last NBIRTH's metrics, None before the first one (every write is refused)."""
+        symbol, program = None, ""
+        if report is not None:
+            if metric.name is None:  # by alias: a node metric's name, else a symbol's
+                names = {alias: name for name, alias in report.node_alias.items()}
+                if metric.alias in names:
+                    metric = replace(metric, name=names[metric.alias])
+            symbol = report.by_name.get(metric.name or "") if metric.name is not None \
+                else report.by_alias.get(metric.alias or -1)
+            program = str(report.document.get("program_hash") or "")
+        born = report is not None
         try:
-            self._waiting.put_nowait(lambda: self._handle(metric, symbol, program))
+            self._waiting.put_nowait(lambda: self._handle(metric, symbol, program, born))
         except queue.Full:
             self.refused_busy += 1
+            with self._lock:  # audited by the worker when it is free again
+                self._busy_unaudited += 1
             self._done.put(f"#{next(self._numbers)} refused: more than {MAX_WAITING} "
                            "commands waiting")
 
@@ -115,12 +123,28 @@ class Door:
                 job()
             except Exception:  # a bug here must not end the door
                 log.exception("Sparkplug command failed")
+            self._audit_busy()
+        self._audit_busy()
+
+    def _audit_busy(self) -> None:
+        """One record for the commands refused because the queue was full since the last."""
+        with self._lock:
+            count, self._busy_unaudited = self._busy_unaudited, 0
+        if count:
+            self._record("command", "refused", f"{count} command(s) refused: more than "
+                         f"{MAX_WAITING} commands waiting", {"refused": count})
 
     # -- one command, in the worker ---------------------------------------------------------
 
-    def _handle(self, metric: Metric, symbol: SymbolMetric | None, program: str) -> None:
-        target = metric.name if metric.name is not None else f"alias {metric.alias}"
-        if metric.name == COMMAND:
+    def _handle(self, metric: Metric, symbol: SymbolMetric | None, program: str,
+                born: bool = True) -> None:
+        target = metric.name if metric.name is not None else f"alias {metric.alias}" \
+            if metric.alias is not None else "a metric without name or alias"
+        if metric.name is None and metric.alias is None:
+            action, outcome, why = "write", "refused", "the metric has no name and no alias"
+        elif not born and metric.name != COMMAND:
+            action, outcome, why = "write", "refused", f"no NBIRTH yet: {target} is not known"
+        elif metric.name == COMMAND:
             action, outcome, why = self._program_command(metric.value)
         elif metric.name in NODE or metric.name == STATUS:
             action, outcome, why = "write", "refused", f"{target} is read only"
@@ -132,15 +156,18 @@ class Door:
             outcome, why = self._write(symbol, metric, program)
         line = f"#{next(self._numbers)} {action} {target}: {outcome}" + (f" ({why})" if why
                                                                           else "")
+        self._record(action, outcome, why or "ok",
+                     {"metric": target, "value": _plain(metric.value)})
+        self._done.put(line)
+
+    def _record(self, action: str, outcome: str, status: str, detail: dict[str, Any]) -> None:
         entry = {"user": None, "role": self.config.role.label, "via": "policy",
                  "peer": f"{self.config.host}:{self.config.port}", "iface": "sparkplug",
-                 "action": action, "outcome": outcome, "status": why or "ok",
-                 "detail": {"metric": target, "value": _plain(metric.value)}}
+                 "action": action, "outcome": outcome, "status": status, "detail": detail}
         try:
             self._audit.append(entry)
         except OSError as exc:
             log.error("audit record of a Sparkplug %s not written: %s", action, exc)
-        self._done.put(line)
 
     def _write(self, symbol: SymbolMetric, metric: Metric, program: str) -> tuple[str, str]:
         decision = granted(self.who, Act.WRITE)

@@ -52,8 +52,11 @@ class BdSeq:
 
     def __init__(self, state_dir: str) -> None:
         self.path = Path(state_dir) / "sparkplug" / "bdseq"
+        self._used: int | None = None  # the last one this process used (if the file fails)
 
     def last(self) -> int | None:
+        if self._used is not None:
+            return self._used
         try:
             number = int(self.path.read_text().strip())
         except (OSError, ValueError):
@@ -65,6 +68,8 @@ class BdSeq:
         return 0 if last is None else (last + 1) % 256
 
     def keep(self, number: int) -> None:
+        """`number` is used from now on: kept in memory, then in the file (OSError if not)."""
+        self._used = number
         self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
         tmp = self.path.with_suffix(".tmp")
         with tmp.open("w") as out:
@@ -79,7 +84,7 @@ class EdgeNode:
     alias, metric)` hands a host's NCMD metric (not Rebirth) to the door."""
 
     def __init__(self, config: SparkplugConfig, read: Callable[[], Reading],
-                 command: Callable[[Report, Metric], None]) -> None:
+                 command: Callable[[Report | None, Metric], None]) -> None:
         self.config = config
         self._read = read
         self._command = command
@@ -99,6 +104,7 @@ class EdgeNode:
         self.next_try_s = 0.0
         self.failures = 0
         self.last_data_s = 0.0
+        self.keep_failed = False
         self.counts = {"births": 0, "data": 0, "skipped": 0, "commands": 0, "connects": 0}
 
     # -- the loop ---------------------------------------------------------------------------
@@ -170,12 +176,18 @@ class EdgeNode:
         client.on_disconnect, client.on_message = self._on_disconnect, self._on_message
         self.connected = self.subscribed = self.born = False
         self.host_online = config.primary_host is None
+        try:  # kept before the CONNECT that carries it goes out (a kill -9 right after it
+            self.bdseq.keep(bdseq)  # must not give the next session the same bdSeq)
+        except OSError as exc:  # a full or read-only state dir: report on, say so once
+            if not self.keep_failed:
+                log.error("Sparkplug: bdSeq not kept in %s (%s): after a restart, hosts may "
+                          "see a bdSeq again", self.bdseq.path, exc)
+            self.keep_failed = True
         try:
             client.connect(config.host, config.port, keepalive=config.keepalive_s)
         except (OSError, ValueError) as exc:
             self._retry(f"cannot connect to {config.host}:{config.port}: {exc}")
             return
-        self.bdseq.keep(bdseq)  # this CONNECT went out with it: the next one is bdseq + 1
         self.counts["connects"] += 1
         self.client = client
 
@@ -222,8 +234,7 @@ class EdgeNode:
         for metric in payload.metrics:
             if metric.name == REBIRTH:
                 self.rebirth = self.rebirth or metric.value is True
-            elif self.report is not None and (metric.name is not None or
-                                              metric.alias is not None):
+            else:  # also before any birth (None): the door refuses it, audited
                 self.counts["commands"] += 1
                 self._command(self.report, metric)
 
@@ -235,7 +246,8 @@ class EdgeNode:
             doc = json.loads(text) if text.startswith("{") else \
                 {"online": text == "ONLINE", "timestamp": self.host_ts}
             online, stamp = bool(doc["online"]), int(doc["timestamp"])
-        except (UnicodeDecodeError, ValueError, KeyError, TypeError):
+        except (UnicodeDecodeError, ValueError, KeyError, TypeError, OverflowError,
+                RecursionError):  # e.g. "timestamp": Infinity, or nested 10**5 deep
             log.warning("Sparkplug: a STATE message that is not {online, timestamp} ignored")
             return
         if stamp < self.host_ts:
