@@ -68,12 +68,15 @@ def _program(chart: Chart, io_name: str, out: _Text, problems: list[Problem]) ->
     out.add("places:")
     moore = {s.name: [a.target for a in chart.actions if a.step == s.name and a.qualifier == "N"
                       and a.target] for s in chart.steps}
+    exits = {s for t in chart.transitions for s in t.sources}
     for s in chart.steps:
         fields = ["tokens: 1"] if s.initial else []
         if moore[s.name]:
             fields.append(f"outputs: [{', '.join(dict.fromkeys(moore[s.name]))}]")
         out.add(f"  {s.name}: {{{', '.join(fields)}}}  # step {s.name}"
-                f"{' (initial)' if s.initial else ''}, {chart.file}:{s.line}", s.line)
+                f"{' (initial)' if s.initial else ''}"
+                f"{'' if s.name in exits else ' (final: the chart ends there)'}, "
+                f"{chart.file}:{s.line}", s.line)
     for name, comment, line in timed.places(chart):
         out.add(f"  {name}: {{}}  # {comment}", line)
     _check_actions(chart, problems)

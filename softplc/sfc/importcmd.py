@@ -42,6 +42,8 @@ def cmd_import(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"{out}: cannot write: {exc.strerror}", file=sys.stderr)
         return 1
+    for note in chart.notes:
+        print(note)
     c = chart.chart
     print(f"chart {pou}: {len(c.steps)} steps, {len(c.transitions)} transitions, "
           f"{len(c.actions)} actions -> {out / f'{pou}.yaml'}, {out / f'{pou}.io.yaml'}")

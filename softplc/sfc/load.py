@@ -27,6 +27,7 @@ class ChartProgram:
     file: str  # the XML file
     emitted: Emitted
     sidecar: str | None  # FILE.io.yml when one was read
+    notes: tuple[Problem, ...] = ()  # findings that do not refuse the chart (final steps)
 
     @property
     def program_text(self) -> str:
@@ -90,7 +91,8 @@ def load_chart(path: str | Path, pou: str | None = None, io_name: str = "") -> C
         raise ProgramError([Problem(name, 0, "", f"cannot read chart: {exc.strerror}")]) \
             from None
     chart = read_chart(data, name, pou)
-    problems = verify(chart)
+    notes: list[Problem] = []
+    problems = verify(chart, notes)
     sidecar = Path(name).with_suffix(".io.yml")  # not .yaml: programs/*.yaml are nets
     head = ""
     if sidecar.is_file():
@@ -102,7 +104,7 @@ def load_chart(path: str | Path, pou: str | None = None, io_name: str = "") -> C
     emitted, more = emit(chart, io_name or f"{chart.pou}.io.yaml", head)
     if problems or more:
         raise ProgramError(sorted(set(problems + more)))
-    return ChartProgram(chart, name, emitted, str(sidecar) if head else None)
+    return ChartProgram(chart, name, emitted, str(sidecar) if head else None, tuple(notes))
 
 
 def is_plcopen(path: str | Path) -> bool:

@@ -4,7 +4,11 @@ Owns: exploring every situation (set of active steps) the chart can reach when a
 may be true (conditions are not evaluated: only a constant FALSE is known never to clear),
 and reporting, each with a witness (the transitions that lead there from the initial steps):
 an unsafe chart (a step activated while active: two tokens in the net), unreachable steps,
-transitions that can never clear, and deadlocks (a situation no transition leaves).
+transitions that can never clear, and deadlocks (a situation no transition leaves). A
+situation whose active steps are all final steps (steps no transition leaves: the author
+ended the chart there) is not a deadlock of the chart: it is a note, `final step S7: the
+chart ends there`; the net's analysis gate still reports the dead marking, as for any net
+(blocking under `--verify refuse`, a finding under `warn`).
 Does not know: XML, YAML, the engine.
 """
 
@@ -19,7 +23,8 @@ from softplc.sfc.model import Chart, Transition
 MAX_SITUATIONS = 100_000  # the charts seen have at most a few hundred
 
 
-def verify(chart: Chart) -> list[Problem]:
+def verify(chart: Chart, notes: list[Problem] | None = None) -> list[Problem]:
+    """The chart's problems; the notes (final steps reached) go to `notes`."""
     index = {s.name: i for i, s in enumerate(chart.steps)}
     start = tuple(1 if s.initial else 0 for s in chart.steps)
     problems: list[Problem] = []
@@ -76,8 +81,18 @@ def verify(chart: Chart) -> list[Problem]:
                 f"{', '.join(t.sources)} are never active together"
                 + (f" with {', '.join(t.reads)} active" if t.reads else "")
                 + (f" and {', '.join(t.inhibits)} inactive" if t.inhibits else ""))
-    for m in deadlocks[:3]:
+    final = {s.name for s in chart.steps} - {s for t in chart.transitions for s in t.sources}
+    stuck = []
+    for m in deadlocks:
         active = [s.name for s in chart.steps if m[index[s.name]]]
+        if active and set(active) <= final:  # the author ended the chart there
+            notes = notes if notes is not None else []
+            notes.append(Problem(chart.file, chart.step_line(active[0]), "", f"final step"
+                                 f"{'s' if len(active) > 1 else ''} {', '.join(active)}: the "
+                                 f"chart ends there; witness: {path(m)}"))
+        else:
+            stuck.append((m, active))
+    for m, active in stuck[:3]:
         say(chart.step_line(active[0]) if active else chart.pou_line,
             f"deadlock: once {', '.join(active) or 'no step'} "
             f"{'is' if len(active) == 1 else 'are'} active no transition can clear; "

@@ -1,6 +1,7 @@
 """check/analyze on a chart report the SFC errors in the chart's terms: step and transition
 names, XML lines, a witness path; every command refuses such a chart (the download gate
-included: the program does not compile)."""
+included: the program does not compile). A final step is a note, and the net gate's dead
+marking, as for any net."""
 
 from __future__ import annotations
 
@@ -10,9 +11,12 @@ from pathlib import Path
 
 import pytest
 
+from softplc.analysis.gate import verify
 from softplc.core.problems import ProgramError
 from softplc.program.compiler import compile_file
+from softplc.sfc.load import load_chart
 from tests.sfc.chartxml import ChartSpec, chart_xml
+from tests.sfc.compare import compare
 
 IO = {"go": ("BOOL", "%IX0.0"), "x": ("BOOL", "%IX0.1"), "y": ("BOOL", "%IX0.2"),
       "lamp": ("BOOL", "%QX0.0")}
@@ -50,15 +54,35 @@ def test_a_jump_out_of_a_parallel_branch_is_an_unsafe_chart_naming_the_step(
     assert "witness: Start_to_Left_Right -> Left_to_Start -> Start_to_Left_Right" in found[0]
 
 
-def test_a_step_without_exit_is_a_deadlock_with_its_witness(tmp_path: Path) -> None:
-    spec = ChartSpec(["Start", "Fill", "Stuck"], ["Start"], [
-        (["Start"], ["Fill"], "go"), (["Fill"], ["Stuck"], "x")],
-        actions=[("Fill", "N", "lamp")], variables=IO)
+def test_a_deadlock_outside_final_steps_is_refused_with_its_witness(tmp_path: Path) -> None:
+    spec = ChartSpec(["Start", "A", "B", "A2", "B2"], ["Start"], [
+        (["Start"], ["A", "B"], "go"), (["A"], ["A2"], "x"), (["B"], ["B2"], "y"),
+        (["A2", "B"], ["Start"], "go")],  # the join waits for B, which may have gone on
+        actions=[("A", "N", "lamp")], variables=IO)
     path = write(tmp_path, spec)
     (found,) = problems(path)
-    stuck = line_of(path, 'name="Stuck"')
-    assert found == (f"{path}:{stuck}: deadlock: once Stuck is active "
-                     "no transition can clear; witness: Start_to_Fill -> Fill_to_Stuck")
+    a2 = line_of(path, 'name="A2"')
+    assert found == (f"{path}:{a2}: deadlock: once A2, B2 are active "
+                     "no transition can clear; witness: Start_to_A_B -> A_to_A2 -> B_to_B2")
+
+
+def test_a_final_step_is_a_note_not_a_deadlock_and_the_gate_reports_its_marking(
+        tmp_path: Path) -> None:
+    spec = ChartSpec(["Start", "Fill", "Done"], ["Start"], [
+        (["Start"], ["Fill"], "go"), (["Fill"], ["Done"], "x")],
+        actions=[("Fill", "N", "lamp")], variables=IO)
+    path = write(tmp_path, spec)
+    done = line_of(path, 'name="Done"')
+    chart = load_chart(path)
+    assert [str(n) for n in chart.notes] == [
+        f"{path}:{done}: final step Done: the chart ends there; witness: Start_to_Fill -> "
+        "Fill_to_Done"]
+    assert "Done: {}  # step Done (final: the chart ends there)" in chart.program_text
+    verdict = verify(compile_file(path))  # the gate: as for any net's dead marking
+    assert verdict.findings == (f"{path}:{done}: deadlock: marking {{Done: 1}} reached by "
+                                "Start_to_Fill ; Fill_to_Done; no transition can ever fire "
+                                "there",)
+    assert compare(path, [{"go": k == 1, "x": k == 3} for k in range(8)]) is None
 
 
 def test_unreachable_steps_and_transitions_that_never_clear_are_named(tmp_path: Path) -> None:
@@ -79,13 +103,13 @@ def test_unreachable_steps_and_transitions_that_never_clear_are_named(tmp_path: 
 
 
 def test_check_on_the_command_line_reports_the_chart_and_fails(tmp_path: Path) -> None:
-    spec = ChartSpec(["Start", "Stuck"], ["Start"], [(["Start"], ["Stuck"], "go")],
-                     variables=IO)
+    spec = ChartSpec(["Start", "Wait", "Late"], ["Start"], [
+        (["Start"], ["Wait"], "go"), (["Wait", "Late"], ["Start"], "x")], variables=IO)
     path = write(tmp_path, spec)
     run = subprocess.run([sys.executable, "-m", "softplc.cli", "check", str(path)],
                          capture_output=True, text=True, timeout=60)
     assert run.returncode == 1
-    assert "deadlock: once Stuck is active" in run.stderr
+    assert "deadlock: once Wait is active" in run.stderr
 
 
 def test_a_sound_chart_compiles_with_places_and_transitions_at_their_xml_lines(
