@@ -160,6 +160,7 @@ def live_frame(document: dict[str, Any], status: Any, image: Any,
         "marking": document.get("marking") or {}, "net_live": document.get("net_live") or {},
         "forced": document.get("forced") or {}, "values": values, "events": events,
         "waiting_for_devices": document.get("waiting_for_devices") or [],  # issue 26
+        "waiting": document.get("waiting") or [],  # why nothing moves (core/waiting.py)
         "paused": document.get("paused"),  # at a breakpoint (docs/debug.md)
         "timing": {k: timing.get(k) for k in (
             "exec_median_us", "exec_p99_us", "exec_max_us", "lateness_median_us",

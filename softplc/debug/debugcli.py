@@ -19,12 +19,18 @@ from softplc.api.clicmds import EXIT_OK, EXIT_REFUSED, call, connection_options
 from softplc.core.problems import ProgramError
 
 if TYPE_CHECKING:
+    from softplc.api.client import ApiClient
     from softplc.core.net import CompiledNet
+
+_ORDINAL = ("the longest", "the second longest", "the third longest")
 
 
 def add_why(why: argparse.ArgumentParser) -> None:
     """Each add_* adds a command's arguments to the parser cli/table.py made for it."""
-    why.add_argument("transition", help="the transition's name (a subnet's: c1.start)")
+    why.add_argument("transition", nargs="?", help="the transition's name (a subnet's: "
+                     "c1.start); without one, on a running PLC: why nothing moves (the "
+                     "transitions enabled by the marking that waited longest, and what blocks "
+                     "each, in net time)")
     why.add_argument("--trace", metavar="FILE", help="explain a scan of this trace (written "
                      "by run or simulate --trace) instead of the running PLC (default: none)")
     why.add_argument("--program", metavar="PROGRAM", help="with --trace: the program the "
@@ -68,10 +74,49 @@ def _show(answer: dict[str, Any], as_json: bool, when: str) -> None:
 
     lines = format_why(answer)
     lines[0] += f" ({when})"
+    if wait := answer.get("waiting"):  # live: one of the longest waits (core/waiting.py)
+        lines.append(f"  waited {wait.get('for_s', 0):.1f} s in net time, enabled by the "
+                     f"marking without firing ({_ORDINAL[min(int(wait.get('rank') or 0), 2)]}"
+                     " wait of the net)")
     for line in lines:
         print(line)
     if answer.get("note"):
         print(f"({answer['note']})")
+
+
+def _with_wait(client: ApiClient, transition: str) -> dict[str, Any]:
+    """The why route's answer, with `waiting`: the transition's wait from the status
+    document (core/waiting.py: for_s in net time, blockers), None if it is not among the
+    longest waits."""
+    answer = client.why(transition)
+    waits = client.status().get("waiting") or []
+    rank, wait = next(((i, w) for i, w in enumerate(waits)
+                       if w.get("transition") == transition), (None, None))
+    return {**answer, "waiting": None if wait is None else {**wait, "rank": rank}}
+
+
+def _waited(wait: dict[str, Any]) -> str:
+    what = wait.get("transition") or "the net (a dead marking)"
+    return f"{what} waits {wait.get('for_s', 0):.1f} s: {'; '.join(wait.get('blockers') or [])}"
+
+
+def _show_waits(status: dict[str, Any], as_json: bool) -> None:
+    """`softplc why` without a transition: why nothing moves, from the status document."""
+    waits, state = status.get("waiting") or [], status.get("state")
+    if as_json:
+        print(json.dumps({"state": state, "scan": status.get("scan_count"), "waiting": waits},
+                         sort_keys=True))
+        return
+    if not waits:
+        print(f"why: nothing waits (state {state}"
+              + (", waiting for I/O" if status.get("waiting_for_io") else "")
+              + ("" if state == "RUNNING" else ": only a RUNNING PLC waits") + ")")
+        return
+    print(f"why nothing moves (after scan {status.get('scan_count')}, in net time: a pause "
+          "stands still), the longest waits first:")
+    for wait in waits:
+        print(f"  {_waited(wait)}")
+    print("(softplc why TRANSITION explains one)")
 
 
 def cmd_why(args: argparse.Namespace) -> int:
@@ -79,10 +124,18 @@ def cmd_why(args: argparse.Namespace) -> int:
         if args.program is not None or args.at_scan is not None:
             print("softplc why: --program and --at-scan go with --trace", file=sys.stderr)
             return EXIT_REFUSED
-        code, answer = call(args, "why", lambda client: client.why(args.transition))
+        if args.transition is None:
+            code, status = call(args, "why", lambda client: client.status())
+            if code == EXIT_OK:
+                _show_waits(status, args.json)
+            return code
+        code, answer = call(args, "why", lambda client: _with_wait(client, args.transition))
         if code == EXIT_OK:
             _show(answer, args.json, f"the next round, after scan {answer.get('scan')}")
         return code
+    if args.transition is None:
+        print("softplc why: --trace needs a TRANSITION", file=sys.stderr)
+        return EXIT_REFUSED
     if args.program is None or args.at_scan is None:
         print("softplc why: --trace needs --program PROGRAM and --at-scan N", file=sys.stderr)
         return EXIT_REFUSED

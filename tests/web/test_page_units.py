@@ -69,6 +69,14 @@ def test_tank_page_shows_units_and_takes_engineering_ranges(browser: Any, tmp_pa
         assert browser.find_element("id", "message").text == \
             "force: level = 47.002 (state RUNNING)"  # not 47.00159143518518
 
+        # Why nothing moves (issue 39 item 6): with the level held at 47 %, the tank waits
+        # for the level to reach its setpoint, and the net card says so, in net time.
+        waits = lambda: [li.text for li in browser.find_elements(  # noqa: E731
+            "css selector", "#waiting li")]
+        until(lambda: any(re.fullmatch(r"\S+ waits \d+\.\d s \(net time\): .*level = 47\.002 %.*",
+                                       w) for w in waits()), 15,
+              "the net card says what the tank waits for", show=waits)
+
         # The recent past's image shows them the same way (it showed 21.200000000000003).
         past = lambda name: browser.find_element(  # noqa: E731
             "css selector", f'#tl-image tr[data-name="{name}"]').find_elements(

@@ -469,6 +469,18 @@ function updateHeader(frame) {
   fault.classList.toggle("hidden", !frame.fault_reason);
   text(fault, frame.fault_reason ? "FAULT: " + frame.fault_reason : "");
   showPause(frame.paused);
+  showWaiting(frame.waiting || []);
+}
+
+function showWaiting(waits) {  // why nothing moves (core/waiting.py): the longest waits
+  const list = $("#waiting");
+  list.replaceChildren(...waits.map((w) => {
+    const li = document.createElement("li");
+    li.textContent = `${w.transition || "the net"} waits ${Number(w.for_s).toFixed(1)} s `
+                     + `(net time): ${(w.blockers || []).join("; ")}`;
+    return li;
+  }));
+  list.classList.toggle("hidden", waits.length === 0);
 }
 
 function showPause(paused) {  // at a breakpoint (docs/debug.md): a banner under the fault's
