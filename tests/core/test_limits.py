@@ -308,3 +308,41 @@ transitions:
     assert engine.fire_round(Ctx(), 0).fired == ((0,) if fires else ())
     stopped = [d for d in engine.diagnostics if "stopped after 1000 tries" in d]
     assert bool(stopped) is not fires
+
+
+def test_a_marking_set_from_outside_past_a_limit_faults_in_an_idle_round(
+        tmp_path: Path) -> None:
+    """A marking changed from outside (a restore, an online change) is checked against the
+    limits in the next round even when nothing can fire."""
+    net = compile_program(tmp_path, """
+limits: {place_tokens: 10}
+places:
+  p: {tokens: 2}
+  q: {}
+transitions:
+  t: {from: [p], to: [q], when: a}
+""")
+    engine = Engine(net)
+    assert engine.fire_round(Ctx(), 0).fired == ()
+    state = engine.state.copy()
+    state.marking[net.place_index["p"]] = 20
+    engine.state = state
+    engine.invalidate()
+    with pytest.raises(PlcFault, match=r"^place p: 20 tokens exceed the limit 10 "):
+        engine.fire_round(Ctx(), 1)
+
+
+def test_a_token_field_that_fails_is_0_and_diagnosed(tmp_path: Path) -> None:
+    net = compile_program(tmp_path, """
+places:
+  p: {tokens: [{n: 4, d: 0}]}
+  q: {coloured: true}
+transitions:
+  t: {from: [{place: p, var: v}], to: [{place: q, token: {r: "v.n // v.d", n: "v.n"}}]}
+""")
+    engine = Engine(net)
+    assert engine.fire_round(Ctx(), 0).fired == (0,)
+    assert engine.state.tokens[net.place_index["q"]] == [{"r": 0, "n": 4}]
+    assert engine.diagnostics == [
+        f"scan 0: {tmp_path / 'prog.yaml'}:8: transition t: token field r = 'v.n // v.d' "
+        "failed (integer division by zero)"]
