@@ -130,6 +130,9 @@ class EdgeNode:
         due = time.monotonic() - self.last_data_s >= self.config.interval_s
         if self.born and not self.rebirth and not due:
             return
+        if self.born and self.client.want_write():  # the last message still waits for the
+            self.counts["skipped"] += 1  # socket: no NDATA, and no NBIRTH per Rebirth asked
+            return  # meanwhile either (paho's queue of QoS 0 messages has no bound)
         board, image = self._read()
         changed_program = self.report is not None and \
             self.report.document.get("program_hash") != board.get("program_hash")
@@ -284,9 +287,6 @@ class EdgeNode:
 
     def _data(self, board: Mapping[str, Any], image: ProcessImage | None) -> None:
         assert self.client is not None and self.report is not None
-        if self.client.want_write():  # the last message still waits for the socket
-            self.counts["skipped"] += 1
-            return
         self.last_data_s = time.monotonic()
         metrics = self.report.changes(board, image, now_ms())
         if metrics and self._publish("NDATA", metrics):

@@ -8,6 +8,7 @@ was full (audited too)."""
 from __future__ import annotations
 
 import json
+import socket
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -24,7 +25,7 @@ from softplc.core.snapshot import (
 )
 from softplc.security.audit import AuditTrail
 from softplc.security.roles import Role
-from softplc.sparkplug.codec import STRING, Metric, Payload, decode, encode
+from softplc.sparkplug.codec import BOOLEAN, STRING, Metric, Payload, decode, encode
 from softplc.sparkplug.config import SparkplugConfig
 from softplc.sparkplug.door import MAX_WAITING, Door
 from softplc.sparkplug.metrics import Report
@@ -145,3 +146,55 @@ def test_the_door_audits_what_it_refuses_without_a_birth_or_when_busy(tmp_path: 
     busy = [r for r in records if r["detail"].get("refused")]
     assert sum(r["detail"]["refused"] for r in busy) == door.refused_busy
     assert len(records) == 2 + (MAX_WAITING + 4 - door.refused_busy) + len(busy)
+
+
+def _publish_packet(topic: str, payload: bytes) -> bytes:
+    body = len(topic).to_bytes(2, "big") + topic.encode() + payload
+    size, length = len(body), bytearray()
+    while True:
+        byte, size = size & 0x7F, size >> 7
+        length.append(byte | (0x80 if size else 0))
+        if not size:
+            return b"\x30" + bytes(length) + body
+
+
+def test_rebirths_asked_while_the_broker_does_not_read_are_not_queued(tmp_path: Path) -> None:
+    """A broker that stops reading (a raw socket here, answering CONNACK and SUBACK) while a
+    host keeps asking for Rebirth: once the socket holds unsent bytes, no birth is queued on
+    top (paho's QoS 0 queue is unbounded: each NBIRTH holds every metric)."""
+    symbols = {f"s{i:04}": {"type": "real", "address": f"%MD{i}", "direction": "memory"}
+               for i in range(400)}
+    board = {"program_hash": "h1", "program": "p", "symbols": symbols}
+    listener = socket.create_server(("127.0.0.1", 0))
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    config = SparkplugConfig("127.0.0.1", listener.getsockname()[1], "plant", "n4",
+                             state_dir=str(tmp_path))
+    node = EdgeNode(config, lambda: (board, None), lambda report, metric: None)
+    try:
+        node.step(0.02)  # CONNECT
+        conn, _ = listener.accept()
+        conn.settimeout(5)
+        conn.recv(4096)
+        conn.sendall(b"\x20\x02\x00\x00")  # CONNACK accepted
+        assert _steps(node, lambda: node.connected, 5)
+        _steps(node, lambda: False, 0.2)  # the SUBSCRIBE goes out
+        subscribe = conn.recv(4096)
+        conn.sendall(b"\x90\x03" + subscribe[2:4] + b"\x01")  # SUBACK, QoS 1
+        assert _steps(node, lambda: node.born, 5)
+        assert node.client is not None
+        node.client.socket().setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+        rebirth = _publish_packet("spBv1.0/plant/NCMD/n4", encode(Payload(1, (
+            Metric("Node Control/Rebirth", BOOLEAN, True),))))
+        blocked_at = None
+        for _ in range(300):  # the broker reads nothing more
+            conn.sendall(rebirth)
+            node.step(0.005)
+            assert node.client is not None
+            if blocked_at is None and node.client.want_write():
+                blocked_at = node.counts["births"]
+        assert blocked_at is not None, "the socket never filled"
+        assert node.counts["births"] <= blocked_at + 1
+        conn.close()
+    finally:
+        node.client = None
+        listener.close()
