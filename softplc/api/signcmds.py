@@ -87,7 +87,7 @@ def add_download_options(download: argparse.ArgumentParser) -> None:
 def download_body(program: str) -> tuple[bytes, bool, list[Path]]:
     """What `softplc download PROGRAM` sends: (the bytes, a bundle?, files not found here
     and so resolved by the server: then the text goes alone)."""
-    raw = Path(program).read_bytes()
+    raw = Path(bundles.file_of(program)).read_bytes()
     if bundles.is_bundle(raw):
         return raw, True, []
     raw.decode("utf-8")  # UnicodeDecodeError: not a program

@@ -113,5 +113,6 @@ def from_file(path: str | Path, program_hash: str = "") -> BootProgram:
         packed: bytes | None = bundles.pack(bundles.from_files(resolved))
     except bundles.BundleError:
         packed = None
-    return BootProgram(str(resolved), resolved.read_text(encoding="utf-8"), None, packed,
+    text = Path(bundles.file_of(resolved)).read_text(encoding="utf-8")  # FILE.xml#POU too
+    return BootProgram(str(resolved), text, None, packed,
                        program_hash)

@@ -79,9 +79,15 @@ def missing(program: str | Path) -> list[Path]:
     return [path for path in _walk(program) if not path.is_file()]
 
 
+def file_of(program: str | Path) -> str:
+    """The file of a program name: `FILE.xml#POU` names one SFC POU of FILE.xml (sfc.md)."""
+    name, _, _ = str(program).partition("#")
+    return name if name.lower().endswith(".xml") else str(program)
+
+
 def _walk(program: str | Path) -> list[Path]:
     seen: list[Path] = []
-    pending = [Path(program).resolve()]
+    pending = [Path(file_of(program)).resolve()]
     while pending:
         path = pending.pop()
         if path in seen:
@@ -123,7 +129,8 @@ def from_files(program: str | Path) -> Bundle:
             files[path.relative_to(root).as_posix()] = path.read_bytes()
         except OSError as exc:
             raise BundleError(f"{path}: cannot read: {exc.strerror}") from None
-    bundle = Bundle(paths[0].relative_to(root).as_posix(), files)
+    pou = str(program)[len(file_of(program)):]  # "#POU" of a chart, kept in the manifest
+    bundle = Bundle(paths[0].relative_to(root).as_posix() + pou, files)
     _check(bundle)
     return bundle
 
@@ -202,7 +209,7 @@ def _check(bundle: Bundle, what: str = "bundle") -> None:
             raise BundleError(f"{what}: {name!r} is a file and also the folder of {inner!r}")
     if sum(len(d) for d in bundle.files.values()) > MAX_TOTAL_BYTES:
         raise BundleError(f"{what}: more than {MAX_TOTAL_BYTES} bytes unpacked")
-    if bundle.program not in bundle.files:
+    if file_of(bundle.program) not in bundle.files:
         raise BundleError(f"{what}: the manifest's program {bundle.program!r} is not in the "
                           f"bundle (it holds {', '.join(sorted(bundle.files)) or 'nothing'})")
 

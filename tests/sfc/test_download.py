@@ -57,3 +57,26 @@ def test_a_chart_is_downloaded_and_runs_and_an_unsafe_one_is_refused(
     assert refused.returncode != 0
     assert "unsafe chart: step Right is activated while it is active" in refused.stderr
     assert settled(server)["program"] == "Press"
+
+
+def test_a_pou_of_a_file_with_several_is_run_and_downloaded_as_file_xml_hash_pou(
+        tmp_path: Path) -> None:
+    one = chart_xml(ChartSpec(["Start", "Run"], ["Start"], [
+        (["Start"], ["Run"], "go"), (["Run"], ["Start"], "NOT go")],
+        variables={"go": ("BOOL", "%IX0.0")}))
+    pou = one[one.index("<pou "):one.index("</pou>") + 6]
+    (tmp_path / "two.xml").write_text(one.replace(
+        "</pous>", pou.replace('name="Chart"', 'name="Other"') + "</pous>"), encoding="utf-8")
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    with softplc_run(["two.xml#Other", "--api", f"127.0.0.1:{port}", "--modbus",
+                      f"127.0.0.1:{free_port()}", "--opcua", "off", "--state-dir", "state",
+                      "--quiet", "--period", "10ms"], lambda: answers(url), cwd=tmp_path):
+        assert settled(url)["program"] == "Other"
+        down = softplc("download", "two.xml#Chart", "--api", url, cwd=tmp_path)
+        assert down.returncode == 0, down.stderr
+        assert softplc("start", "--api", url, cwd=tmp_path).returncode == 0
+        assert settled(url)["program"] == "Chart"
+        back = softplc("upload", "-o", "up", "--api", url, cwd=tmp_path)
+        assert back.returncode == 0, back.stderr
+        assert (tmp_path / "up/two.xml").read_bytes() == (tmp_path / "two.xml").read_bytes()
