@@ -248,7 +248,9 @@ class EdgeNode:
             text = raw.decode("utf-8").strip()
             doc = json.loads(text) if text.startswith("{") else \
                 {"online": text == "ONLINE", "timestamp": self.host_ts}
-            online, stamp = bool(doc["online"]), int(doc["timestamp"])
+            online, stamp = doc["online"], int(doc["timestamp"])
+            if not isinstance(online, bool):  # {"online": "false"} is no boolean
+                raise TypeError(online)
         except (UnicodeDecodeError, ValueError, KeyError, TypeError, OverflowError,
                 RecursionError):  # e.g. "timestamp": Infinity, or nested 10**5 deep
             log.warning("Sparkplug: a STATE message that is not {online, timestamp} ignored")

@@ -1,9 +1,9 @@
 """The edge node and its door when something is wrong, in this process against a real
-Mosquitto: a STATE whose timestamp is Infinity (retained: it must not end the process, which
-would restart into the same message), a state dir where the bdSeq file cannot be written (the
-node still births, and a new CONNECT still gets the next bdSeq), an NCMD that arrives before the
-first NBIRTH (refused and audited, not dropped), and commands refused because the door's queue
-was full (audited too)."""
+Mosquitto: a STATE whose timestamp is Infinity or whose online is a string (retained: it must
+not end the process, which would restart into the same message), a state dir where the bdSeq
+file cannot be written (the node still births, and a new CONNECT still gets the next bdSeq), an
+NCMD that arrives before the first NBIRTH (refused and audited, not dropped), and commands
+refused because the door's queue was full (audited too)."""
 
 from __future__ import annotations
 
@@ -70,6 +70,9 @@ def test_bad_state_and_an_early_ncmd(tmp_path: Path, mosquitto: Callable[..., Br
         h.send("spBv1.0/plant/NCMD/n1", encode(Payload(1, (Metric("x", STRING, "v"),))))
         assert _steps(node, lambda: bool(got))
         assert got[0][0] is None and got[0][1].name == "x"  # to the door, before any birth
+        h.send("spBv1.0/STATE/scada1", b'{"online": "true", "timestamp": 4}', qos=1, retain=True)
+        _steps(node, lambda: False, 0.5)
+        assert not node.born  # a string is no boolean: the message is ignored, not "online"
         h.send("spBv1.0/STATE/scada1", json.dumps({"online": True, "timestamp": 5}).encode(),
                qos=1, retain=True)
         assert _steps(node, lambda: node.born)
