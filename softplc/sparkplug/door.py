@@ -175,9 +175,11 @@ class Door:
             return "denied", decision.reason() + " (--sparkplug-role)"
         if symbol.refusal is not None:
             return "refused", symbol.refusal
-        with contextlib.suppress(SnapshotUnavailable):
+        try:  # as the Modbus slave: no write on a program nobody can see
             if self._source.latest().status.program_hash != program:
                 return "refused", "the program changed: use the metrics of the next NBIRTH"
+        except SnapshotUnavailable:
+            return "refused", "the PLC's snapshot cannot be read: nothing is written"
         number = metric.value
         if metric.datatype is None and isinstance(number, int) and not isinstance(number, bool):
             number = codec.signed(symbol.datatype, number)  # by alias: the birth's datatype

@@ -201,3 +201,24 @@ def test_rebirths_asked_while_the_broker_does_not_read_are_not_queued(tmp_path: 
     finally:
         node.client = None
         listener.close()
+
+
+def test_no_write_when_the_snapshot_cannot_be_read(tmp_path: Path) -> None:
+    """As the Modbus slave refuses a write it cannot check against the running program, so does
+    this door (it wrote without the check)."""
+    board = {"program_hash": "h1", "program": "p",
+             "symbols": {"fill_to": {"type": "real", "address": "%MD1", "direction": "memory"}}}
+    config = SparkplugConfig("127.0.0.1", 1, "plant", "n5", role=Role.ENGINEER,
+                             state_dir=str(tmp_path))
+    door = Door(config, _SlowPlc(), _NoSnapshot(), AuditTrail(tmp_path))
+    try:
+        door.submit(Report(board, 0.0), Metric("fill_to", None, 3.0))
+        deadline = time.monotonic() + 10
+        lines: list[str] = []
+        while not lines and time.monotonic() < deadline:
+            lines += door.outcomes()
+            time.sleep(0.01)
+    finally:
+        door.close()
+    assert [(r["outcome"], r["status"]) for r in _trail(tmp_path)] == [
+        ("refused", "the PLC's snapshot cannot be read: nothing is written")]
