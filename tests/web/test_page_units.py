@@ -70,11 +70,13 @@ def test_tank_page_shows_units_and_takes_engineering_ranges(browser: Any, tmp_pa
             "force: level = 47.002 (state RUNNING)"  # not 47.00159143518518
 
         # Why nothing moves (issue 39 item 6): with the level held at 47 %, the tank waits
-        # for the level to reach its setpoint, and the net card says so, in net time.
+        # for it to reach the setpoint, or (idle) for a warmer temperature; the net card says
+        # which and what blocks it, in net time, the values as the program reads them.
         waits = lambda: [li.text for li in browser.find_elements(  # noqa: E731
             "css selector", "#waiting li")]
-        until(lambda: any(re.fullmatch(r"\S+ waits \d+\.\d s \(net time\): .*level = 47\.002 %.*",
-                                       w) for w in waits()), 15,
+        said = re.compile(r"(start_fill|reached) waits \d+\.\d s \(net time\): guard .+ is "
+                          r"false with .*(level = 47\.002 %|temperature = -?\d+\.\d °C).*")
+        until(lambda: any(said.fullmatch(w) for w in waits()), 15,
               "the net card says what the tank waits for", show=waits)
 
         # The recent past's image shows them the same way (it showed 21.200000000000003).
