@@ -52,7 +52,8 @@ COMMANDS: Final[dict[str, Entry]] = {
                     "write a program as PNML (ISO/IEC 15909-2)"),
     "why": Entry(_DEBUG, "add_why", "why a transition fires or not: the places short of "
                  "tokens, the guard with the values it read, a delay, a conflict, forces; on a "
-                 "running softplc, or at a scan of a trace (docs/debug.md)"),
+                 "running softplc, or at a scan of a trace; without a transition, why "
+                 "nothing moves (docs/debug.md)"),
     "vcd": Entry(_DEBUG, "add_vcd", "export a trace as a VCD file (IEEE 1364 value change "
                  "dump) for GTKWave and other waveform viewers: every symbol and every place's "
                  "marking, scan by scan"),
