@@ -42,7 +42,7 @@ def test_raw_is_given_only_with_its_marker_and_a_16_bit_int_as_its_signed_value(
            "be a whole number -32768..32767, not 65436" in text
     assert "s.yaml:4: [1].force.level: level: expected a value or {raw: N}" in text
     assert "s.yaml:6: [2].force.temperature: symbol temperature is scaled (-50..150 °C on " \
-           "a int): the value must be a finite number in engineering units" in text
+           "an int): the value must be a finite number in engineering units" in text
 
 
 def test_the_timeline_shows_an_hmi_write_of_a_real_as_its_value() -> None:
