@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import schemathesis
+import schemathesis.generation.body_overrides  # (see below)
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.errors import Unsatisfiable
@@ -24,6 +25,11 @@ from tests.api.conftest import ServerThread
 from tests.fuzz import budget
 from tests.fuzz.live import LivePlc
 from tests.fuzz.mutate import mutant
+
+# schemathesis imports body_overrides lazily, deep inside hypothesis' draw; compiling it there
+# once failed with CPython 3.11's "SystemError: AST constructor recursion depth mismatch"
+# (a full `make test` run: a flaky failure of this test, not of softplc). Imported above, at a
+# shallow stack, it is compiled before any draw.
 
 ROOT = Path(__file__).resolve().parents[2]
 # Server-sent event streams never end: tests/api, tests/web, tests/security/test_audit_stream.py
