@@ -35,10 +35,10 @@ from softplc.analysis.pnml_export import TOOL
 from softplc.analysis.pnml_export import export_compiled as export_compiled
 from softplc.analysis.pnml_export import export_pt as export_pt
 from softplc.analysis.pnml_export import structure as structure
-from softplc.analysis.xmltree import Node, parse_xml
 from softplc.core.net import CompiledNet
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.symbols import IoImage
+from softplc.core.xmltree import Node, parse_xml
 from softplc.program.compiler import compile_text_with_io
 from softplc.program.io_image import load_io_image, parse_io_image
 from softplc.program.sizes import count_problem

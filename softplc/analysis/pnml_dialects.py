@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
-from softplc.analysis.xmltree import Node
+from softplc.core.xmltree import Node
 
 # Normalised (lower case, no trailing "#" or "/") type -> the tool family, for notes.
 PT_TYPES = {

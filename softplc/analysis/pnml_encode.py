@@ -24,8 +24,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol, TypeVar
 
-from softplc.analysis.xmltree import Node
 from softplc.core.net import CompiledNet
+from softplc.core.xmltree import Node
 
 
 class _Read(Protocol):

@@ -10,8 +10,8 @@ Does not know: conditions' text, actions, YAML.
 from __future__ import annotations
 
 from softplc.core.problems import Problem
+from softplc.core.xmltree import Node
 from softplc.sfc.model import Step
-from softplc.sfc.xmlnodes import Node
 
 WIRING = ("selectionDivergence", "selectionConvergence", "simultaneousDivergence",
           "simultaneousConvergence")

@@ -9,8 +9,8 @@ Does not know: the chart's graph, YAML.
 from __future__ import annotations
 
 from softplc.core.problems import Problem, ProgramError
+from softplc.core.xmltree import Node
 from softplc.sfc.model import Variable
-from softplc.sfc.xmlnodes import Node
 
 VAR_SECTIONS = ("inputVars", "outputVars", "inOutVars", "localVars", "tempVars",
                 "externalVars", "globalVars")

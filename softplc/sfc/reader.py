@@ -10,6 +10,8 @@ Does not know: YAML, the engine.
 from __future__ import annotations
 
 from softplc.core.problems import Problem, ProgramError
+from softplc.core.xmltree import Node as XNode
+from softplc.core.xmltree import parse_xml
 from softplc.sfc.graph import Wiring
 from softplc.sfc.model import Action, Chart, Transition, Variable
 from softplc.sfc.pous import choose_pou, variables
@@ -24,8 +26,6 @@ from softplc.sfc.st import (
     parse_statements,
     time_ms,
 )
-from softplc.sfc.xmlnodes import Node as XNode
-from softplc.sfc.xmlnodes import parse_xml
 
 BOOL_QUALIFIERS = {"N", "S", "R", "P", "P1", "P0"}
 CODE_QUALIFIERS = {"N", "P1", "P0"}

@@ -21,8 +21,8 @@ from softplc.analysis.invariants import p_invariants
 from softplc.analysis.model import MAX_CELLS, TooLarge, from_pt
 from softplc.analysis.models import PtNet, analysis_net, philosophers
 from softplc.analysis.pnml import export_pt, parse_pnml
-from softplc.analysis.xmltree import MAX_DEPTH
 from softplc.core.problems import ProgramError
+from softplc.core.xmltree import MAX_DEPTH
 from softplc.program.compiler import compile_text
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,9 +1,10 @@
-"""A PLCopen XML file as a small tree with line numbers, read through defusedxml's SAX parser.
+"""A small XML tree with line numbers, read through defusedxml's hardened SAX parser: the one
+reader of the XML files programs arrive in (PNML: analysis/pnml.py; PLCopen XML: sfc/).
 
-Owns: Node (local tag name, attributes, own text, line, children) and `parse_xml`, which refuses
-entity declarations and external entities (defusedxml raises on them) and nesting deeper than
-MAX_DEPTH, and turns every XML error into a located Problem.
-Does not know: what a chart is.
+Owns: Node (tag without namespace, attributes, own text, line, children) and `parse_xml`, which
+refuses DTDs' entity declarations and external entities (defusedxml raises on them) and
+elements nested deeper than MAX_DEPTH, and turns every XML error into a located Problem.
+Does not know: PNML or PLCopen.
 """
 
 from __future__ import annotations
@@ -20,8 +21,10 @@ from defusedxml import DefusedXmlException
 from softplc.core.errors import SoftplcError
 from softplc.core.problems import Problem, ProgramError
 
-# PLCopen nests project/types/pous/pou/body/SFC/step/...: about 15 deep; a macro step or an
-# xhtml body a few more. The tree is walked iteratively; this bound keeps it shallow.
+# PNML nests pnml/net/page/place/name/text and pages in pages (100,000 nested <page>s once
+# ended `softplc analyze` in a RecursionError); PLCopen project/types/pous/pou/body/SFC/step
+# about 15 deep. The tree is built and walked iteratively; this bound keeps every walk of it
+# (and its repr) shallow.
 MAX_DEPTH = 100
 
 
@@ -44,6 +47,12 @@ class Node:
 
     def all(self, tag: str) -> list[Node]:
         return [c for c in self.children if c.tag == tag]
+
+    def text_of(self, *path: str) -> str | None:
+        node: Node | None = self
+        for tag in path:
+            node = node.child(tag) if node is not None else None
+        return None if node is None else node.text.strip()
 
     def walk(self) -> Iterator[Node]:
         """This node and every descendant, in document order."""
