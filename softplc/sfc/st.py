@@ -16,6 +16,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from softplc.core.errors import SoftplcError
+from softplc.core.units import parse_duration_ns
 
 # IEC types softplc reads, by the kind the translation checks operands with.
 BOOL, INT, REAL, TIME = "bool", "int", "real", "time"
@@ -27,8 +28,6 @@ _TOKEN = re.compile(r"""
   | (?P<id>[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)?)
   | (?P<op>:=|<>|<=|>=|\*\*|[-+*/()<>=&,;])
 """, re.VERBOSE | re.DOTALL | re.IGNORECASE)
-_TIME_PART = re.compile(r"(\d+(?:\.\d+)?)(ms|d|h|m|s)", re.IGNORECASE)
-_MS = {"d": 86_400_000, "h": 3_600_000, "m": 60_000, "s": 1000, "ms": 1}
 SUPPORTED = ("ST supported: TRUE/FALSE, numbers, TIME literals (T#5s), variables, Step.X/Step.T, "
              "NOT, AND/&, OR, XOR, = <> < > <= >=, + - * /, parentheses, AND()/OR()/XOR()/"
              "NOT()/ABS()/MIN()/MAX()/SEL()/LIMIT(), and `X := expr;` in action bodies")
@@ -84,17 +83,18 @@ def tokens(text: str) -> list[Tok]:
 
 
 def time_ms(text: str, offset: int = 0) -> int:
-    """`T#1h2m3s4ms`, `TIME#1.5s`, `t#250ms`, `10s` -> milliseconds; below 1 ms refused."""
-    body = text.split("#", 1)[-1].replace("_", "").lower()
+    """`T#1h2m3s4ms`, `TIME#1.5s`, `t#250ms`, `10s`, `T#-5s` (ST allows a sign) -> milliseconds;
+    below 1 ms refused. The spelling is core/units.py's, the one reader of durations."""
+    prefix, _, body = text.rpartition("#")
     sign = -1 if body.startswith("-") else 1
-    body = body.lstrip("-")
-    parts = _TIME_PART.findall(body)
-    if not body or "".join(a + u for a, u in parts) != body:
-        raise StError(f"TIME literal {text!r} is not of the form T#1h2m3s4ms", offset)
-    total = sum(float(a) * _MS[u.lower()] for a, u in parts)
-    if total != int(total):
+    unsigned = f"{prefix}#{body[1:]}" if sign < 0 else text
+    try:
+        ns = parse_duration_ns(unsigned)
+    except ValueError:
+        raise StError(f"TIME literal {text!r} is not of the form T#1h2m3s4ms", offset) from None
+    if ns % 1_000_000:
         raise StError(f"TIME literal {text!r} is finer than a millisecond", offset)
-    return sign * int(total)
+    return sign * (ns // 1_000_000)
 
 
 class Parser:
