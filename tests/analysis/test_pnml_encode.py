@@ -67,19 +67,6 @@ def test_cell_exports_as_the_same_bounded_net(tmp_path: Path,
     assert structure(compiled_net(read_pnml(out))) == structure(compile_file(program))
 
 
-def test_pm4py_sees_the_same_number_of_states(tmp_path: Path,
-                                              capsys: pytest.CaptureFixture[str]) -> None:
-    pm4py = pytest.importorskip("pm4py")
-    from pm4py.objects.petri_net.utils.reachability_graph import (
-        construct_reachability_graph,
-    )
-    program = ROOT / "programs" / "cell.yaml"
-    out = tmp_path / "cell.pnml"
-    export(program, out, capsys)
-    net, initial, _ = pm4py.read_pnml(str(out))
-    assert len(construct_reachability_graph(net, initial).states) == 34
-
-
 def test_inhibitor_arcs_encoded_where_exact_and_warned_where_not(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "io.yaml").write_text(IO)
