@@ -5,17 +5,23 @@ durations, actions only as Moore BOOL outputs, guards in the ST subset, a delay 
 step timer) with a located reason for each place or transition that is not, and writing the
 chart: steps, transitions with inline ST, divergences and convergences, jumps, N actions,
 located variables. The inverse of the mapping in docs/sfc.md, for the part that has one.
-Does not know: how the net was written (YAML or XML).
+The drawing: a net compiled from a PLCopen chart keeps each step's and transition's
+`<position>` (read again from the chart, by name); the wiring objects the writer adds are
+placed beside them; a net written in YAML is laid out in one column.
+Does not know: how the net was written, beyond its source being a PLCopen file.
 """
 
 from __future__ import annotations
 
 import ast
+from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 from softplc.core.errors import SoftplcError
 from softplc.core.net import CompiledNet, InputArc, OutputArc, Transition
 from softplc.core.problems import Problem, ProgramError
+from softplc.sfc.load import is_plcopen
+from softplc.sfc.reader import read_chart
 
 _IEC = {"bool": "BOOL", "int": "INT", "word": "UINT", "dint": "DINT", "udint": "UDINT",
         "real": "REAL", "lreal": "LREAL"}
@@ -54,7 +60,27 @@ def export_plcopen(net: CompiledNet) -> str:
     problems = _reasons(net)
     if problems:
         raise ProgramError(problems)
-    return _Writer(net).text()
+    return _Writer(net, layout(net)).text()
+
+
+def layout(net: CompiledNet) -> dict[str, tuple[float, float]]:
+    """Step and transition name -> `<position>` as drawn, when the net's source is the
+    PLCopen chart it was compiled from (the net keeps no drawing); {} otherwise."""
+    name, _, pou = net.source.partition("#")
+    if not is_plcopen(name):
+        return {}
+    try:
+        chart = read_chart(Path(name).read_bytes(), name, pou or None)
+    except (OSError, ProgramError):
+        return {}
+    out = {s.name: (s.x, s.y) for s in chart.steps}
+    out.update({t.name: t.xy for t in chart.transitions if t.xy is not None})
+    return out
+
+
+def _pos(xy: tuple[float, float], dx: float = 0, dy: float = 0) -> str:
+    x, y = xy[0] + dx, xy[1] + dy
+    return f'<position x="{x:g}" y="{y:g}"/>'
 
 
 def _where(net: CompiledNet, t: Transition | None, place: int = 0) -> tuple[str, int]:
@@ -112,8 +138,11 @@ def _reasons(net: CompiledNet) -> list[Problem]:
 
 
 class _Writer:
-    def __init__(self, net: CompiledNet) -> None:
+    def __init__(self, net: CompiledNet, drawn: dict[str, tuple[float, float]]) -> None:
         self.net, self.out = net, list[str]()
+        self.xy = {p: drawn.get(p, (100.0, 60.0 * i)) for i, p in enumerate(net.place_names)}
+        self.xy |= {t.name: drawn.get(t.name, (100.0 + 40 * net.rank[t.index], 0.0))
+                    for t in net.transitions}
         self.ids = iter(range(1, 1 << 30))
         self.step_id = {p: next(self.ids) for p in net.place_names}
         self.t_id = {t.name: next(self.ids) for t in net.transitions}
@@ -132,7 +161,8 @@ class _Writer:
                 entries.setdefault(self.names(t.post)[0], []).append(t)
         div = {p: next(self.ids) for p, ts in exits.items() if len(ts) > 1}
         for p, d in div.items():
-            self.out.append(f'<selectionDivergence localId="{d}">{self.pin(self.step_id[p])}'
+            self.out.append(f'<selectionDivergence localId="{d}">{_pos(self.xy[p], dy=40)}'
+                            f'{self.pin(self.step_id[p])}'
                             '</selectionDivergence>')
         for i, p in enumerate(net.place_names):
             self.step(i, p, entries.get(p, []))
@@ -150,20 +180,21 @@ class _Writer:
             ref = self.pin(self.t_id[inputs[0].name])
         elif inputs:
             c = next(self.ids)
-            self.out.append(f'<selectionConvergence localId="{c}">'
+            self.out.append(f'<selectionConvergence localId="{c}">{_pos(self.xy[p], dy=-20)}'
                             f'{self.pin(*(self.t_id[t.name] for t in inputs))}'
                             '</selectionConvergence>')
             ref = self.pin(c)
         initial = "true" if self.net.initial[i] else "false"
         self.out.append(f'<step localId="{self.step_id[p]}" name="{p}" initialStep="{initial}" '
-                        f'height="30" width="90"><position x="100" y="{60 * i}"/>{ref}'
+                        f'height="30" width="90">{_pos(self.xy[p])}{ref}'
                         '<connectionPointOut formalParameter=""/>'
                         '<connectionPointOutAction formalParameter=""/></step>')
         outputs = self.net.place_outputs.get(i, ())
         if outputs:
             acts = "".join(f'<action localId="0"><reference name="{s}"/></action>'
                            for s, _ in outputs)
-            self.out.append(f'<actionBlock localId="{next(self.ids)}">'
+            self.out.append(f'<actionBlock localId="{next(self.ids)}" width="100" height="30">'
+                            f'{_pos(self.xy[p], dx=150)}'
                             f'{self.pin(self.step_id[p])}{acts}</actionBlock>')
 
     def transition(self, t: Transition, rank: int, div: dict[str, int]) -> None:
@@ -173,6 +204,7 @@ class _Writer:
         else:
             pred = next(self.ids)
             self.out.append(f'<simultaneousConvergence localId="{pred}">'
+                            f'{_pos(self.xy[t.name], dy=-20)}'
                             f'{self.pin(*(self.step_id[s] for s in sources))}'
                             '</simultaneousConvergence>')
         cond = [st_of(t.guard.text)] if t.guard is not None else []
@@ -183,16 +215,18 @@ class _Writer:
         st = " AND ".join(cond) or "TRUE"
         tid = self.t_id[t.name]
         self.out.append(f'<transition localId="{tid}" priority="{rank}" height="2" width="20">'
-                        f'<position x="{100 + 40 * rank}" y="0"/>{self.pin(pred)}'
+                        f'{_pos(self.xy[t.name])}{self.pin(pred)}'
                         '<connectionPointOut/><condition><inline name=""><ST><xhtml:p>'
                         f'<![CDATA[{st}]]></xhtml:p></ST></inline></condition></transition>')
         if len(targets) > 1:
             d = next(self.ids)
-            self.out.append(f'<simultaneousDivergence localId="{d}">{self.pin(tid)}'
+            self.out.append(f'<simultaneousDivergence localId="{d}">'
+                            f'{_pos(self.xy[t.name], dy=20)}{self.pin(tid)}'
                             '</simultaneousDivergence>')
-            for s in targets:
+            for k, s in enumerate(targets):
                 self.out.append(f'<jumpStep localId="{next(self.ids)}" targetName="{s}">'
-                                f'{self.pin(d)}</jumpStep>')
+                                f'{_pos(self.xy[t.name], dx=60 * k, dy=40)}{self.pin(d)}'
+                                '</jumpStep>')
 
     def project(self) -> str:
         sections: dict[str, list[str]] = {"inputVars": [], "outputVars": [], "localVars": []}

@@ -47,10 +47,9 @@ class Wiring:
         if not name or name in self.steps:
             self.problem(node, f"step {name!r}: a step needs a name unique in the chart")
             return
-        pos = node.child("position")
-        x = float(pos.attrs.get("x", 0)) if pos is not None else 0.0
+        x, y = position(node) or (0.0, 0.0)
         initial = node.attrs.get("initialStep", "false").lower() in ("true", "1")
-        self.steps[name] = Step(name, node.line, initial, x)
+        self.steps[name] = Step(name, node.line, initial, x, y)
 
     def step_of(self, name: str) -> str | None:
         """A step by name as ST and jumps write it: case does not matter."""
@@ -120,8 +119,14 @@ class Wiring:
 
 
 def _x(node: Node) -> float:
+    return (position(node) or (0.0, 0.0))[0]
+
+
+def position(node: Node) -> tuple[float, float] | None:
+    """The object's `<position x= y=>` as drawn; None when absent or not numbers."""
     pos = node.child("position")
     try:
-        return float(pos.attrs.get("x", 0)) if pos is not None else 0.0
+        return (float(pos.attrs.get("x", 0)), float(pos.attrs.get("y", 0))) \
+            if pos is not None else None
     except ValueError:
-        return 0.0
+        return None

@@ -38,7 +38,8 @@ class Step:
     name: str
     line: int
     initial: bool
-    x: float = 0.0  # drawing position, kept for the export
+    x: float = 0.0  # drawing position (<position>), kept by the export
+    y: float = 0.0
 
 
 @dataclass(slots=True)
@@ -54,6 +55,7 @@ class Transition:
     delay_ms: int | None = None  # `Step.T >= T#d` as the whole condition
     rank: int = 0  # 0 = first in its selection divergence (leftmost or lowest priority)
     never: bool = False  # the condition is the constant FALSE
+    xy: tuple[float, float] | None = None  # drawing position (<position>), for the export
 
 
 @dataclass(frozen=True, slots=True)

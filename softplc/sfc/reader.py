@@ -12,7 +12,7 @@ from __future__ import annotations
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.xmltree import Node as XNode
 from softplc.core.xmltree import parse_xml
-from softplc.sfc.graph import Wiring
+from softplc.sfc.graph import Wiring, position
 from softplc.sfc.model import Action, Chart, Transition, Variable
 from softplc.sfc.pous import choose_pou, variables
 from softplc.sfc.st import (
@@ -73,7 +73,7 @@ class _Reader:
             tname = _unique(name or f"{'_'.join(sources)}_to_{'_'.join(targets)}", used)
             t = Transition(tname, node.line, tuple(sources), tuple(dict.fromkeys(targets)),
                            ("NOT (" + text + ")") if negated else text,
-                           rank=ranks.get(node.attrs["localId"], 0))
+                           rank=ranks.get(node.attrs["localId"], 0), xy=position(node))
             if text is not None:
                 self._guard(t, text, line, negated)
             self.chart.transitions.append(t)

@@ -4,12 +4,14 @@ transition."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from dataclasses import replace
 from pathlib import Path
 
 from softplc.program.compiler import compile_file
+from softplc.sfc.reader import read_chart
 from tests.sfc.chartxml import ChartSpec, chart_xml
 
 ROOT = Path(__file__).parents[2]
@@ -51,3 +53,32 @@ def test_a_net_that_is_not_a_chart_is_refused_with_the_reasons(tmp_path: Path) -
         "holds no data)" in lines
     assert "programs/drilling.yaml:34: not an SFC: transition drill has a duration (an SFC " \
         "transition clears at once)" in lines
+
+
+def test_the_drawing_is_kept_each_step_and_transition_where_it_was(tmp_path: Path) -> None:
+    spec = ChartSpec(["Idle", "A", "B", "C"], ["Idle"], [
+        (["Idle"], ["A", "B"], "go"), (["A"], ["C"], "x"), (["A"], ["C"], "y"),
+        (["B", "C"], ["Idle"], "TRUE")], [("A", "N", "lamp")],
+        {"go": ("BOOL", "%IX0.0"), "x": ("BOOL", "%IX0.1"), "y": ("BOOL", "%IX0.2"),
+         "lamp": ("BOOL", "%QX0.0")})
+    drawn = iter(range(1, 1000))
+
+    def place(m: re.Match[str]) -> str:  # as an editor draws: every object somewhere else
+        k = next(drawn)
+        return f'{m.group(1)}<position x="{37 * k}" y="{120 + 53 * k}"/>'
+
+    text = re.sub(r'(<step [^>]*>)', place, chart_xml(spec))
+    text = re.sub(r'(<transition [^>]*>)<position [^>]*/>', place, text)
+    chart = tmp_path / "chart.xml"
+    chart.write_text(text, encoding="utf-8")
+    back = tmp_path / "back.xml"
+    done = export(chart, back)
+    assert done.returncode == 0, done.stderr
+
+    def drawing(path: Path) -> dict[str, tuple[float, float] | None]:
+        c = read_chart(path.read_bytes(), str(path))
+        return {s.name: (s.x, s.y) for s in c.steps} | {t.name: t.xy for t in c.transitions}
+
+    first = drawing(chart)
+    assert len(set(first.values())) == 8 and None not in first.values()
+    assert drawing(back) == first
