@@ -1,4 +1,5 @@
-"""A client of the HTTP management service, standard library only (urllib).
+"""A client of the HTTP management service, standard library only: an http URL over plainhttp.py
+(a socket, issue 40: urllib.request costs a start ~19 ms), https and the event stream urllib.
 
 Owns: ApiClient (one method per endpoint), ApiError (a 4xx/5xx answer with its problems),
 ApiUnreachable (nothing answers at the URL), the event-stream reader.
@@ -17,11 +18,10 @@ import json
 import os
 import re
 import time
-import urllib.error
 import urllib.parse
-import urllib.request
 from pathlib import Path
 
+from softplc.api import plainhttp
 from softplc.core.errors import SoftplcError
 from softplc.security import auth
 
@@ -66,11 +66,6 @@ class ApiUnreachable(SoftplcError, ConnectionError):
     """Nothing answers at the API URL (refused, unresolvable, timed out, connection lost)."""
 
 
-class _NoRedirect(urllib.request.HTTPRedirectHandler):
-    def redirect_request(self, *args: Any, **kwargs: Any) -> None:
-        return None  # a 3xx becomes an HTTPError: the Authorization header stays home
-
-
 class ApiClient:
     """One softplc's API. `token` (a user's API key, or the owner's) falls back to
     $SOFTPLC_API_TOKEN, then to the api_token file of `state_dir` (when the client runs on
@@ -97,14 +92,13 @@ class ApiClient:
             self._find = (token, state_dir, url if local else None)
             self._authorization = None
             self._credentials()
-        handlers: list[urllib.request.BaseHandler] = [urllib.request.ProxyHandler({}),
-                                                      _NoRedirect()]
         self.ca: Path | None = None  # what an https server is verified against (None: system)
-        if parts.scheme == "https":
+        self._plain = parts.scheme == "http"
+        self._opener: Any = None  # urllib's, made at the first https or event-stream request
+        if not self._plain:
             from softplc.security import tls
             self.ca = server_ca(ca, state_dir, url if local else None)
-            handlers.append(urllib.request.HTTPSHandler(context=tls.client_context(self.ca)))
-        self._opener = urllib.request.build_opener(*handlers)
+            self._opener = plainhttp.urllib_opener(tls.client_context(self.ca))
 
     def _credentials(self) -> str | None:
         if self._authorization is None and self._find is not None:
@@ -151,12 +145,8 @@ class ApiClient:
 
     def upload(self) -> bytes:
         """The running program's bundle, byte for byte."""
-        with self._open("GET", "/program", None, None, None,
-                        headers={"Accept": "application/zip"}) as response:
-            try:
-                return bytes(response.read())
-            except OSError as exc:
-                raise ApiUnreachable(f"the answer from {self.url} broke off: {exc}") from None
+        return self._read(self._open("GET", "/program", None, None, None,
+                                     headers={"Accept": "application/zip"}))
 
     def command(self, command: str) -> dict[str, Any]:
         """start, stop, resume, reset or kill: {"ok", "message", "state"}."""
@@ -265,10 +255,11 @@ class ApiClient:
         query = {"names": ",".join(names)} if names else None
         headers = {"Last-Event-ID": str(last_id)} if last_id is not None else {}
         timeout_s = max(self.timeout_s, _SILENCE_S)
-        with self._open("GET", "/events", None, None, query, headers, timeout_s) as response:
+        with self._open("GET", "/events", None, None, query, headers, timeout_s,
+                        stream=True) as response:
             kind, data, pending = "message", list[str](), b""
             # read1, not line iteration: http.client's readline waits for more chunks
-            while chunk := self._read1(response):
+            while chunk := self._read(response, 65536):
                 *lines, pending = (pending + chunk).split(b"\n")
                 for raw in lines:
                     line = raw.decode("utf-8").rstrip("\r")
@@ -280,13 +271,6 @@ class ApiClient:
                         data.append(line[5:].lstrip())
                     elif line.startswith("event:"):
                         kind = line[6:].strip()
-
-    def _read1(self, response: Any) -> bytes:
-        try:
-            chunk: bytes = response.read1(65536)
-        except OSError as exc:
-            raise ApiUnreachable(f"the event stream from {self.url} broke off: {exc}") from None
-        return chunk
 
     # -- transport --------------------------------------------------------------------------
 
@@ -306,11 +290,7 @@ class ApiClient:
                 if not exc.not_sent or time.monotonic() + NOT_SENT_RETRY_S > give_up:
                     raise
                 time.sleep(NOT_SENT_RETRY_S)
-        with response:
-            try:
-                status, raw = response.status, response.read()
-            except OSError as exc:
-                raise ApiUnreachable(f"the answer from {self.url} broke off: {exc}") from None
+        status, raw = response.status, self._read(response)
         try:
             answer = json.loads(raw or b"{}")
         except ValueError:
@@ -319,27 +299,42 @@ class ApiClient:
             raise ApiError(status, f"{method} {path}: the answer is not a JSON object")
         return answer
 
+    def _read(self, response: Any, size: int = 0) -> bytes:
+        """The whole answer (closed after it), or (`size`) what has come of a stream."""
+        try:
+            return bytes(response.read1(size) if size else response.read())
+        except OSError as exc:
+            what = "event stream" if size else "answer"
+            raise ApiUnreachable(f"the {what} from {self.url} broke off: {exc}") from None
+        finally:
+            if not size:
+                response.close()
+
     def _open(self, method: str, path: str, body: bytes | None, content_type: str | None,
               query: dict[str, str] | None, headers: dict[str, str] | None = None,
-              timeout_s: float | None = None) -> Any:
-        url = self.url + API + path
-        if query:
-            url += "?" + urllib.parse.urlencode(query)
-        request = urllib.request.Request(url, data=body, method=method,
-                                         headers={"Accept": "application/json", **(headers or {})})
+              timeout_s: float | None = None, stream: bool = False) -> Any:
+        path += "?" + urllib.parse.urlencode(query) if query else ""
+        sent = {"Accept": "application/json", **(headers or {})}
         if content_type:
-            request.add_header("Content-Type", content_type)
+            sent["Content-Type"] = content_type
         if (credentials := self._credentials()) is not None:
-            request.add_header("Authorization", credentials)
+            sent["Authorization"] = credentials
+        timeout_s = timeout_s or self.timeout_s
         try:
-            return self._opener.open(request, timeout=timeout_s or self.timeout_s)
-        except urllib.error.HTTPError as exc:
-            raise _api_error(exc) from None
-        except (urllib.error.URLError, OSError) as exc:
+            if self._plain and not stream:
+                answer = plainhttp.request(self.url + API + path, method, sent, body, timeout_s)
+            else:
+                self._opener = self._opener or plainhttp.urllib_opener(None)
+                answer = plainhttp.urllib_open(self._opener, self.url + API + path, method,
+                                               sent, body, timeout_s)
+        except OSError as exc:  # urllib's URLError too
             reason = getattr(exc, "reason", exc)
             raise ApiUnreachable(
                 f"cannot reach the softplc API at {self.url}: {reason}. Is `softplc run` "
                 f"serving its API there (--api HOST:PORT)?") from None
+        if 200 <= answer.status < 300:
+            return answer
+        raise _api_error(answer)
 
 
 def server_ca(ca: Path | str | None, state_dir: Path | str | None,
@@ -376,13 +371,15 @@ def _quote(name: str) -> str:
     return urllib.parse.quote(name, safe="")
 
 
-def _api_error(exc: urllib.error.HTTPError) -> ApiError:
+def _api_error(answer: Any) -> ApiError:
+    """A non-2xx answer (a 3xx too: no redirect is followed) as an ApiError."""
+    code, reason = answer.status, str(answer.reason)
     try:
-        raw = exc.read()
+        raw = answer.read()
     except OSError:
         raw = b""
     finally:
-        exc.close()
+        answer.close()
     try:
         body = json.loads(raw)
     except ValueError:
@@ -392,9 +389,9 @@ def _api_error(exc: urllib.error.HTTPError) -> ApiError:
         text = str(body["error"])
         problems = [str(p) for p in body.get("problems") or []]
     else:
-        text = raw.decode("utf-8", "replace").strip()[:200] or str(exc.reason)
-    if exc.code == 401:
+        text = raw.decode("utf-8", "replace").strip()[:200] or reason
+    if code == 401:
         text += (f" (give --token with an API key, set ${auth.TOKEN_ENV}, --user, or "
                  "--state-dir of the server)")
-    not_sent = exc.code == 503 and isinstance(body, dict) and body.get("stale") is True
-    return ApiError(exc.code, text, problems, not_sent)
+    not_sent = code == 503 and isinstance(body, dict) and body.get("stale") is True
+    return ApiError(code, text, problems, not_sent)
