@@ -70,9 +70,11 @@ def test_only_the_command_run_is_imported() -> None:
 # Taken off the client path (issue 40 item 1), each a cost of every start: typing and
 # dataclasses (with inspect, ast, dis) by cli/table.py, core/ and the client; difflib (only a
 # mistyped command); the server's hmac and secrets (security/auth.py); the TLS settings and
-# context modules (only for an https URL).
+# context modules (only for an https URL); urllib.request with http.client, email and ssl (an
+# http URL goes over api/plainhttp.py's socket; against a served API: tests/api/test_plainhttp.py).
 TRIMMED = ("typing", "dataclasses", "inspect", "difflib", "hmac", "secrets",
-           "softplc.security.tls", "softplc.security.settings", "softplc.api.secopts")
+           "softplc.security.tls", "softplc.security.settings", "softplc.api.secopts",
+           "urllib.request", "http.client", "email", "ssl")
 
 
 @pytest.mark.parametrize("argv", [("status", "--json", "--api", "URL"), ("--help",),
