@@ -13,7 +13,6 @@ account's server at a loopback URL), else the system's CAs (security/tls.py, the
 
 from __future__ import annotations
 
-import base64
 import json
 import os
 import re
@@ -83,6 +82,7 @@ class ApiClient:
         self.url = url.rstrip("/")
         self.timeout_s = timeout_s
         if user is not None:
+            import base64  # HTTP Basic only
             pair = base64.b64encode(f"{user}:{password or ''}".encode()).decode("ascii")
             self._authorization: str | None = f"Basic {pair}"
             self._find: tuple[str | None, Path | str | None, str | None] | None = None
