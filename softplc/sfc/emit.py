@@ -17,7 +17,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 from softplc.core.problems import Problem
-from softplc.sfc import timed
+from softplc.sfc import stored, timed
 from softplc.sfc.model import IEC_TYPES, Action, Chart, Transition, Variable
 from softplc.sfc.st import time_ms
 
@@ -79,16 +79,19 @@ def _program(chart: Chart, io_name: str, out: _Text, problems: list[Problem]) ->
                 f"{chart.file}:{s.line}", s.line)
     for name, comment, line in timed.places(chart):
         out.add(f"  {name}: {{}}  # {comment}", line)
+    for name, comment, line in stored.places(chart):
+        out.add(f"  {name}: {{tokens: 1}}  # {comment}", line)
     _check_actions(chart, problems)
     timed.check(chart, problems)
+    stored.check(chart, problems)
     out.add("transitions:")
     top = max((t.rank for t in chart.transitions), default=0)
     shared = {s for t in chart.transitions for s in t.sources
               if sum(s in u.sources for u in chart.transitions) > 1}
     for t in chart.transitions:
         _transition(chart, t, top - t.rank if shared & set(t.sources) else 0, out)
-    for t, body in timed.transitions(chart):  # above the chart: their writes come first
-        _transition(chart, t, top + 1, out, body)
+    for t, body in [*timed.transitions(chart), *stored.transitions(chart)]:
+        _transition(chart, t, top + 1, out, body)  # above the chart: their writes come first
     for step in chart.steps:  # one self-loop per step: two would take turns at one token
         bodies = [a for a in chart.actions if a.step == step.name and a.qualifier == "N"
                   and a.statements]
@@ -143,6 +146,7 @@ def _do(chart: Chart, t: Transition) -> list[tuple[str, str]]:
         out.extend((f"{v} = {e}", str(a.line)) for v, e in a.statements)
     out.extend(timed.on_leave(chart, left))
     out.extend(timed.on_enter(chart, entered))
+    out.extend(stored.on_enter(chart, entered))
     for a in acts(entered, ("S", "R")):
         if a.target:
             out.append((f"{'set' if a.qualifier == 'S' else 'reset'} {a.target}", str(a.line)))
@@ -226,6 +230,9 @@ def _symbols(chart: Chart, head: str, out: _Text, problems: list[Problem]) -> No
             fields.append(f"init: {init}")
         out.add(f"  {v.name}: {{{', '.join(fields)}}}  # {v.section} {v.name} : {v.iec}, "
                 f"{chart.file}:{v.line}", v.line)
+    for name, a in stored.latches(chart):
+        out.add(f"  {name}: {{address: {q(alloc.next('bool'))}, type: bool}}  # latch of action "
+                f"{a.target} ({a.qualifier}) of step {a.step}, {chart.file}:{a.line}", a.line)
 
 
 def _single_level(address: str) -> bool:

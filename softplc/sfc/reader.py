@@ -29,8 +29,8 @@ from softplc.sfc.st import (
 
 BOOL_QUALIFIERS = {"N", "S", "R", "P", "P1", "P0"}
 CODE_QUALIFIERS = {"N", "P1", "P0"}
-TIMED = {"L", "D", "DS"}  # on BOOL variables, with an action timer (timed.py)
-REFUSED_TIMED = {"SD", "SL", "DL"}
+TIMED = {"L", "D", "DS", "SD", "SL"}  # on BOOL variables: timed.py, stored.py
+REFUSED_TIMED = {"DL"}
 
 
 def read_chart(data: bytes, filename: str, pou_name: str | None = None) -> Chart:
@@ -178,9 +178,10 @@ class _Reader:
         name = ref.attrs.get("name", "") if ref is not None else f"{step}_inline{act.line}"
         if qual in REFUSED_TIMED:
             self.problem(act.line, f"action {name} of step {step}: qualifier {qual} "
-                         f"{duration} needs a latch and a timer that outlive the step and that "
-                         "R cancels: not supported (supported: N, S, R, P, P1, P0, and L, D, DS "
-                         "with a duration, on BOOL variables; N, P1, P0 on ST bodies)")
+                         f"{duration} is in the PLCopen schema only: IEC 61131-3 defines no "
+                         "ACTION_CONTROL rule for it, so there is nothing to map (supported: N, "
+                         "S, R, P, P1, P0, and L, D, DS, SD, SL with a duration, on BOOL "
+                         "variables; N, P1, P0 on ST bodies)")
             return
         var = self.chart.variables.get(name.upper()) if ref is not None else None
         if qual in TIMED:

@@ -19,6 +19,7 @@ from collections.abc import Callable
 
 from softplc.core.problems import Problem
 from softplc.sfc.model import Chart, Transition
+from softplc.sfc.stored import resetters, stored
 
 MAX_SITUATIONS = 100_000  # the charts seen have at most a few hundred
 
@@ -81,6 +82,14 @@ def verify(chart: Chart, notes: list[Problem] | None = None) -> list[Problem]:
                 f"{', '.join(t.sources)} are never active together"
                 + (f" with {', '.join(t.reads)} active" if t.reads else "")
                 + (f" and {', '.join(t.inhibits)} inactive" if t.inhibits else ""))
+    for a in stored(chart):
+        for r in resetters(chart, a):
+            both = next((m for m in parent if m[index[a.step]] and m[index[r.step]]), None)
+            if both is not None:
+                say(a.line, f"action {a.target} ({a.qualifier}) of step {a.step}: steps "
+                    f"{a.step} and {r.step} (R {a.target}, line {r.line}) can be active "
+                    "together, where IEC holds the latch reset while the R step is active "
+                    f"(softplc resets it on entering the R step); witness: {path(both)}")
     final = {s.name for s in chart.steps} - {s for t in chart.transitions for s in t.sources}
     stuck = []
     for m in deadlocks:

@@ -18,7 +18,8 @@ def compare(path: Path, scans: list[dict[str, Any]]) -> str | None:
     bench = Bench(net)  # its first scan (now 0) downloads and starts, all inputs 0
     ref = RefSfc(read(path.read_text(encoding="utf-8")))
     ref.scan(0, {})
-    observed = [n for n, s in net.io.symbols.items() if not str(s.address).startswith("%I")]
+    observed = [n for n, s in net.io.symbols.items() if not str(s.address).startswith("%I")
+                and n in ref.c.types]  # the chart's variables (not the net's SD/SL latches)
     for k, values in enumerate(scans, start=1):
         bench.set(**{n: int(v) for n, v in values.items() if n in net.io.symbols})
         bench.scan(k * PERIOD_MS * 1_000_000)

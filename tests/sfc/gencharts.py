@@ -5,7 +5,7 @@ divergence of 2-3 one-step branches, or a simultaneous divergence of 2 branches 
 joined again. Conditions are random ST over four BOOL inputs, sometimes `Step.T >= T#..`.
 Actions: N on BOOL outputs, S/R on one output, P1/P0 pulses, ST bodies (N, P1, P0), each
 body writing its own counter so the order of bodies within a scan cannot matter, and timed
-L, D, DS actions on BOOLs of their own.
+L, D, DS, SD, SL actions on BOOLs of their own.
 """
 
 from __future__ import annotations
@@ -102,15 +102,15 @@ def _actions(draw: st.DrawFn, steps: list[str]
                 variables[var] = ("INT", f"%QW{len(bodies)}")
                 bodies[name] = f"{var} := {var} + 1;"
                 actions.append((step, qual, name))
-    # Timed actions (L, D, DS), each on its own BOOL after S0 (one association per BOOL); the
-    # DS one is reset in S0, which no parallel branch overlaps.
-    for i, qual in enumerate(("L", "D", "DS")):
+    # Timed actions (L, D, DS, SD, SL), each on its own BOOL after S0 (one association per
+    # BOOL); the stored ones are reset in S0, which no parallel branch overlaps.
+    for i, qual in enumerate(("L", "D", "DS", "SD", "SL")):
         variables[f"t{i}"] = ("BOOL", f"%QX1.{i}")
         if len(steps) > 1 and draw(st.booleans()):
             step = draw(st.sampled_from(steps[1:]))
             ms = draw(st.sampled_from([10, 20, 50]))
             actions.append((step, f"{qual}@T#{ms}ms", f"t{i}"))
-            if qual == "DS":
+            if qual in ("DS", "SD", "SL"):
                 actions.append(("S0", "R", f"t{i}"))
     return actions, variables, bodies
 

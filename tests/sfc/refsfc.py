@@ -18,7 +18,12 @@ Rules it implements (docs/sfc.md states the same choices for the net):
   same clock as Step.T): L true while the step is active and its time is below the duration,
   D true while it is active and its time has reached it, DS stored (until an R) once the
   step has been active for the duration; evaluated after the clearing, before S and R (R
-  overrides the stored DS).
+  overrides the stored DS);
+- SD and SL on a BOOL, ACTION_CONTROL's latch and timer (Ed.2 2.6.4.5, figure 15): the latch
+  SD_FF/SL_FF is set while the step is active and held reset while a step with an R of the
+  same BOOL is active (R dominant); a TON runs on the latch (from the first scan the latch is
+  set at the start of the scan, the Step.T clock), not on the step: SD is the TON's Q, SL the
+  latch AND NOT Q. A new activation while latched changes nothing; only an R ends it.
 """
 
 from __future__ import annotations
@@ -237,9 +242,13 @@ class RefSfc:
         self.env: dict[str, Any] = {v: (False if t == "BOOL" else 0)
                                     for v, t in chart.types.items()}
         self.pulsed: set[str] = set()
+        self.latched: dict[str, int | None] = {}  # SD/SL BOOL -> when its TON started
 
     def scan(self, now_ms: int, inputs: dict[str, Any]) -> None:
         self.env.update(inputs)
+        for var, start in self.latched.items():
+            if start is None:
+                self.latched[var] = now_ms  # the TON sees the latch from this scan on
         for s in self.active:
             if self.since[s] is None:
                 self.since[s] = now_ms  # the first scan the step is active in
@@ -274,6 +283,7 @@ class RefSfc:
                 self.env[name] = step in self.active and not done
             elif qual == "D" or done:
                 self.env[name] = done
+        self._stored(now)
         for step, qual, name in self.c.actions:
             body = self.c.bodies.get(name)
             runs = (qual == "N" and (step in self.active or step in gone)) or \
@@ -293,3 +303,16 @@ class RefSfc:
             if qual == "N" and name not in self.c.bodies:
                 self.env[name] = any(s in self.active for s, q, n in self.c.actions
                                      if q == "N" and n == name)
+
+    def _stored(self, now: int) -> None:
+        for step, qual, name in self.c.actions:
+            if qual not in ("SD", "SL"):
+                continue
+            if any(q == "R" and n == name and s in self.active for s, q, n in self.c.actions):
+                self.latched.pop(name, None)  # RS: the reset dominates
+            elif step in self.active and name not in self.latched:
+                self.latched[name] = None
+            start = self.latched.get(name, -1)
+            done = start is not None and start >= 0 and \
+                now - start >= self.c.durations[(step, name)]
+            self.env[name] = name in self.latched and (done if qual == "SD" else not done)

@@ -79,20 +79,21 @@ def _problems(path: Path | str) -> list[str]:
 
 
 def test_refusals_are_located_at_the_xml_line_with_what_is_supported(tmp_path: Path) -> None:
-    path = _chart(tmp_path, actions=[("Run", "SD@T#2s", "lamp"), ("Run", "S", "bump")],
+    path = _chart(tmp_path, actions=[("Run", "DL@T#2s", "lamp"), ("Run", "S", "bump")],
                   transitions=[(["Start"], ["Run"], "go AND n MOD 2 = 0"),
                                (["Run"], ["Start"], "NOT go")], bodies={"bump": "n := 1;"})
     lines = path.read_text().splitlines()
     found = _problems(path)
     cond = next(i for i, t in enumerate(lines, 1) if "MOD" in t)
-    timed = next(i for i, t in enumerate(lines, 1) if 'qualifier="SD"' in t)
+    timed = next(i for i, t in enumerate(lines, 1) if 'qualifier="DL"' in t)
     stored = next(i for i, t in enumerate(lines, 1) if 'qualifier="S"' in t)
     assert found == sorted([
         f"{path}:{cond}: transition Start_to_Run: MOD truncates toward zero in ST and floors "
         "in softplc; not translated",
-        f"{path}:{timed}: action lamp of step Run: qualifier SD T#2s needs a latch and a timer "
-        "that outlive the step and that R cancels: not supported (supported: N, S, R, P, P1, "
-        "P0, and L, D, DS with a duration, on BOOL variables; N, P1, P0 on ST bodies)",
+        f"{path}:{timed}: action lamp of step Run: qualifier DL T#2s is in the PLCopen schema "
+        "only: IEC 61131-3 defines no ACTION_CONTROL rule for it, so there is nothing to map "
+        "(supported: N, S, R, P, P1, P0, and L, D, DS, SD, SL with a duration, on BOOL "
+        "variables; N, P1, P0 on ST bodies)",
         f"{path}:{stored}: action bump of step Run: S with an ST body is stored: it would run "
         "every scan until reset; supported: N, P1, P0 bodies, or a BOOL variable as the action",
     ])

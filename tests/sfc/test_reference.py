@@ -82,3 +82,27 @@ def test_timed_actions_l_d_ds_agree_with_the_reference(tmp_path: Path) -> None:
         seen.append("".join("1" if ref.env[q] else "0" for q in ("q0", "q1", "q2")))
     assert (seen[2], seen[4], seen[6], seen[15], seen[21], seen[28], seen[31]) == \
         ("100", "110", "010", "001", "000", "000", "000")
+
+
+def test_stored_timed_actions_sd_sl_agree_with_the_reference(tmp_path: Path) -> None:
+    spec = ChartSpec(["S0", "S1", "S2", "S3"], ["S0"],
+                     [(["S0"], ["S1"], "i0"), (["S1"], ["S2"], "i1"), (["S2"], ["S1"], "i2"),
+                      (["S2"], ["S3"], "i3"), (["S3"], ["S0"], "TRUE")],
+                     [("S1", "SD@T#50ms", "q0"), ("S1", "SL@T#40ms", "q1"),
+                      ("S3", "R", "q0"), ("S3", "R", "q1")],
+                     {f"i{k}": ("BOOL", f"%IX0.{k}") for k in range(4)} |
+                     {"q0": ("BOOL", "%QX0.0"), "q1": ("BOOL", "%QX0.1")})
+    path = tmp_path / "stored.xml"
+    path.write_text(chart_xml(spec), encoding="utf-8")
+    # S1 entered at scan 1 and left at 2: both latches outlive it (SL goes off at 6, SD comes
+    # on at 7); S1 entered again at 11 while latched: nothing restarts (SL stays off); R in S3
+    # at 14 cancels both; S1 entered at 17, and R at 20 before SD's time: SD never comes on.
+    scans = [{"i0": k in (1, 17), "i1": k in (2, 13, 18), "i2": k == 11, "i3": k in (14, 20)}
+             for k in range(26)]
+    assert compare(path, scans) is None
+    ref, seen = RefSfc(read(path.read_text(encoding="utf-8"))), []
+    for k, values in enumerate(scans):
+        ref.scan(k * 10, values)
+        seen.append("".join("1" if ref.env[q] else "0" for q in ("q0", "q1")))
+    assert seen[1:9] == ["01"] * 5 + ["00", "10", "10"], seen
+    assert (seen[11], seen[14], seen[17], seen[20], seen[22]) == ("10", "00", "01", "00", "00")

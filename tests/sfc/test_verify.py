@@ -122,3 +122,21 @@ def test_a_sound_chart_compiles_with_places_and_transitions_at_their_xml_lines(
     assert net.place_names == ("Start", "Run")
     assert net.place_where[1] == (str(path), line_of(path, 'name="Run"'))
     assert net.transition_where[0][1] == line_of(path, "<![CDATA[go]]>")
+
+
+def test_sd_with_its_r_step_active_at_the_same_time_is_refused_with_a_witness(
+        tmp_path: Path) -> None:
+    spec = ChartSpec(["S0", "A", "B"], ["S0"],
+                     [(["S0"], ["A", "B"], "go"), (["A", "B"], ["S0"], "TRUE")],
+                     [("A", "SD@T#1s", "q"), ("B", "R", "q")],
+                     {"go": ("BOOL", "%IX0.0"), "q": ("BOOL", "%QX0.0")})
+    path = tmp_path / "par.xml"
+    path.write_text(chart_xml(spec), encoding="utf-8")
+    with pytest.raises(ProgramError) as info:
+        compile_file(path)
+    line = next(i for i, t in enumerate(path.read_text().splitlines(), 1)
+                if 'qualifier="SD"' in t)
+    assert [str(p) for p in info.value.problems] == [
+        f"{path}:{line}: action q (SD) of step A: steps A and B (R q, line {line + 1}) can be "
+        "active together, where IEC holds the latch reset while the R step is active (softplc "
+        "resets it on entering the R step); witness: S0_to_A_B"]
