@@ -90,8 +90,10 @@ def _program(chart: Chart, io_name: str, out: _Text, problems: list[Problem]) ->
               if sum(s in u.sources for u in chart.transitions) > 1}
     for t in chart.transitions:
         _transition(chart, t, top - t.rank if shared & set(t.sources) else 0, out)
-    for t, body in [*timed.transitions(chart), *stored.transitions(chart)]:
-        _transition(chart, t, top + 1, out, body)  # above the chart: their writes come first
+    for t, body in timed.transitions(chart):  # above the chart: their writes come first
+        _transition(chart, t, top + 1, out, body)
+    for t, body, first in stored.transitions(chart):
+        _transition(chart, t, top + 1 if first else -1, out, body)
     for step in chart.steps:  # one self-loop per step: two would take turns at one token
         bodies = [a for a in chart.actions if a.step == step.name and a.qualifier == "N"
                   and a.statements]

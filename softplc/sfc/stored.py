@@ -65,8 +65,11 @@ def on_enter(chart: Chart, entered: list[str]) -> list[tuple[str, str]]:
     return out
 
 
-def transitions(chart: Chart) -> list[tuple[Transition, list[tuple[str, str]]]]:
-    """The TON of each association: fires once the latch has held for the duration."""
+def transitions(chart: Chart) -> list[tuple[Transition, list[tuple[str, str]], bool]]:
+    """The TON of each association: fires once the latch has held for the duration. The flag
+    says whether its write goes before the chart's in a round (SD's `set`: an R step entered
+    in that round resets after it) or after them (SL's `reset`: a new activation in that
+    round keeps the BOOL as it was at the start of the round, and the run-out must win)."""
     out = []
     for a in stored(chart):
         p, x = place(a), a.target
@@ -74,7 +77,7 @@ def transitions(chart: Chart) -> list[tuple[Transition, list[tuple[str, str]]]]:
         write = f"set {x}" if a.qualifier == "SD" else f"reset {x}"
         out.append((Transition(f"{p}_elapsed", a.line, (p,), (p,), f"{latch(a)} held for "
                                f"{a.duration}", guard=guard, delay_ms=a.duration_ms),
-                    [(write, str(a.line))]))
+                    [(write, str(a.line))], a.qualifier == "SD"))
     return out
 
 

@@ -95,9 +95,10 @@ def test_stored_timed_actions_sd_sl_agree_with_the_reference(tmp_path: Path) -> 
     path = tmp_path / "stored.xml"
     path.write_text(chart_xml(spec), encoding="utf-8")
     # S1 entered at scan 1 and left at 2: both latches outlive it (SL goes off at 6, SD comes
-    # on at 7); S1 entered again at 11 while latched: nothing restarts (SL stays off); R in S3
-    # at 14 cancels both; S1 entered at 17, and R at 20 before SD's time: SD never comes on.
-    scans = [{"i0": k in (1, 17), "i1": k in (2, 13, 18), "i2": k == 11, "i3": k in (14, 20)}
+    # on at 7); S1 entered again at 6, while latched and as SL's timer runs out: nothing
+    # restarts, SL goes off; R in S3 at 14 cancels both; S1 entered at 17, and R at 20
+    # before SD's time: SD never comes on.
+    scans = [{"i0": k in (1, 17), "i1": k in (2, 13, 18), "i2": k == 6, "i3": k in (14, 20)}
              for k in range(26)]
     assert compare(path, scans) is None
     ref, seen = RefSfc(read(path.read_text(encoding="utf-8"))), []
