@@ -161,6 +161,73 @@ def test_no_room_imports_another_rooms_private_names() -> None:
     assert not found, "private names imported across rooms:\n" + "\n".join(found)
 
 
+# The sub-rooms of the runtime (issue 40.5) and what each may import of the runtime. "scan" is
+# runtime/*.py, what runs in the scan process; "scan.clock" names one of its modules. clock and
+# realtime import nothing of softplc, so the lower sub-rooms may use them. Within a sub-room
+# anything goes; a new edge between sub-rooms fails until it is argued here.
+SUBROOMS: dict[str, frozenset[str]] = {
+    "shared": frozenset({"scan.clock"}),  # the channel's timeouts
+    "retain": frozenset({"scan.clock", "scan.realtime"}),  # the writer's thread
+    "scan": frozenset({"shared", "retain"}),
+    "serve": frozenset({"shared"}),
+    "offline": frozenset({"scan"}),
+    "supervise": frozenset({"scan", "shared", "serve", "retain"}),
+}
+# Rooms outside the runtime that may import only some of its sub-rooms.
+RUNTIME_USERS: dict[str, frozenset[str]] = {
+    "sparkplug": frozenset({"shared"}),  # a service over the snapshot, started by config
+    "debug": frozenset({"scan", "offline"}),  # traces and simulate, never a live process
+}
+
+
+def subroom_of(parts: tuple[str, ...] | list[str]) -> str:
+    """The sub-room of softplc.runtime.<parts...> (module path parts after 'runtime')."""
+    return parts[0] if parts[0] in SUBROOMS and len(parts) > 1 else f"scan.{parts[0]}"
+
+
+def runtime_imports() -> list[tuple[str, str, str]]:
+    """(importing room or runtime sub-room, imported sub-room target, importing file)."""
+    found = []
+    for path in sorted(ROOT.rglob("*.py")):
+        rel = path.relative_to(ROOT)
+        if rel.parts[0] == "runtime":
+            inner = rel.parts[1:]
+            here = inner[0] if len(inner) > 1 else "scan"
+        else:
+            here = room_of(path)
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module] if node.module != "softplc.runtime" else \
+                    [f"softplc.runtime.{alias.name}" for alias in node.names]
+            else:
+                continue
+            for name in names:
+                parts = name.split(".")
+                if parts[:2] == ["softplc", "runtime"] and len(parts) > 2:
+                    found.append((here, subroom_of(parts[2:]), str(rel)))
+    return found
+
+
+def test_runtime_subrooms_import_only_what_their_walls_name() -> None:
+    wrong = []
+    for here, target, where in runtime_imports():
+        allowed = SUBROOMS.get(here) if here in SUBROOMS else RUNTIME_USERS.get(here)
+        if allowed is None or target.split(".")[0] == here:
+            continue
+        if target not in allowed and not (target.startswith("scan.") and "scan" in allowed):
+            wrong.append(f"{where} ({here}) imports runtime {target}")
+    assert not wrong, "imports through the runtime's walls:\n" + "\n".join(sorted(set(wrong)))
+
+
+def test_the_runtime_walls_see_every_subroom() -> None:
+    on_disk = {p.parent.name for p in (ROOT / "runtime").glob("*/__init__.py")}
+    assert on_disk == set(SUBROOMS) - {"scan"}
+    seen = {(here, target) for here, target, _ in runtime_imports()}
+    assert ("supervise", "scan.scanproc") in seen  # the walk sees the supervisor start a scan
+
+
 def test_no_cycles_between_rooms_but_the_known_ones() -> None:
     assert cycles(imports()) == KNOWN_CYCLES
 
@@ -211,7 +278,7 @@ def test_no_import_circle_between_modules_but_the_known_ones() -> None:
 
 def test_the_module_graph_sees_type_only_imports() -> None:
     graph = module_imports()
-    # runtime/supervisor.py and others import under TYPE_CHECKING too; one known edge:
+    # runtime/supervise/supervisor.py and others import under TYPE_CHECKING too; one known edge:
     typed = [name for name, path in modules().items()
              if "if TYPE_CHECKING:" in path.read_text(encoding="utf-8")]
     assert typed and all(graph[name] for name in typed)

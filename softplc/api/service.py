@@ -22,7 +22,7 @@ from softplc.core.snapshot import CommandReply, CommandRequest, HmiWrite, Snapsh
 
 
 class CommandChannel(Protocol):
-    """What the service needs of softplc.runtime.channel.Channel (client side)."""
+    """What the service needs of softplc.runtime.shared.channel.Channel (client side)."""
 
     def send_command(self, request: CommandRequest, timeout_s: float = ...,
                      on_late: Callable[[CommandReply], None] | None = ...) -> CommandReply: ...
@@ -31,7 +31,7 @@ class CommandChannel(Protocol):
 
 
 class BoardSource(Protocol):
-    """What the service needs of softplc.runtime.board.StatusBoard."""
+    """What the service needs of softplc.runtime.shared.board.StatusBoard."""
 
     def read(self) -> dict[str, Any]: ...
 

@@ -154,7 +154,7 @@ def abuser_main(kind: str, ports: dict[str, int], quick: bool, conn: Connection,
                 token: str = "", where: Placement | None = None) -> None:
     """One abuse: placed first (its threads inherit it), set up, send {"ready": ...}, hold
     until told to stop, send the tally."""
-    from softplc.runtime.procs import die_with_parent
+    from softplc.runtime.shared.procs import die_with_parent
 
     die_with_parent()
     placed = place(where or Placement(None))

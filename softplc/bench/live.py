@@ -30,19 +30,19 @@ import numpy.typing as npt
 
 from softplc.core.image import ImageSizes
 from softplc.core.judge import NOTHING_OBSERVED, Observed
-from softplc.runtime.board import StatusBoard
-from softplc.runtime.channel import Channel
 from softplc.runtime.clock import MonotonicClock, Schedule
-from softplc.runtime.comm import CommConfig
 from softplc.runtime.config import LoopConfig
-from softplc.runtime.leftovers import SHM_PREFIX
 from softplc.runtime.loop import ScanLoop
-from softplc.runtime.procs import die_with_parent
 from softplc.runtime.realtime import NORMAL, Realtime, apply
 from softplc.runtime.scanproc import attached, scan_process_main
-from softplc.runtime.shm import SnapshotWriter
+from softplc.runtime.serve.comm import CommConfig
+from softplc.runtime.shared.board import StatusBoard
+from softplc.runtime.shared.channel import Channel
+from softplc.runtime.shared.procs import die_with_parent
+from softplc.runtime.shared.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
-from softplc.runtime.supervisor import Supervisor
+from softplc.runtime.supervise.leftovers import SHM_PREFIX
+from softplc.runtime.supervise.supervisor import Supervisor
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout: programs/ and io_images/
 TRANSPORT = ROOT / "programs" / "transport.yaml"

@@ -173,7 +173,7 @@ def run_job(job: LoadJob) -> dict[str, Any]:
 
 
 def _worker_main(jobs: Connection) -> None:
-    from softplc.runtime.procs import die_with_parent
+    from softplc.runtime.shared.procs import die_with_parent
 
     die_with_parent()
     while True:

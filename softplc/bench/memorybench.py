@@ -15,7 +15,7 @@ from typing import Any
 from softplc.bench.live import LiveRuntime, rss_kib
 from softplc.bench.load import LoadJob, LoadWorker
 from softplc.bench.measure import Progress
-from softplc.runtime.procs import children
+from softplc.runtime.shared.procs import children
 
 SETTLE_S = 1.0
 

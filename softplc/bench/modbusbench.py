@@ -47,7 +47,7 @@ async def _serve_plain(port: int, ready: Event, stop: Event) -> None:
 
 
 def plain_server_main(port: int, ready: Event, stop: Event) -> None:
-    from softplc.runtime.procs import die_with_parent
+    from softplc.runtime.shared.procs import die_with_parent
 
     die_with_parent()
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)

@@ -54,7 +54,7 @@ TARGETS: dict[str, tuple[str, ...]] = {
     "softplc/hmi/map.py": ("tests/hmi/test_map.py", "tests/hmi/test_frames.py",
                            "tests/hmi/test_eng_registers.py", "tests/hmi/test_long_registers.py",
                            "tests/hmi/test_nonfinite_modbus.py", "tests/test_contracts.py"),
-    "softplc/runtime/retain_codec.py": ("tests/runtime/test_typed_hold.py",
+    "softplc/runtime/retain/codec.py": ("tests/runtime/test_typed_hold.py",
                                         "tests/runtime/test_retain_store.py",
                                         "tests/runtime/test_retain_per_variable.py",
                                         "tests/runtime/test_retain.py", "-k", "not softplc_run"),

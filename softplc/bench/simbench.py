@@ -18,8 +18,8 @@ import numpy as np
 from softplc.bench.measure import Progress, figures
 from softplc.core.engine import Engine, Step
 from softplc.program.compiler import compile_file
+from softplc.runtime.offline.simulate import simulate
 from softplc.runtime.runner import boot
-from softplc.runtime.simulate import simulate
 
 PROGRAMS = Path(__file__).resolve().parents[2] / "programs"
 CASE_STUDIES = ("transport", "drilling")

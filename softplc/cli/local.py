@@ -87,8 +87,8 @@ def cmd_check(args: argparse.Namespace) -> int:
 def cmd_simulate(args: argparse.Namespace) -> int:
     from softplc.devices.check import check_devices
     from softplc.devices.driver import DeviceError
-    from softplc.runtime.simscript import load_script
-    from softplc.runtime.simulate import format_timeline, simulate
+    from softplc.runtime.offline.simscript import load_script
+    from softplc.runtime.offline.simulate import format_timeline, simulate
 
     net = _compile_or_report(args.program)
     if net is None:

@@ -1,7 +1,7 @@
 """`softplc run`'s options: the scan period, the doors' endpoints, retain, the watchdog, the
 Modbus limits and the security options (api/secopts.py).
 
-Owns: the run parser and its defaults. Does not know: how a PLC runs (runtime/runcmd.py).
+Owns: the run parser and its defaults. Does not know: how a PLC runs (runtime/supervise/runcmd.py).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from softplc.sparkplug.options import add_options as add_sparkplug_options
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from softplc.runtime.runcmd import run
+    from softplc.runtime.supervise.runcmd import run
     from softplc.sparkplug.options import from_args as sparkplug_config
 
     try:  # the whole edge node configuration, before anything starts (docs/sparkplug.md)

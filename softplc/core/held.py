@@ -4,7 +4,7 @@ Owns: `drive_safe` (every output to its declared safe value); HeldOutputs, a cop
 output area (%QX %QW %QD %QL) taken at a stop, a device fault or the start of a wait for the
 first input image, put back by resume, recovery or the end of the wait; IoWait, that wait's
 start and its outputs; `awaited_devices`, the devices the wait is for.
-Does not know: when a PLC stops or waits (core/plc.py), files (runtime/retain_codec.py keeps
+Does not know: when a PLC stops or waits (core/plc.py), files (runtime/retain/codec.py keeps
 a HeldOutputs across a warm restart), clocks.
 """
 

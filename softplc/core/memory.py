@@ -3,7 +3,7 @@
 Owns: which memory symbols a download, a reset, an online change, a cold or a warm start sets
 to its initial value (docs/retain.md, retain per variable), and setting them; which keep a
 value across programs (another program's variable of the same name, address, type and scale).
-Does not know: when those happen (core/plc.py, runtime/retain_codec.py), YAML, files.
+Does not know: when those happen (core/plc.py, runtime/retain/codec.py), YAML, files.
 """
 
 from __future__ import annotations

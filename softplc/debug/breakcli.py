@@ -132,8 +132,8 @@ def cmd_simulate_break(args: argparse.Namespace) -> int:
     from softplc.devices.check import check_devices
     from softplc.devices.driver import DeviceError
     from softplc.program.compiler import compile_file
-    from softplc.runtime.simscript import load_script
-    from softplc.runtime.simulate import simulate
+    from softplc.runtime.offline.simscript import load_script
+    from softplc.runtime.offline.simulate import simulate
 
     try:
         net = compile_file(args.program)

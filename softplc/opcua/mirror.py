@@ -232,7 +232,7 @@ def newest_seq(document: Mapping[str, Any]) -> int:
 
 def quality(snapshot: Snapshot) -> int:
     """Part 8's quality of the values of `snapshot`: Good while fresh; a stale one (the scan
-    process stopped publishing: frozen, dead, restarting; runtime/fresh.py) holds the last
+    process stopped publishing: frozen, dead, restarting; runtime/shared/fresh.py) holds the last
     usable values, and one never published holds none."""
     if not snapshot.status.stale:
         return ua.StatusCodes.Good

@@ -47,7 +47,7 @@ _FIRST_ID: Final = 1_000_000  # the API counts from 1; these ids show OPC UA in 
 
 
 class CommandChannel(Protocol):
-    """What the server needs of softplc.runtime.channel.Channel (client side)."""
+    """What the server needs of softplc.runtime.shared.channel.Channel (client side)."""
 
     def send_command(self, request: CommandRequest, timeout_s: float = ...) -> CommandReply: ...
 

@@ -127,7 +127,7 @@ def compile_main(config: LoopConfig, conn: Connection,
     """Entry point of the compile process: a request in, a Built (a StartProgram for a
     StartRequest) or an error out, until the scan process closes the pipe. A download over
     the memory or CPU budget is refused."""
-    from softplc.runtime.procs import die_with_parent, name_process
+    from softplc.runtime.shared.procs import die_with_parent, name_process
 
     name_process()  # softplc-compile (CompileProcess.start)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the supervisor's business

@@ -26,20 +26,20 @@ from softplc.core.problems import FaultCode
 from softplc.core.snapshot import CommandReply, CommandRequest, Refusal, Status
 from softplc.core.steps import Steps
 from softplc.runtime import netview, statusdoc, warmstart
-from softplc.runtime.board import StatusBoard
 from softplc.runtime.bootkeeper import BootKeeper
-from softplc.runtime.channel import Channel
 from softplc.runtime.clock import Clock, MonotonicClock, Schedule
 from softplc.runtime.compileproc import CompileProcess
 from softplc.runtime.config import LoopConfig as LoopConfig  # importable from here too
 from softplc.runtime.download import Downloads, refusal_of
 from softplc.runtime.eventlog import EventLog
 from softplc.runtime.prepare import Prepared, Preparer, answering, boundary
-from softplc.runtime.procs import Flag as Event
-from softplc.runtime.retain import RetainWriter, capture
+from softplc.runtime.retain.writer import RetainWriter, capture
 from softplc.runtime.runner import ScanRunner, open_drivers
 from softplc.runtime.scanwatch import HangWatch
-from softplc.runtime.shm import SnapshotWriter
+from softplc.runtime.shared.board import StatusBoard
+from softplc.runtime.shared.channel import Channel
+from softplc.runtime.shared.procs import Flag as Event
+from softplc.runtime.shared.shm import SnapshotWriter
 from softplc.runtime.stats import TimingStats
 from softplc.runtime.trace import TraceWriter
 

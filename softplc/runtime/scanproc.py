@@ -17,22 +17,22 @@ import threading
 from collections.abc import Iterator
 
 from softplc.core.problems import ProgramError
-from softplc.runtime.board import StatusBoard
-from softplc.runtime.channel import Channel
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.loop import ScanLoop
-from softplc.runtime.procs import Flag as Event
-from softplc.runtime.procs import ReadySignal
 from softplc.runtime.realtime import apply
-from softplc.runtime.retain import StateDirBusy
-from softplc.runtime.shm import SnapshotWriter
+from softplc.runtime.retain.writer import StateDirBusy
+from softplc.runtime.shared.board import StatusBoard
+from softplc.runtime.shared.channel import Channel
+from softplc.runtime.shared.procs import Flag as Event
+from softplc.runtime.shared.procs import ReadySignal
+from softplc.runtime.shared.shm import SnapshotWriter
 
 
 def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: ReadySignal, stop: Event) -> None:
     """Entry point of the scan process. SIGINT is the parent's business: it sets `stop`.
     Exit codes: 0 stopped, 3 state directory busy, 4 cannot start (program, devices)."""
-    from softplc.runtime.procs import (
+    from softplc.runtime.shared.procs import (
         die_with_parent,
         exit_now,
         name_process,

@@ -3,7 +3,8 @@
 Owns: the status board document (`softplc status`, the HTTP API, the operator's page) and the
 fixed-size Status of every published snapshot, both read between scans off a LoopView: what a
 scan loop shows of itself (runtime/loop.py's ScanLoop is one; this module does not import it).
-Does not know: how they are published (runtime/board.py, runtime/shm.py), the loop's workings.
+Does not know: how they are published (runtime/shared/board.py, runtime/shared/shm.py), the
+loop's workings.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from softplc.runtime.clock import Clock
 from softplc.runtime.compileproc import CompileProcess
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.download import Downloads
-from softplc.runtime.retain import RetainWriter
+from softplc.runtime.retain.writer import RetainWriter
 from softplc.runtime.runner import ScanRunner
 from softplc.runtime.stats import TimingStats, TimingSummary
 

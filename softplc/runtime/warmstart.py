@@ -5,7 +5,7 @@ Owns: the start decision applied to a starting loop (`Starting`: what it may set
 first scan: the program's devices opened and the snapshot put in (warm), or the download
 queued (cold); a snapshot that does not fit after all falls back to cold, with the reason;
 a restart of a scan process that died paused at a breakpoint waits STOPPED.
-Does not know: how snapshots are stored and chosen (runtime/retain.py).
+Does not know: how snapshots are stored and chosen (runtime/retain/writer.py).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from softplc.core.symbols import persistent_memory
 from softplc.runtime.clock import Clock
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.prepare import Prepared
-from softplc.runtime.retain import (
+from softplc.runtime.retain.writer import (
     ContinuedClock,
     Loaded,
     RetainStore,
@@ -32,7 +32,7 @@ from softplc.runtime.retain import (
     restore_persistent,
 )
 from softplc.runtime.runner import ScanRunner
-from softplc.runtime.shm import SnapshotWriter
+from softplc.runtime.shared.shm import SnapshotWriter
 
 
 class Starting(Protocol):

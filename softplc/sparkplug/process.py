@@ -1,6 +1,6 @@
 """The Sparkplug process (`softplc-spb`): one edge node over the published snapshot, the
 status board and the command channel, started and restarted alone by the supervisor like
-the other service processes (runtime/supervisor.py).
+the other service processes (runtime/supervise/supervisor.py).
 
 Owns: attaching the snapshot and the board, the door's audit trail in STATE_DIR, the loop
 (the node's step every STEP_S, the door's outcomes into the status metric), the niceness
@@ -20,10 +20,10 @@ from typing import Any, Final
 
 from softplc.core.image import ImageSizes
 from softplc.core.snapshot import SnapshotUnavailable
-from softplc.runtime.board import StatusBoard
-from softplc.runtime.channel import Channel
-from softplc.runtime.fresh import FreshSource
-from softplc.runtime.procs import (
+from softplc.runtime.shared.board import StatusBoard
+from softplc.runtime.shared.channel import Channel
+from softplc.runtime.shared.fresh import FreshSource
+from softplc.runtime.shared.procs import (
     Flag,
     die_with_parent,
     exit_now,
@@ -31,7 +31,7 @@ from softplc.runtime.procs import (
     once,
     supervisor_pid,
 )
-from softplc.runtime.shm import SnapshotReader
+from softplc.runtime.shared.shm import SnapshotReader
 from softplc.security.audit import AuditTrail
 from softplc.sparkplug.config import SparkplugConfig
 from softplc.sparkplug.door import Door

@@ -62,9 +62,9 @@ class Served:
     def __init__(self, state: Path) -> None:
         from softplc.api.server import ApiServer
         from softplc.core.image import ImageSizes
-        from softplc.runtime.board import StatusBoard
-        from softplc.runtime.channel import Channel
-        from softplc.runtime.shm import SnapshotReader, SnapshotWriter
+        from softplc.runtime.shared.board import StatusBoard
+        from softplc.runtime.shared.channel import Channel
+        from softplc.runtime.shared.shm import SnapshotReader, SnapshotWriter
 
         self.channel = Channel()
         self.writer = SnapshotWriter.create(ImageSizes())

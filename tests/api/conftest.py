@@ -17,10 +17,10 @@ import pytest
 
 from softplc.api.server import ApiServer
 from softplc.core.image import ImageSizes
-from softplc.runtime.board import StatusBoard
-from softplc.runtime.channel import Channel
 from softplc.runtime.loop import LoopConfig, ScanLoop
-from softplc.runtime.shm import SnapshotReader, SnapshotWriter
+from softplc.runtime.shared.board import StatusBoard
+from softplc.runtime.shared.channel import Channel
+from softplc.runtime.shared.shm import SnapshotReader, SnapshotWriter
 
 ROOT = Path(__file__).resolve().parents[2]
 PERIOD_NS = 10_000_000

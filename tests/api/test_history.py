@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from softplc.api.client import ApiClient
-from softplc.runtime.procs import children
+from softplc.runtime.shared.procs import children
 from tests.api.helpers import call
 from tests.support import eventually, free_port, softplc_run
 

@@ -11,7 +11,7 @@ import pytest
 from softplc.cli import main
 from softplc.core.units import parse_duration_ns
 from softplc.program.compiler import compile_file
-from softplc.runtime.simscript import load_script
+from softplc.runtime.offline.simscript import load_script
 from tests.runtime.test_simulate_script import IO, PROGRAM
 
 

@@ -222,8 +222,8 @@ symbols:
 
 def _simulated(tmp: Path, body: str, writes: list[int]) -> tuple[dict[str, object], bool]:
     from softplc.debug.replay import replay
-    from softplc.runtime.simscript import load_script
-    from softplc.runtime.simulate import simulate
+    from softplc.runtime.offline.simscript import load_script
+    from softplc.runtime.offline.simulate import simulate
     (tmp / "io.yaml").write_text(SIM_IO)
     (tmp / "prog.yaml").write_text(f"program: sim\nio_image: io.yaml\nplaces:\n  p: {{tokens: 1}}\n"
                                    f"transitions:\n{body}")

@@ -22,9 +22,9 @@ from softplc.api.client import ApiClient
 from softplc.core.lifecycle import Command, PlcState, Stage
 from softplc.core.plc import ProgramCommand
 from softplc.runtime.clock import VirtualClock
-from softplc.runtime.comm import CommConfig
 from softplc.runtime.loop import LoopConfig, ScanLoop
-from softplc.runtime.supervisor import Supervisor
+from softplc.runtime.serve.comm import CommConfig
+from softplc.runtime.supervise.supervisor import Supervisor
 from tests.core.helpers import write_io
 from tests.runtime.test_supervision import ROOT, Run
 from tests.support import eventually_reachable

@@ -18,7 +18,7 @@ from softplc.cli import main
 from softplc.core.why import FIRES, run_round, why
 from softplc.debug.tracewalk import walk
 from softplc.program.compiler import compile_file
-from softplc.runtime.simulate import simulate
+from softplc.runtime.offline.simulate import simulate
 from softplc.runtime.trace import read_trace
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -11,10 +11,10 @@ from typing import Any
 from softplc.core.image import ImageSizes
 from softplc.core.lifecycle import Command
 from softplc.core.snapshot import CommandReply, CommandRequest
-from softplc.runtime.board import StatusBoard
-from softplc.runtime.channel import Channel
 from softplc.runtime.loop import LoopConfig
-from softplc.runtime.shm import SnapshotReader, SnapshotWriter
+from softplc.runtime.shared.board import StatusBoard
+from softplc.runtime.shared.channel import Channel
+from softplc.runtime.shared.shm import SnapshotReader, SnapshotWriter
 from tests.api.conftest import PERIOD_NS, ScanThread
 from tests.support import eventually
 

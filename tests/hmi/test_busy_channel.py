@@ -1,5 +1,5 @@
-"""A full HMI write queue on the real channel (runtime/channel.py, nobody draining it, as when
-the scan process is overloaded or gone): the Modbus slave answers exception 06 (busy, retry)
+"""A full HMI write queue on the real channel (runtime/shared/channel.py, nobody draining it, as
+when the scan process is overloaded or gone): the Modbus slave answers exception 06 (busy, retry)
 to every write, logs one line without a traceback, and reads go on (issue 39 item 4). The
 slave on 127.0.0.1 port 0, a pymodbus client; the queue filled by the channel's own sender."""
 
@@ -13,7 +13,7 @@ from pymodbus.client import ModbusTcpClient
 from softplc.core.image import parse_address
 from softplc.core.snapshot import ChannelFull, HmiWrite
 from softplc.hmi.server import ModbusSlave
-from softplc.runtime.channel import Channel
+from softplc.runtime.shared.channel import Channel
 from tests.hmi.helpers import ImageSource, run_in_thread
 
 

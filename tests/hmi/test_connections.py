@@ -22,7 +22,7 @@ from pymodbus.client import ModbusTcpClient
 from softplc.cli import build_parser
 from softplc.hmi.admission import Limits
 from softplc.hmi.server import ModbusSlave
-from softplc.runtime.comm import CommConfig, modbus_limits, modbus_slave
+from softplc.runtime.serve.comm import CommConfig, modbus_limits, modbus_slave
 from tests.hmi.helpers import ImageSource, connect, is_closed_by_peer, request, run_in_thread
 from tests.support import wait_until
 

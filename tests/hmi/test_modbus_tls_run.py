@@ -13,7 +13,7 @@ from softplc.api import trustcmds
 from softplc.api.client import ApiClient
 from softplc.cli import main
 from softplc.hmi.secure import MODBUS_TLS_DIR
-from softplc.runtime.comm import CommConfig, service_groups
+from softplc.runtime.serve.comm import CommConfig, service_groups
 from tests.hmi.test_modbus_tls import client_context, make_client
 from tests.support import eventually, free_port, softplc_run
 

@@ -35,7 +35,7 @@ from asyncua.ua.ua_binary import nodeid_from_binary, struct_from_binary, struct_
 
 from softplc.opcua.ids import numeric_id, string_id
 from softplc.opcua.limits import OpcUaLimits, operations
-from softplc.runtime.procs import children
+from softplc.runtime.shared.procs import children
 from tests.opcua.conftest import patient_client, start_plc, stop_plc, wait_port
 from tests.support import free_port
 

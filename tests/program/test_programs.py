@@ -25,7 +25,7 @@ from typing import Any
 import pytest
 
 from softplc.program.compiler import compile_file
-from softplc.runtime.simulate import simulate
+from softplc.runtime.offline.simulate import simulate
 
 HERE = Path(__file__).resolve().parent
 PROGRAMS = HERE.parent.parent / "programs"

@@ -17,7 +17,7 @@ from softplc.core.expr import Compiled, Scope, compile_expr
 from softplc.core.net import CompiledNet
 from softplc.program import wire
 from softplc.program.compiler import compile_file, compile_text
-from softplc.runtime.simulate import simulate
+from softplc.runtime.offline.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[2]
 PROGRAMS = sorted((ROOT / "programs").glob("*.yaml"))

@@ -7,8 +7,8 @@ import pytest
 from softplc.core.lifecycle import Command
 from softplc.core.plc import ProgramCommand
 from softplc.program.compiler import compile_file
+from softplc.runtime.offline.simulate import simulate
 from softplc.runtime.runner import boot
-from softplc.runtime.simulate import simulate
 
 HOUR_NS = 3600 * 10**9
 

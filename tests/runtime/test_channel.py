@@ -15,7 +15,7 @@ import pytest
 from softplc.core.image import parse_address
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.snapshot import ChannelFull, CommandReply, CommandRequest, HmiWrite
-from softplc.runtime.channel import Channel
+from softplc.runtime.shared.channel import Channel
 
 MW3 = parse_address("%MW3")
 MX0 = parse_address("%MX0.0")

@@ -18,13 +18,13 @@ import pytest
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.snapshot import CommandReply, CommandRequest, Refusal
 from softplc.program.compiler import compile_file
-from softplc.runtime.channel import Channel
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.download import TABLE, Decided, Downloads, Stage, refusal_of
 from softplc.runtime.loop import ScanLoop
 from softplc.runtime.prepare import Built, Prepared, Preparer
-from softplc.runtime.retain import ContinuedClock
+from softplc.runtime.retain.writer import ContinuedClock
+from softplc.runtime.shared.channel import Channel
 
 ROOT = Path(__file__).resolve().parents[2]
 TRANSPORT = ROOT / "programs" / "transport.yaml"

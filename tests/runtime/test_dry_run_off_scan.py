@@ -21,11 +21,11 @@ from softplc.core.net import CompiledNet
 from softplc.core.snapshot import CommandReply, CommandRequest, Refusal
 from softplc.core.steps import Steps
 from softplc.program.compiler import compile_file
-from softplc.runtime.channel import Channel
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.download import Downloads, Stage, refusal_of
 from softplc.runtime.loop import ScanLoop
 from softplc.runtime.prepare import Prepared, Preparer
+from softplc.runtime.shared.channel import Channel
 
 ROOT = Path(__file__).resolve().parents[2]
 TRANSPORT = ROOT / "programs" / "transport.yaml"

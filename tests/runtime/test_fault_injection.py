@@ -202,7 +202,7 @@ def test_on_stall_continue_counts_without_faulting(tmp_path: Path) -> None:
 
 
 def test_a_command_past_its_deadline_expires_unapplied(tmp_path: Path) -> None:
-    from softplc.runtime.channel import Channel
+    from softplc.runtime.shared.channel import Channel
 
     channel = Channel()
     (tmp_path / "io.yaml").write_text(IO, encoding="utf-8")

@@ -20,7 +20,7 @@ from softplc.debug.replay import replay
 from softplc.program.compiler import compile_file
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop
-from softplc.runtime.simulate import simulate
+from softplc.runtime.offline.simulate import simulate
 
 MS = 1_000_000
 IO = """

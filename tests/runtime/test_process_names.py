@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from softplc.api.client import ApiClient
-from softplc.runtime.procs import COMM_BYTES, children
-from softplc.runtime.supervisor import _TITLES
+from softplc.runtime.shared.procs import COMM_BYTES, children
+from softplc.runtime.supervise.supervisor import _TITLES
 from tests.support import eventually, free_port, softplc_run
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -113,7 +113,7 @@ def test_run_refuses_busy_wait_with_a_fifo_priority_before_starting_anything(
     from pathlib import Path
 
     from softplc.cli import main
-    from softplc.runtime.runcmd import EXIT_USAGE
+    from softplc.runtime.supervise.runcmd import EXIT_USAGE
 
     program = Path(__file__).resolve().parents[2] / "programs" / "transport.yaml"
     code = main(["run", str(program), "--busy-wait", "--rt-priority", "10",

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from softplc.debug.replay import replay
 from softplc.program.compiler import compile_file
-from softplc.runtime.simulate import simulate
+from softplc.runtime.offline.simulate import simulate
 
 IO = """\
 symbols:

@@ -20,10 +20,10 @@ import pytest
 from softplc.core.lifecycle import Command, PlcState
 from softplc.core.plc import ProgramCommand
 from softplc.program.compiler import compile_file
-from softplc.runtime import retain
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop
-from softplc.runtime.retain import RetainStore, SnapshotInvalid, StateDirBusy
+from softplc.runtime.retain import writer as retain
+from softplc.runtime.retain.writer import RetainStore, SnapshotInvalid, StateDirBusy
 from tests.core.helpers import write_io
 
 ROOT = Path(__file__).resolve().parents[2]

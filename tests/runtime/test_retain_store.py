@@ -18,8 +18,8 @@ import pytest
 
 from softplc.core.lifecycle import Command
 from softplc.core.plc import ProgramCommand
-from softplc.runtime import retain
-from softplc.runtime.retain import FileOps, RetainStore, RetainWriter, Stage, WriteFailed
+from softplc.runtime.retain import writer as retain
+from softplc.runtime.retain.writer import FileOps, RetainStore, RetainWriter, Stage, WriteFailed
 from tests.core.helpers import Bench, compile_program
 
 

@@ -26,9 +26,9 @@ from typing import Any
 
 import pytest
 
-from softplc.runtime import retain
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop
+from softplc.runtime.retain import writer as retain
 from tests.core.helpers import write_io
 from tests.runtime.test_retain_store import a_capture
 

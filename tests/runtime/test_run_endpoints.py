@@ -20,7 +20,7 @@ import pytest
 
 from softplc.api.client import ApiClient
 from softplc.cli.argtypes import endpoint
-from softplc.runtime.runcmd import host_port, try_api
+from softplc.runtime.supervise.runcmd import host_port, try_api
 from tests.support import free_port, softplc_run
 
 ROOT = Path(__file__).resolve().parents[2]

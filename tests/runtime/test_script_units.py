@@ -10,8 +10,8 @@ import pytest
 
 from softplc.core.problems import ProgramError
 from softplc.program.compiler import compile_file
-from softplc.runtime.simscript import parse_script
-from softplc.runtime.simulate import format_timeline, simulate
+from softplc.runtime.offline.simscript import parse_script
+from softplc.runtime.offline.simulate import format_timeline, simulate
 
 S = 10**9
 NET = compile_file("programs/tank.yaml")

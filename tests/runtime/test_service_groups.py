@@ -1,4 +1,4 @@
-"""The service processes of `softplc run` (runtime/comm.py `service_groups`, docs/design.md
+"""The service processes of `softplc run` (runtime/serve/comm.py `service_groups`, docs/design.md
 section 7): Modbus, HTTP and OPC UA each in a process of its own, at the niceness the design
 gives it, so that one that stops serving altogether (SIGSTOP: the worst a client can make it
 do) leaves the others answering. Causal, not timed: while the HTTP process is stopped, Modbus
@@ -26,8 +26,8 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 from softplc.hmi.map import STATUS_SCAN_COUNT
-from softplc.runtime.comm import CommConfig, service_groups
-from softplc.runtime.procs import children
+from softplc.runtime.serve.comm import CommConfig, service_groups
+from softplc.runtime.shared.procs import children
 from tests.support import eventually, free_port
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,4 +1,4 @@
-"""The Modbus process's scheduler slice (runtime/timeslice.py, comm.MODBUS_SLICE_NS;
+"""The Modbus process's scheduler slice (runtime/serve/timeslice.py, comm.MODBUS_SLICE_NS;
 docs/design.md section 7). A real `softplc run`: its Modbus process runs with the short slice
 on every thread, the HTTP process with the kernel's base slice. Another where the kernel
 refuses the call (a seccomp filter answering EPERM to sched_setattr, installed before exec
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import pytest
 
-from softplc.runtime.comm import MODBUS_SLICE_NS, CommConfig, service_groups
-from softplc.runtime.timeslice import SliceAnswer, request_slice, slice_of
+from softplc.runtime.serve.comm import MODBUS_SLICE_NS, CommConfig, service_groups
+from softplc.runtime.serve.timeslice import SliceAnswer, request_slice, slice_of
 from tests.runtime.test_service_groups import listener, scan_count
 from tests.support import eventually, free_port, stop_process
 
@@ -33,7 +33,7 @@ SCHED_SETATTR_X86_64 = 314
 
 def _kernel_takes_slices() -> bool:
     """Asked in a child process: the test process keeps its own slice."""
-    probe = ("from softplc.runtime.timeslice import request_slice\n"
+    probe = ("from softplc.runtime.serve.timeslice import request_slice\n"
              "raise SystemExit(0 if request_slice(100_000).ok else 1)")
     return subprocess.run([sys.executable, "-c", probe], cwd=ROOT, check=False).returncode == 0
 
@@ -103,7 +103,7 @@ def test_a_real_time_thread_keeps_its_policy_and_the_others_get_the_slice() -> N
         pytest.skip(f"this kernel ({platform.release()}) has no custom slices (Linux 6.12+)")
     child = """
 import json, os, threading
-from softplc.runtime.timeslice import request_slice
+from softplc.runtime.serve.timeslice import request_slice
 ready, done = threading.Event(), threading.Event()
 def fifo():
     try:

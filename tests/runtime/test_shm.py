@@ -20,7 +20,7 @@ import pytest
 from softplc.core.image import ImageSizes, ProcessImage
 from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import Snapshot, Status
-from softplc.runtime.shm import SnapshotLayoutError, SnapshotReader, SnapshotWriter
+from softplc.runtime.shared.shm import SnapshotLayoutError, SnapshotReader, SnapshotWriter
 
 SPAWN = mp.get_context("spawn")
 
@@ -233,7 +233,7 @@ _CLEAN_EXIT = textwrap.dedent(
     import sys
     from softplc.core.image import ImageSizes, ProcessImage
     from softplc.core.snapshot import Status
-    from softplc.runtime.shm import SnapshotReader, SnapshotWriter
+    from softplc.runtime.shared.shm import SnapshotReader, SnapshotWriter
 
     def read(name):
         with SnapshotReader.attach(name, ImageSizes()) as reader:

@@ -11,8 +11,8 @@ from softplc.cli import main
 from softplc.core.problems import ProgramError
 from softplc.debug.replay import replay
 from softplc.program.compiler import compile_file
-from softplc.runtime.simscript import load_script
-from softplc.runtime.simulate import simulate
+from softplc.runtime.offline.simscript import load_script
+from softplc.runtime.offline.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[2]
 S = 1_000_000_000

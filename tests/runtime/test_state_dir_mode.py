@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from softplc.runtime.retain import RetainStore, RetainWriter, check_state_dir
+from softplc.runtime.retain.writer import RetainStore, RetainWriter, check_state_dir
 
 ROOT = Path(__file__).resolve().parents[2]
 NOBODY = 65534

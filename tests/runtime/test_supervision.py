@@ -25,7 +25,7 @@ from pymodbus.client import ModbusTcpClient
 from softplc.api.clicmds import format_status
 from softplc.api.client import ApiClient, ApiError
 from softplc.hmi.map import FLAG_STALE, STATUS_FLAGS, STATUS_WORDS
-from softplc.runtime.procs import children
+from softplc.runtime.shared.procs import children
 from tests.support import eventually_reachable, free_port
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -14,8 +14,8 @@ from softplc.devices.plants.tank import TankPlant
 from softplc.program.compiler import compile_file
 from softplc.runtime.clock import VirtualClock
 from softplc.runtime.loop import LoopConfig, ScanLoop
-from softplc.runtime.simscript import parse_script
-from softplc.runtime.simulate import simulate
+from softplc.runtime.offline.simscript import parse_script
+from softplc.runtime.offline.simulate import simulate
 
 S = 10**9
 PROGRAM = "programs/tank.yaml"

@@ -1,7 +1,7 @@
 """The program's %QD and %QL outputs are kept like %QX and %QW while it does not drive them
 (core/held.py): a stop drives them safe and a resume puts the program's values back; so do a
 device fault and its recovery, and the wait for the first input image; retain keeps them
-across a warm restart (runtime/retain_codec.py), and a file from before keeps %QX/%QW."""
+across a warm restart (runtime/retain/codec.py), and a file from before keeps %QX/%QW."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from softplc.core.lifecycle import Command, PlcState
 from softplc.core.plc import ProgramCommand
 from softplc.core.present import shown
 from softplc.core.problems import FaultCode
-from softplc.runtime import retain_codec
+from softplc.runtime.retain import codec as retain_codec
 from tests.core.helpers import Bench, compile_program
 
 IO = """\

@@ -206,7 +206,7 @@ def test_a_driver_read_that_never_returns_faults_while_it_is_still_blocked(
 def test_a_watchdog_factor_of_zero_is_refused_before_anything_starts(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from softplc.cli import build_parser
-    from softplc.runtime.runcmd import EXIT_USAGE, run
+    from softplc.runtime.supervise.runcmd import EXIT_USAGE, run
 
     state = tmp_path / "state"
     args = build_parser().parse_args(["run", "--watchdog", "0", "--state-dir", str(state)])

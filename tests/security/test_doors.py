@@ -39,7 +39,7 @@ DOORS: dict[str, tuple[str, frozenset[str]]] = {
     "opcua/program.py": ("OPC UA Download", frozenset({"admit"})),
     # Modbus TCP (write policy as a granted role) and Modbus/TCP Security (certificate role)
     "hmi/map.py": ("Modbus TCP writes", frozenset({"granted"})),
-    "runtime/comm.py": ("starts the Modbus slaves (hmi/map.py decides their writes)",
+    "runtime/serve/comm.py": ("starts the Modbus slaves (hmi/map.py decides their writes)",
                         frozenset()),
     # Sparkplug B (issue 41): a host's NCMD writes and program commands, decided for the
     # door's configured role (--sparkplug-role, default viewer: nothing)
@@ -47,8 +47,8 @@ DOORS: dict[str, tuple[str, frozenset[str]]] = {
 }
 # Callers in the PLC's own process or offline tools: no client reaches them.
 NOT_DOORS: frozenset[str] = frozenset({
-    "runtime/channel.py",  # the channel itself
-    "debug/replay.py", "debug/tracewalk.py", "runtime/simscript.py",  # traces, simulate
+    "runtime/shared/channel.py",  # the channel itself
+    "debug/replay.py", "debug/tracewalk.py", "runtime/offline/simscript.py",  # traces, simulate
     "interface/device.py",  # the seed paper's device interface over a local PLC
     "bench/onlinebench.py",  # the online-change benchmark drives its own scan
 })

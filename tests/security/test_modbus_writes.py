@@ -1,5 +1,5 @@
 """Modbus write restriction end to end: CommConfig.modbus_writes -> the slave that the
-communication process builds (runtime/comm.py) -> a real socket, in front of a live scan.
+communication process builds (runtime/serve/comm.py) -> a real socket, in front of a live scan.
 
 "open" (default, OpenPLC): outputs and memory writable but the locations of symbols declared
 `hmi_writable: false` (refused at every door: security/writes.py); "symbols": only the running
@@ -17,7 +17,7 @@ import pytest
 
 from softplc.core.image import parse_address
 from softplc.core.lifecycle import Command
-from softplc.runtime.comm import CommConfig, ModbusWrites, modbus_slave
+from softplc.runtime.serve.comm import CommConfig, ModbusWrites, modbus_slave
 from tests.fuzz.live import LivePlc
 from tests.hmi.helpers import SlaveThread, connect, request, run_in_thread
 from tests.support import eventually

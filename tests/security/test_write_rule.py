@@ -32,8 +32,8 @@ CHECKOUT = ROOT.parent
 SYMBOL_RULE: dict[str, tuple[str, str]] = {
     "api/symbols.py": ("api/symbols.py", "symbol_refusal"),
     "opcua/server.py": ("opcua/space.py", "policy_refusal"),  # AccessLevel of each symbol
-    "hmi/map.py": ("runtime/comm.py", "locations"),  # the Writable predicate comm.py builds
-    "runtime/comm.py": ("runtime/comm.py", "locations"),  # ... and hands the slaves
+    "hmi/map.py": ("runtime/serve/comm.py", "locations"),  # the Writable predicate comm.py builds
+    "runtime/serve/comm.py": ("runtime/serve/comm.py", "locations"),  # ... and hands the slaves
     "sparkplug/door.py": ("sparkplug/metrics.py", "symbol_refusal"),
 }
 LOCKED = '  speed: {address: "%MW5", type: word, hmi_writable: false}\n'  # set by the net

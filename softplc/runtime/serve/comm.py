@@ -30,13 +30,13 @@ from softplc.core.image import Address, ImageSizes
 from softplc.core.snapshot import HmiWrite, SnapshotSource
 from softplc.hmi.admission import Limits
 from softplc.hmi.eng import EngSource
-from softplc.runtime.board import StatusBoard
-from softplc.runtime.channel import Channel
-from softplc.runtime.fresh import FreshSource
-from softplc.runtime.procs import Flag as Event
-from softplc.runtime.procs import supervisor_pid
-from softplc.runtime.shm import SnapshotReader
-from softplc.runtime.timeslice import request_slice
+from softplc.runtime.serve.timeslice import request_slice
+from softplc.runtime.shared.board import StatusBoard
+from softplc.runtime.shared.channel import Channel
+from softplc.runtime.shared.fresh import FreshSource
+from softplc.runtime.shared.procs import Flag as Event
+from softplc.runtime.shared.procs import supervisor_pid
+from softplc.runtime.shared.shm import SnapshotReader
 from softplc.security.writes import WRITE_POLICIES, WritePolicy, locations
 
 if TYPE_CHECKING:
@@ -62,7 +62,7 @@ STOP_SERVICES_S: Final = 1.0
 MODBUS_NICE: Final = 0
 HTTP_NICE: Final = 3
 OPCUA_NICE: Final = 10
-# The scheduler slice the Modbus process asks for (EEVDF, Linux 6.12+; runtime/timeslice.py).
+# The scheduler slice the Modbus process asks for (EEVDF, Linux 6.12+; runtime/serve/timeslice.py).
 # It asks to run sooner, not more: its share stays its weight. With the base slice (1.4 ms
 # here) a Modbus request arriving while a busy process held the services' CPU (the HTTP
 # process refusing a flood of JSON bombs) waited for that process's slice; the woken Modbus
@@ -305,7 +305,7 @@ async def _start_opcua(config: CommConfig, channel: Channel, reader: SnapshotSou
 
 def comm_process_main(config: CommConfig, channel: Channel, shm_name: str, board_name: str,
                       ready: Event, stop: Event) -> None:
-    from softplc.runtime.procs import die_with_parent, exit_now, name_process, once
+    from softplc.runtime.shared.procs import die_with_parent, exit_now, name_process, once
 
     name_process()  # softplc-http, softplc-modbus, ... (supervisor._TITLES)
     serving = _Serving(ready)

@@ -31,16 +31,16 @@ from typing import Any, Final
 
 from softplc.core.errors import SoftplcError
 from softplc.core.image import ImageSizes
-from softplc.runtime.board import StatusBoard
-from softplc.runtime.channel import Channel
-from softplc.runtime.comm import CommConfig, comm_process_main, modbus_limits, service_groups
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.eventlog import newest_seq
-from softplc.runtime.leftovers import SHM_PREFIX, record_semaphores
-from softplc.runtime.procs import ReadySignal, StopFlag
 from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
 from softplc.runtime.scanproc import scan_process_main
-from softplc.runtime.shm import SnapshotWriter
+from softplc.runtime.serve.comm import CommConfig, comm_process_main, modbus_limits, service_groups
+from softplc.runtime.shared.board import StatusBoard
+from softplc.runtime.shared.channel import Channel
+from softplc.runtime.shared.procs import ReadySignal, StopFlag
+from softplc.runtime.shared.shm import SnapshotWriter
+from softplc.runtime.supervise.leftovers import SHM_PREFIX, record_semaphores
 
 SCAN_RESTARTS: Final = 5  # scan process restarts allowed within RESTART_WINDOW_S
 COMM_RESTARTS: Final = 5  # restarts of each service process allowed within RESTART_WINDOW_S

@@ -7,7 +7,7 @@ state, labelled simulation-only), Capture (cheap copies taken by the scan thread
 (by the writer thread, every token value checked so that a bad one is named, never a
 TypeError from deep inside json), restore, and unpickling plants from an allowlist only (a
 state file is data, not code).
-Does not know: files, threads, clocks, the start decision (retain.py, retain_store.py).
+Does not know: files, threads, clocks, the start decision (writer.py, store.py).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from softplc.core.plc import Plc
 from softplc.core.problems import FaultCode
 from softplc.core.symbols import Retain, Symbol, persistent_memory
 from softplc.core.values import record_problems, value_problem
-from softplc.runtime.retain_store import SnapshotInvalid
+from softplc.runtime.retain.store import SnapshotInvalid
 
 
 class RetainValueError(SoftplcError, ValueError):

@@ -28,12 +28,12 @@ from typing import Any
 from softplc.api import secopts
 from softplc.core.problems import ProgramError
 from softplc.runtime.compileproc import StartProgram, StartRequest, compile_start
-from softplc.runtime.leftovers import remove_stale_segments
 from softplc.runtime.prepare import CompilerFailed
-from softplc.runtime.procs import name_process
-from softplc.runtime.retain import StateDirBusy, check_state_dir
-from softplc.runtime.sdnotify import Notifier
-from softplc.runtime.supervisor import (
+from softplc.runtime.retain.writer import StateDirBusy, check_state_dir
+from softplc.runtime.shared.procs import name_process
+from softplc.runtime.supervise.leftovers import remove_stale_segments
+from softplc.runtime.supervise.sdnotify import Notifier
+from softplc.runtime.supervise.supervisor import (
     RESTART_WINDOW_S,
     SCAN_RESTARTS,
     STOP_S,

@@ -7,7 +7,7 @@ of the new file before any older one is deleted, keeping the last KEEP valid sna
 removing temporaries (at open and after a failed write), the state directory's lock and its
 mode (0700), and the file layer (FileOps) through which all of it goes, so a test can inject
 faults.
-Does not know: what a payload means (runtime/retain.py), threads, scan timing.
+Does not know: what a payload means (runtime/retain/writer.py), threads, scan timing.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Simulation in virtual time: the same scans as the real loop, as fast as the machine allows.
 
 Owns: `simulate()` and its report (the `softplc simulate --json` object), the playing of a
-script (timed HMI writes and input overrides, runtime/simscript.py) into the scans, and the
+script (timed HMI writes and input overrides, runtime/offline/simscript.py) into the scans, and the
 timeline: the scans in which outputs, memory, marking or events changed; breakpoints
 (docs/debug.md): the simulation ends at the pause, after `step` more scans if asked.
 Does not know: processes, sockets, the real clock (a virtual clock jumps deadline to deadline).
@@ -24,8 +24,8 @@ from softplc.core.snapshot import HmiWrite
 from softplc.core.symbols import Direction, Symbol
 from softplc.devices.driver import Health
 from softplc.devices.sim import SimDriver
+from softplc.runtime.offline.simscript import Script, ScriptPlayer
 from softplc.runtime.runner import boot
-from softplc.runtime.simscript import Script, ScriptPlayer
 from softplc.runtime.trace import TraceWriter
 
 SCRIPT_DRIVER = "(script)"  # the pseudo-driver's name in health reports: no io image can clash

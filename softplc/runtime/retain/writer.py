@@ -4,9 +4,9 @@ Owns: the start decision (cold or warm, and why), the continued scan clock, and 
 thread, which cannot die: any failure (a full disk, a value that is not JSON, a bug) is
 counted by stage in `info()` and the next capture is tried at the next interval; a clean stop
 writes its final snapshot synchronously and says whether it did (`RetainWriter.stop`).
-What is retained, capturing, encoding and restoring it are runtime/retain_codec.py; the files
+What is retained, capturing, encoding and restoring it are runtime/retain/codec.py; the files
 themselves (format, checked write, read-back, keeping two valid snapshots, the lock) are
-runtime/retain_store.py; the names of both are re-exported here.
+runtime/retain/store.py; the names of both are re-exported here.
 Does not know: scan timing, Modbus, HTTP, other processes than the one holding the lock.
 
 Time across a restart: every timer (enabling delays, three-phase firings, the stop instant)
@@ -27,7 +27,7 @@ from typing import Any
 from softplc.core.net import CompiledNet
 from softplc.runtime.clock import Clock
 from softplc.runtime.realtime import background_thread
-from softplc.runtime.retain_codec import (
+from softplc.runtime.retain.codec import (
     Capture,
     RetainValueError,
     capture,
@@ -36,7 +36,7 @@ from softplc.runtime.retain_codec import (
     restore,
     restore_persistent,
 )
-from softplc.runtime.retain_store import (
+from softplc.runtime.retain.store import (
     FORMAT,
     KEEP,
     LOCK_FILE,

@@ -50,7 +50,7 @@ from softplc.core.errors import SoftplcError
 from softplc.core.image import ImageSizes, ProcessImage
 from softplc.core.lifecycle import PlcState
 from softplc.core.snapshot import Snapshot, SnapshotUnavailable, Status
-from softplc.runtime.shmcopy import SlotCopies
+from softplc.runtime.shared.shmcopy import SlotCopies
 
 MAGIC: Final = b"SPLCSNAP"
 VERSION: Final = 5  # 2: published_ns; 3: `forced`; 4: `waiting_for_io`; 5: 32/64-bit areas

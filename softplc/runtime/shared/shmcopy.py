@@ -1,4 +1,4 @@
-"""Copying a process image into a snapshot slot cheaply (runtime/shm.py publishes).
+"""Copying a process image into a snapshot slot cheaply (runtime/shared/shm.py publishes).
 
 Owns: the byte runs of a slot that are contiguous in a ProcessImage's buffer too (%QX %MX are
 adjacent in both layouts, so are %QW %MW, %QD %MD and %QL %ML: eight copies instead of

@@ -14,7 +14,7 @@ import multiprocessing.synchronize as mp_sync
 from pathlib import Path
 from typing import Final
 
-from softplc.runtime.channel import pid_alive
+from softplc.runtime.shared.channel import pid_alive
 
 SHM_PREFIX: Final = "softplc_"
 
