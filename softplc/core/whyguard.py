@@ -10,6 +10,7 @@ Does not know: the firing round (core/why.py runs it), where the values come fro
 from __future__ import annotations
 
 import ast
+import functools
 import itertools
 import math
 from collections.abc import Mapping
@@ -71,24 +72,49 @@ def _false_parts(guard: Compiled, ctx: EvalContext,
                  env: Mapping[str, Token]) -> list[tuple[str, Compiled]]:
     """The conjuncts of `a and b and c` that are false; the whole guard otherwise."""
     whole = [(guard.text, guard)]
-    if guard.scope is None:
-        return whole
-    try:
-        tree = parse(guard.text)
-    except ExprError:
-        return whole
-    if not isinstance(tree, ast.BoolOp) or not isinstance(tree.op, ast.And):
+    parts = _conjuncts(guard)
+    if parts is None:
         return whole
     false = []
-    for node in tree.values:
-        text = unrewrite(ast.unparse(node))  # NOT and MOD as written (core/iecwords.py)
+    for text, part in parts:
         try:
-            part = compile_expr(text, guard.scope)
             if not _eval(part, ctx, env):
                 false.append((text, part))
         except Exception:  # a part that raises: the whole guard is shown instead
             continue
     return false or whole
+
+
+# guard -> its conjuncts, compiled once: the status document asks every ~50 ms for what blocks
+# the waiting transitions (core/waiting.py), and a parse there cost a compile per part each
+# time (and met other threads' parses: core/expr.py _PARSING). Keyed by id, the guard kept.
+_CONJUNCTS: dict[int, tuple[Compiled, tuple[tuple[str, Compiled], ...] | None]] = {}
+MAX_CACHED = 4096
+
+
+def _conjuncts(guard: Compiled) -> tuple[tuple[str, Compiled], ...] | None:
+    """The parts of a guard `a and b and c`, each compiled (None: not a conjunction)."""
+    hit = _CONJUNCTS.get(id(guard))
+    if hit is not None and hit[0] is guard:
+        return hit[1]
+    parts: tuple[tuple[str, Compiled], ...] | None = None
+    try:
+        tree = parse(guard.text) if guard.scope is not None else None
+    except ExprError:
+        tree = None
+    if isinstance(tree, ast.BoolOp) and isinstance(tree.op, ast.And) and guard.scope is not None:
+        found = []
+        for node in tree.values:
+            text = unrewrite(ast.unparse(node))  # NOT and MOD as written (core/iecwords.py)
+            try:
+                found.append((text, compile_expr(text, guard.scope)))
+            except Exception:  # a part that does not compile alone: left out, as before
+                continue
+        parts = tuple(found)
+    if len(_CONJUNCTS) >= MAX_CACHED:
+        _CONJUNCTS.clear()
+    _CONJUNCTS[id(guard)] = (guard, parts)
+    return parts
 
 
 def _values(net: CompiledNet, expr: Compiled, ctx: EvalContext, env: Mapping[str, Token],
@@ -118,12 +144,13 @@ def _values(net: CompiledNet, expr: Compiled, ctx: EvalContext, env: Mapping[str
     return ", ".join(shown) or "no names read"
 
 
-def _fields(text: str) -> list[tuple[str, str]]:
+@functools.lru_cache(maxsize=4096)
+def _fields(text: str) -> tuple[tuple[str, str], ...]:
     """The `var.field` reads of an expression, in order, once each."""
     try:
         tree = parse(text)
     except ExprError:
-        return []
+        return ()
     found = [(n.value.id, n.attr) for n in ast.walk(tree)
              if isinstance(n, ast.Attribute) and isinstance(n.value, ast.Name)]
-    return list(dict.fromkeys(found))
+    return tuple(dict.fromkeys(found))

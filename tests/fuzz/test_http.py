@@ -5,13 +5,17 @@ Examples per operation scale with SOFTPLC_FUZZ_SCALE; derandomized (reproducible
 
 from __future__ import annotations
 
+import contextlib
+import importlib
+import pkgutil
 import random
 from collections.abc import Iterator
 from pathlib import Path
 
+import hypothesis.internal
+import hypothesis.strategies
 import pytest
 import schemathesis
-import schemathesis.generation.body_overrides  # (see below)
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.errors import Unsatisfiable
@@ -26,10 +30,25 @@ from tests.fuzz import budget
 from tests.fuzz.live import LivePlc
 from tests.fuzz.mutate import mutant
 
-# schemathesis imports body_overrides lazily, deep inside hypothesis' draw; compiling it there
-# once failed with CPython 3.11's "SystemError: AST constructor recursion depth mismatch"
-# (a full `make test` run: a flaky failure of this test, not of softplc). Imported above, at a
-# shallow stack, it is compiled before any draw.
+
+def _import_lazy_modules() -> None:
+    """schemathesis and hypothesis import modules lazily, inside hypothesis' draw, and pytest
+    parses (rewrites) them there, while the PLC's scan thread in this process may be compiling
+    a download: CPython 3.11's AST bookkeeping is per interpreter, not per thread (gh-106905),
+    and the two parses at once raised "SystemError: AST constructor recursion depth mismatch"
+    (two full runs). softplc's own parses take turns (core/expr.py) and the status document no
+    longer parses (core/whyguard.py); imported here, before any PLC runs, these modules are
+    parsed before any draw too (~1.5 s)."""
+    for package in (schemathesis, hypothesis.strategies, hypothesis.internal):
+        for info in pkgutil.walk_packages(package.__path__, f"{package.__name__}.",
+                                          onerror=lambda name: None):
+            if info.name.startswith(("schemathesis.cli", "schemathesis.reporting")):
+                continue
+            with contextlib.suppress(Exception):  # an optional extra's missing dependency
+                importlib.import_module(info.name)
+
+
+_import_lazy_modules()
 
 ROOT = Path(__file__).resolve().parents[2]
 # Server-sent event streams never end: tests/api, tests/web, tests/security/test_audit_stream.py
