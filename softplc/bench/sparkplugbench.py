@@ -72,7 +72,7 @@ class Subscriber:
     def _message(self, client: Any, userdata: Any, message: mqtt.MQTTMessage) -> None:
         now = time.monotonic()
         _, _, kind, node = message.topic.split("/")[:4]
-        payload = codec.decode(message.payload)
+        payload = codec.decode(bytes(message.payload))
         with self.lock:
             if kind == "NBIRTH":
                 self.births[node] = self.births.get(node, 0) + 1

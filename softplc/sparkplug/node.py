@@ -227,10 +227,10 @@ class EdgeNode:
     def _on_message(self, client: mqtt.Client, userdata: Any, message: mqtt.MQTTMessage
                     ) -> None:
         if message.topic == self.state_topic:
-            self._state(message.payload)
+            self._state(bytes(message.payload))  # paho 2.2 types it bytes | bytearray
             return
         try:
-            payload = codec.decode(message.payload)
+            payload = codec.decode(bytes(message.payload))
         except DecodeError as exc:
             log.warning("Sparkplug: an NCMD that is no Sparkplug B payload ignored: %s", exc)
             return
