@@ -12,7 +12,6 @@ import ast
 import enum
 import math
 import operator
-import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -301,12 +300,6 @@ def _describe(node: ast.AST) -> str:
     return names.get(type(node).__name__, type(node).__name__)
 
 
-# CPython 3.11 keeps the parser's AST recursion bookkeeping per interpreter, not per thread
-# (cpython gh-106905): two threads parsing at once may raise "SystemError: AST constructor
-# recursion depth mismatch". softplc's parses take turns.
-_PARSING = threading.Lock()
-
-
 def parse(text: str) -> ast.expr:
     """Parse one expression; statements, imports and oversize input are rejected here."""
     return _parse(text)[0]
@@ -320,8 +313,7 @@ def _parse(text: str) -> tuple[ast.expr, frozenset[str]]:
     if "XOR" in words:
         raise ExprError(XOR_HINT)
     try:
-        with _PARSING:
-            tree = ast.parse(python, mode="eval")
+        tree = ast.parse(python, mode="eval")
     except SyntaxError as exc:
         raise ExprError(f"syntax error: {exc.msg}") from None
     count = sum(1 for _ in ast.walk(tree))

@@ -87,7 +87,7 @@ def _false_parts(guard: Compiled, ctx: EvalContext,
 
 # guard -> its conjuncts, compiled once: the status document asks every ~50 ms for what blocks
 # the waiting transitions (core/waiting.py), and a parse there cost a compile per part each
-# time (and met other threads' parses: core/expr.py _PARSING). Keyed by id, the guard kept.
+# time (and, on CPython 3.11, raced other threads' parses: gh-106905). Keyed by id, the guard kept.
 _CONJUNCTS: dict[int, tuple[Compiled, tuple[tuple[str, Compiled], ...] | None]] = {}
 MAX_CACHED = 4096
 

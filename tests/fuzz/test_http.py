@@ -36,8 +36,8 @@ def _import_lazy_modules() -> None:
     parses (rewrites) them there, while the PLC's scan thread in this process may be compiling
     a download: CPython 3.11's AST bookkeeping is per interpreter, not per thread (gh-106905),
     and the two parses at once raised "SystemError: AST constructor recursion depth mismatch"
-    (two full runs). softplc's own parses take turns (core/expr.py) and the status document no
-    longer parses (core/whyguard.py); imported here, before any PLC runs, these modules are
+    (two full runs). The status document no longer parses on the scan thread
+    (core/whyguard.py); imported here, before any PLC runs, these modules are
     parsed before any draw too (~1.5 s)."""
     for package in (schemathesis, hypothesis.strategies, hypothesis.internal):
         for info in pkgutil.walk_packages(package.__path__, f"{package.__name__}.",
