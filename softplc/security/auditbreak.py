@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Final
 
 from softplc.core.errors import SoftplcError
 from softplc.security.auditchain import Anchor, canonical
+from softplc.security.files import write_private
 
 HEAD_FILE: Final = "audit.head"
 BREAK_ACTION: Final = "audit trail break"
@@ -48,15 +48,12 @@ def read_head(path: Path) -> Anchor | None:
 
 
 def write_head(path: Path, anchor: Anchor) -> None:
-    """Replace the head file (the trail's lock held). Not fsynced: a head older than the
-    trail after a crash still names a record that is there, the record itself was."""
-    temporary = path.with_name(path.name + ".tmp")
-    fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    try:
-        os.write(fd, (canonical({"hash": anchor[1], "seq": anchor[0]}) + "\n").encode())
-    finally:
-        os.close(fd)
-    os.replace(temporary, path)
+    """Replace the head file (the trail's lock held): written aside, fsynced, renamed over it
+    and the directory fsynced (files.py), as the state directory's other writers do, so that
+    after a power loss the head is the old one or the new one, whole, and the record it names
+    was fsynced before it."""
+    write_private(path, (canonical({"hash": anchor[1], "seq": anchor[0]}) + "\n").encode(),
+                  sync_directory=True)
 
 
 def mismatch(anchor: Anchor, last: Anchor, find: Callable[[int], str | None]) -> str | None:
