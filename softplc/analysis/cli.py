@@ -156,7 +156,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         from softplc.sfc.export import export_plcopen  # refuses a net that is not an SFC
 
         try:
-            out.write_text(export_plcopen(net), encoding="utf-8")
+            out.write_text(export_plcopen(net, compile_file), encoding="utf-8")
         except ProgramError as exc:
             print(exc, file=sys.stderr)
             return 1

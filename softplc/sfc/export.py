@@ -1,5 +1,8 @@
 """A compiled net -> PLCopen TC6 XML (tc6_0201, the shape Beremiz writes), when it is an SFC.
 
+A net compiled from a PLCopen chart that still compiles to this very net (same program hash)
+is written back from the chart (writechart.py: actions of every qualifier, ST bodies, the
+drawing); every other net goes through the inference below.
 Owns: deciding whether a net is a chart (one-token places, weight-1 arcs, no data, no
 durations, actions only as Moore BOOL outputs, guards in the ST subset, a delay only as a
 step timer) with a located reason for each place or transition that is not, and writing the
@@ -14,6 +17,7 @@ Does not know: how the net was written, beyond its source being a PLCopen file.
 from __future__ import annotations
 
 import ast
+from collections.abc import Callable
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
@@ -22,6 +26,7 @@ from softplc.core.net import CompiledNet, InputArc, OutputArc, Transition
 from softplc.core.problems import Problem, ProgramError
 from softplc.sfc.load import is_plcopen
 from softplc.sfc.reader import read_chart
+from softplc.sfc.writechart import write_chart
 
 _IEC = {"bool": "BOOL", "int": "INT", "word": "UINT", "dint": "DINT", "udint": "UDINT",
         "real": "REAL", "lreal": "LREAL"}
@@ -55,12 +60,45 @@ def _st(node: ast.expr) -> str:
     raise _NotSt(ast.unparse(node))
 
 
-def export_plcopen(net: CompiledNet) -> str:
-    """The chart's XML; ProgramError with every reason the net is not an SFC."""
+def export_plcopen(net: CompiledNet,
+                   compile_file: Callable[[str], CompiledNet] | None = None) -> str:
+    """The chart's XML; ProgramError with every reason the net is not an SFC.
+
+    `compile_file` (program/compiler.py's, which this room may not import) compiles the net's
+    source again: when that is a PLCopen chart that compiles to this very net (the same
+    program hash), the chart itself is written back (writechart.py: every action, the
+    drawing); otherwise the net is inferred as a chart, or refused with the reasons."""
+    stale: list[Problem] = []
+    if compile_file is not None and is_plcopen(net.source):
+        text, why = _from_chart(net, compile_file)
+        if text is not None:
+            return text
+        stale.append(Problem(net.source.partition("#")[0], 1, "", why))
     problems = _reasons(net)
     if problems:
-        raise ProgramError(problems)
+        raise ProgramError(stale + problems)
     return _Writer(net, layout(net)).text()
+
+
+def _from_chart(net: CompiledNet,
+                compile_file: Callable[[str], CompiledNet]) -> tuple[str | None, str]:
+    """The chart the net was compiled from, written back; else None and why not."""
+    name, _, pou = net.source.partition("#")
+    try:
+        data = Path(name).read_bytes()
+        again = compile_file(net.source)
+        chart = read_chart(data, name, pou or None)
+    except OSError as exc:
+        return None, f"cannot read the chart again: {exc.strerror}"
+    except ProgramError as exc:
+        return None, f"the chart no longer compiles ({exc.problems[0].message})"
+    if again.program_hash != net.program_hash or Path(name).read_bytes() != data:
+        return None, "the chart in this file compiles to another net than the one exported " \
+            "(edited since it was compiled?): the net alone is exported"
+    try:
+        return write_chart(chart, data), ""
+    except ValueError as exc:  # macro steps; objects the reader did not pair
+        return None, f"the chart is not written back: {exc}"
 
 
 def layout(net: CompiledNet) -> dict[str, tuple[float, float]]:
