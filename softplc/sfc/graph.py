@@ -3,7 +3,9 @@
 Owns: the backwards wiring of PLCopen (connectionPointIn/connection@refLocalId names the
 predecessor), dissolving selection and simultaneous divergences and convergences (as Beremiz
 does when it writes textual SFC: every transition becomes FROM (steps) TO (steps)), jumps
-resolved by step name, and the left-to-right order of a selection divergence's branches.
+resolved by step name, the left-to-right order of a selection divergence's branches, and
+macro steps expanded inline (their body's chart between its entry and exit steps, the inner
+names prefixed `MACRO.`, every node keeping its XML line: docs/sfc.md).
 Does not know: conditions' text, actions, YAML.
 """
 
@@ -13,6 +15,7 @@ from softplc.core.problems import Problem
 from softplc.core.xmltree import Node
 from softplc.sfc.model import Step
 
+MAX_MACRO_DEPTH = 16
 WIRING = ("selectionDivergence", "selectionConvergence", "simultaneousDivergence",
           "simultaneousConvergence")
 
@@ -26,16 +29,16 @@ def preds(node: Node) -> list[str]:
 class Wiring:
     def __init__(self, sfc: Node, filename: str, problems: list[Problem]) -> None:
         self.filename, self.problems = filename, problems
-        self.objs = {n.attrs["localId"]: n for n in sfc.children if "localId" in n.attrs}
+        flat = _Macros(filename, problems)
+        children = flat.level(sfc.children, "", "")
+        self.scope = flat.scope  # localId -> the prefix of the macro it is in ("M1.", "")
+        self.objs = {n.attrs["localId"]: n for n in children if "localId" in n.attrs}
         self.succ: dict[str, list[str]] = {}
         for lid, node in self.objs.items():
             for p in preds(node):
                 self.succ.setdefault(p, []).append(lid)
         self.steps: dict[str, Step] = {}
-        for node in sfc.children:
-            if node.tag == "macroStep":
-                self.problem(node, "macro steps are not supported (none of the editors' "
-                             "files seen writes one): inline its body")
+        for node in children:
             if node.tag == "step":
                 self._step(node)
 
@@ -130,3 +133,124 @@ def position(node: Node) -> tuple[float, float] | None:
             if pos is not None else None
     except ValueError:
         return None
+
+
+class _Macros:
+    """Macro steps (PLCopen `<macroStep name><body><SFC>`; IEC 61131-3 has none) replaced by
+    their body's chart: its one initial step is the entry (the macro's preceding transitions
+    enter it), its one step no transition leaves is the exit (the macro's following
+    transitions leave it). Inner steps are named `MACRO.Inner` and inner localIds `MID/ID`;
+    a jump inside a macro names a step of the macro (unprefixed); outside, a jump to the
+    macro enters its entry step. Nodes are copied, with their XML lines."""
+
+    def __init__(self, filename: str, problems: list[Problem]) -> None:
+        self.filename, self.problems = filename, problems
+        self.scope: dict[str, str] = {}
+
+    def problem(self, node: Node, message: str) -> None:
+        self.problems.append(Problem(self.filename, node.line, "", message))
+
+    def level(self, children: list[Node], prefix: str, ids: str, depth: int = 0) -> list[Node]:
+        out: list[Node] = []
+        ends: dict[str, tuple[str, str, str]] = {}  # macro id -> entry id, its name, exit id
+        for node in children:
+            if node.tag != "macroStep":
+                out.append(_copy(node, ids, prefix))
+                self.scope[out[-1].attrs.get("localId", "")] = prefix
+            elif (done := self._macro(node, prefix, ids, depth)) is not None:
+                inner, entry, exit_ = done
+                out += inner
+                ends[ids + node.attrs.get("localId", "")] = (
+                    entry.attrs["localId"], entry.attrs["name"], exit_.attrs["localId"])
+                self._enter(entry, node, ids)
+            else:  # refused: a plain step in its place, so that its wires raise nothing more
+                stand_in = Node("step", {**node.attrs, "name": _macro_name(node)}, node.line,
+                                [c for c in node.children if c.tag != "body"])
+                out.append(_copy(stand_in, ids, prefix))
+                self.scope[out[-1].attrs.get("localId", "")] = prefix
+        names = {n.attrs.get("name", "").upper(): prefix + n.attrs.get("name", "")
+                 for n in children if n.tag == "step"}
+        names.update({_macro_name(n).upper(): e[1] for n in children if n.tag == "macroStep"
+                      and (e := ends.get(ids + n.attrs.get("localId", ""))) is not None})
+        for node in out:
+            self._rewire(node, ends)
+            if node.tag == "jumpStep" and self.scope.get(node.attrs.get("localId", "")) == prefix:
+                self._jump(node, names, prefix)
+        return out
+
+    def _macro(self, node: Node, prefix: str, ids: str,
+               depth: int) -> tuple[list[Node], Node, Node] | None:
+        name = _macro_name(node)
+        body = node.child("body")
+        sfc = body.child("SFC") if body is not None else None
+        if sfc is None:
+            kind = f"an {body.children[0].tag}" if body is not None and body.children else "no"
+            self.problem(node, f"macro step {name} has {kind} body: a macro step's body must "
+                         "be an SFC (<body><SFC>: its entry step, ..., its exit step)")
+            return None
+        if depth >= MAX_MACRO_DEPTH:
+            self.problem(node, f"macro step {name}: macro steps nested more than "
+                         f"{MAX_MACRO_DEPTH} deep")
+            return None
+        inner = self.level(sfc.children, f"{prefix}{name}.", f"{ids}{node.attrs.get('localId')}/",
+                           depth + 1)
+        steps = [n for n in inner if n.tag == "step"]
+        entries = [n for n in steps if n.attrs.pop("initialStep", "").lower() in ("true", "1")]
+        wired = {ref for n in inner if n.tag != "actionBlock" for ref in preds(n)}
+        exits = [n for n in steps if n.attrs.get("localId") not in wired]
+        found = [", ".join(n.attrs["name"] for n in ns) or "none" for ns in (entries, exits)]
+        if len(entries) != 1:
+            self.problem(node, f"macro step {name}: its body needs exactly one initial step, "
+                         "the entry step the macro's preceding transitions enter; found "
+                         f"{found[0]}")
+        if len(exits) != 1:
+            self.problem(node, f"macro step {name}: its body needs exactly one exit step (a "
+                         "step no transition of the body leaves), which the macro's following "
+                         f"transitions leave; found {found[1]}")
+        return (inner, entries[0], exits[0]) if len(entries) == len(exits) == 1 else None
+
+    def _enter(self, entry: Node, macro: Node, ids: str) -> None:
+        """The macro's incoming wires become the entry step's (beside the body's own)."""
+        pin = entry.child("connectionPointIn")
+        if pin is None:
+            pin = Node("connectionPointIn", {}, entry.line)
+            entry.children.append(pin)
+        for src in macro.all("connectionPointIn"):
+            pin.children += [_copy(c, ids, "") for c in src.all("connection")]
+
+    def _rewire(self, node: Node, ends: dict[str, tuple[str, str, str]]) -> None:
+        """A wire from a macro step comes from its exit step (ids are unique per level: an
+        inner id holds one more `/` than the level's)."""
+        for conn in (c for c in node.walk() if c.tag == "connection"):
+            ref = conn.attrs.get("refLocalId", "")
+            if ref in ends and node.tag == "actionBlock":
+                self.problem(node, "an action block on a macro step: attach the actions to "
+                             "the steps in its body")
+            elif ref in ends:
+                conn.attrs["refLocalId"] = ends[ref][2]
+
+    def _jump(self, node: Node, names: dict[str, str], prefix: str) -> None:
+        target = node.attrs.get("targetName", "")
+        if target.upper() in names:
+            node.attrs["targetName"] = names[target.upper()]
+        elif prefix:
+            self.problem(node, f"jump to {target!r} in macro step {prefix[:-1]}: no step of "
+                         "that name in the macro (a jump does not leave a macro: its exit "
+                         "step does)")
+
+
+def _macro_name(node: Node) -> str:
+    return node.attrs.get("name") or f"Macro{node.attrs.get('localId', '')}"
+
+
+def _copy(node: Node, ids: str, prefix: str) -> Node:
+    """A copy with the localId and every refLocalId under `ids`, a step's name under
+    `prefix`; jump targets are rewired by the caller."""
+    attrs = dict(node.attrs)
+    for key in ("localId", "refLocalId"):
+        if key in attrs and ids:
+            attrs[key] = ids + attrs[key]
+    if node.tag == "step" and prefix:
+        attrs["name"] = prefix + attrs.get("name", "")
+    return Node(node.tag, attrs, node.line,
+                [_copy(c, ids, "") for c in node.children], node.text)

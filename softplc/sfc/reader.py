@@ -75,7 +75,7 @@ class _Reader:
                            ("NOT (" + text + ")") if negated else text,
                            rank=ranks.get(node.attrs["localId"], 0), xy=position(node))
             if text is not None:
-                self._guard(t, text, line, negated)
+                self._guard(t, text, line, negated, self._steps_in(node))
             self.chart.transitions.append(t)
         for block in (n for n in self.wiring.objs.values() if n.tag == "actionBlock"):
             self._actions(block)
@@ -116,9 +116,18 @@ class _Reader:
             return "FALSE", ref.line
         return st.all_text(), _text_line(st)
 
-    def _guard(self, t: Transition, text: str, line: int, negated: bool) -> None:
+    def _steps_in(self, node: XNode) -> dict[str, str]:
+        """The steps ST names in this object: inside a macro step, its own steps go by their
+        names in the macro's body (`Fill.X` in macro Tank is Tank.Fill), as the editor shows."""
+        prefix = self.wiring.scope.get(node.attrs.get("localId", ""), "").upper()
+        inner = {k[len(prefix):]: v for k, v in self.steps.items() if prefix and
+                 k.startswith(prefix)}
+        return {**self.steps, **inner} if inner else self.steps
+
+    def _guard(self, t: Transition, text: str, line: int, negated: bool,
+               steps: dict[str, str]) -> None:
         try:
-            expr = parse_condition(text, self.names, self.steps)
+            expr = parse_condition(text, self.names, steps)
             if negated:
                 expr = Node("not", (expr,))
             terms = _conjuncts(expr)
@@ -169,9 +178,9 @@ class _Reader:
             self.problem(block.line, "action block not connected to a step")
             return
         for act in block.all("action"):
-            self._action(step_node.attrs.get("name", ""), act)
+            self._action(step_node.attrs.get("name", ""), act, self._steps_in(block))
 
-    def _action(self, step: str, act: XNode) -> None:
+    def _action(self, step: str, act: XNode, steps: dict[str, str]) -> None:
         qual = (act.attrs.get("qualifier") or "N").upper()
         duration = act.attrs.get("duration", "")
         ref = act.child("reference")
@@ -206,7 +215,7 @@ class _Reader:
             return
         try:
             stmts = [(v, self._assign(v, k, e)) for v, k, e, _ in
-                     parse_statements(text, self.names, self.steps)]
+                     parse_statements(text, self.names, steps)]
         except StError as exc:
             self.problem(line + text[:exc.offset].count("\n"), f"action {name}: {exc.message}")
             return
