@@ -31,7 +31,8 @@ class DownloadSigning:
         self._running: tuple[Any, str | None] = (None, None)  # (boot file's stat, signer)
 
     def keys(self) -> KeysSeen:
-        return self.gate.keys()
+        """For status: read again only when the directory changed (gate.status_keys)."""
+        return self.gate.status_keys()
 
     async def check(self, body: bytes, signature: str | None,
                     allow_older: bool = False) -> str | None:

@@ -88,6 +88,7 @@ class Authority:
     def __init__(self, users: UserStore, owner: Callable[[], str]) -> None:
         self.users = users
         self._owner = owner
+        self._problem = ""  # the users file's problem as last logged ("" when usable)
 
     # -- proving --------------------------------------------------------------------------------
 
@@ -116,12 +117,20 @@ class Authority:
         return Identity(user.name, "password", user.password)
 
     def known(self) -> dict[str, User]:
-        """The users as the file holds them now ({} when it is unusable: owner only)."""
+        """The users as the file holds them now ({} when it is unusable: owner only). An
+        unusable file is logged once per change of its problem (every request asks), and its
+        repair once."""
         try:
-            return self.users.users()  # read again when the file changed
+            users = self.users.users()  # read again when the file changed
         except UserError as exc:
-            log.error("%s", exc)
+            if str(exc) != self._problem:
+                self._problem = str(exc)
+                log.error("%s", exc)
             return {}
+        if self._problem:
+            self._problem = ""
+            log.info("%s is usable again", self.users.path)
+        return users
 
     # -- deciding -------------------------------------------------------------------------------
 

@@ -19,6 +19,7 @@ import contextlib
 import hashlib
 import json
 import logging
+import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -74,6 +75,7 @@ class ProgramGate:
         self.trusted_dir = Path(trusted_dir)
         self._lock = threading.Lock()
         self._seen = KeysSeen(TrustedKeys(), "", required)
+        self._stamp: tuple[object, ...] | None = None  # the directory as status last saw it
 
     def keys(self) -> KeysSeen:
         """The keys as the directory holds them now (read at every call: a few small files)."""
@@ -97,6 +99,20 @@ class ProgramGate:
                          self.trusted_dir)
             self._seen = KeysSeen(keys, digest, required, problem)
             return self._seen
+
+    def status_keys(self) -> KeysSeen:
+        """The keys for status (every GET /status): read again only when the directory's
+        stat or one of its key files' stat changed (a key added, removed, or written in
+        place shows at the next request), else as last seen; a download reads them by
+        content whatever their stats say (`keys`)."""
+        stamp = _stamp(self.trusted_dir)
+        with self._lock:
+            if stamp is not None and stamp == self._stamp:
+                return self._seen
+        seen = self.keys()
+        with self._lock:
+            self._stamp = stamp
+        return seen
 
     def admit(self, body: bytes, signature: str | None, allow_older: bool = False) -> str | None:
         """The signer's name, or None when signatures are not required. Raises
@@ -164,3 +180,18 @@ def _content(directory: Path) -> tuple[str, list[Path] | None]:
     except OSError as exc:
         return f"unreadable: {exc.strerror}", None
     return digest.hexdigest(), files
+
+
+def _stamp(directory: Path) -> tuple[object, ...] | None:
+    """The directory's and its `*.pub` files' stats (no file is read); None: unreadable."""
+    try:
+        info = directory.stat()
+        names = sorted(n for n in os.listdir(directory) if n.endswith(".pub"))[:MAX_KEYS]
+        files = tuple((n, *_stats((directory / n).stat())) for n in names)
+    except OSError:
+        return None
+    return (*_stats(info), files)
+
+
+def _stats(info: os.stat_result) -> tuple[int, int, int, int]:
+    return info.st_ino, info.st_mtime_ns, info.st_ctime_ns, info.st_size

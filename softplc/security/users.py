@@ -118,6 +118,7 @@ class UserStore:
         self.path = Path(state_dir) / USERS_FILE
         self._seen: tuple[int, int, int] | None = None
         self._users: dict[str, User] = {}
+        self._unusable = ""  # why the file as last seen cannot be used ("" when it can)
 
     # -- the checks every interface asks ------------------------------------------------------
 
@@ -141,11 +142,17 @@ class UserStore:
         try:
             info = self.path.stat()
         except FileNotFoundError:
-            self._seen, self._users = None, {}
+            self._seen, self._users, self._unusable = None, {}, ""
             return self._users
         seen = (info.st_ino, info.st_size, info.st_mtime_ns)
-        if seen != self._seen:
-            self._users, self._seen = self._load(), seen
+        if seen != self._seen:  # an unusable file too is read again only when it changed
+            try:
+                self._users, self._unusable = self._load(), ""
+            except UserError as exc:
+                self._users, self._unusable = {}, str(exc)
+            self._seen = seen
+        if self._unusable:
+            raise UserError(self._unusable)
         return self._users
 
     def _load(self) -> dict[str, User]:
