@@ -84,10 +84,11 @@ def _from_chart(net: CompiledNet,
                 compile_file: Callable[[str], CompiledNet]) -> tuple[str | None, str]:
     """The chart the net was compiled from, written back; else None and why not."""
     name, _, pou = net.source.partition("#")
+    pou = pou or net.name  # a chart's net is named after its POU (one file, several POUs)
     try:
         data = Path(name).read_bytes()
-        again = compile_file(net.source)
-        chart = read_chart(data, name, pou or None)
+        again = compile_file(f"{name}#{pou}")
+        chart = read_chart(data, name, pou)
     except OSError as exc:
         return None, f"cannot read the chart again: {exc.strerror}"
     except ProgramError as exc:

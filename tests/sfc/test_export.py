@@ -11,6 +11,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from softplc.program.compiler import compile_file
+from softplc.sfc.export import export_plcopen
 from softplc.sfc.reader import read_chart
 from tests.sfc.chartxml import ChartSpec, chart_xml
 
@@ -82,3 +83,49 @@ def test_the_drawing_is_kept_each_step_and_transition_where_it_was(tmp_path: Pat
     first = drawing(chart)
     assert len(set(first.values())) == 8 and None not in first.values()
     assert drawing(back) == first
+
+
+def test_a_chart_with_stored_actions_and_st_bodies_is_written_back(tmp_path: Path) -> None:
+    """programs/drilling_sfc.xml (S, R, P1 on a POU action's ST body: transition `do:`s and
+    set/reset places in the net) was refused before; now the chart itself goes back out."""
+    back = tmp_path / "drilling_sfc.xml"
+    done = export(ROOT / "programs/drilling_sfc.xml", back)
+    assert done.returncode == 0, done.stderr
+    c = read_chart(back.read_bytes(), str(back))
+    assert [(a.step, a.qualifier, a.name) for a in c.actions] == \
+        [(a.step, a.qualifier, a.name) for a in read_chart(
+            (ROOT / "programs/drilling_sfc.xml").read_bytes(), "drilling_sfc.xml").actions]
+    assert "<![CDATA[parts_drilled := parts_drilled + 1;]]>" in back.read_text(encoding="utf-8")
+
+
+def test_the_named_pou_of_a_file_with_several_is_written_back(tmp_path: Path) -> None:
+    def one(pou: str, qualifier: str) -> str:
+        return chart_xml(ChartSpec(["S0", "S1"], ["S0"], [(["S0"], ["S1"], "i"),
+                                                           (["S1"], ["S0"], "NOT i")],
+                                   [("S1", qualifier, "o")],
+                                   {"i": ("BOOL", "%IX0.0"), "o": ("BOOL", "%QX0.0")}, pou=pou))
+    second = re.search(r"<pou .*</pou>", one("Second", "N"), re.S)
+    assert second is not None
+    path = tmp_path / "two.xml"
+    path.write_text(one("First", "S").replace("</pous>", second.group(0) + "</pous>"),
+                    encoding="utf-8")
+    text = export_plcopen(compile_file(f"{path}#First"), compile_file)
+    assert '<pou name="First"' in text and "Second" not in text
+    assert '<action localId="0" qualifier="S"><reference name="o"/></action>' in text
+
+
+def test_without_the_compiler_a_chart_net_is_inferred_as_before(tmp_path: Path) -> None:
+    """The inference path (every net not compiled from a chart, YAML ones included) still
+    writes a net that is a chart and reads back to the same net."""
+    spec = ChartSpec(["Idle", "A"], ["Idle"], [(["Idle"], ["A"], "go"), (["A"], ["Idle"], "x")],
+                     [("A", "N", "lamp")], {"go": ("BOOL", "%IX0.0"), "x": ("BOOL", "%IX0.1"),
+                                            "lamp": ("BOOL", "%QX0.0")})
+    chart = tmp_path / "chart.xml"
+    chart.write_text(chart_xml(spec), encoding="utf-8")
+    first = compile_file(chart)
+    back = tmp_path / "back.xml"
+    back.write_text(export_plcopen(first), encoding="utf-8")
+    assert 'height="30" width="90"' in back.read_text(encoding="utf-8")  # inferred: one column
+    second = compile_file(back)
+    assert [replace(t, line=0) for t in first.transitions] == \
+        [replace(t, line=0) for t in second.transitions]
