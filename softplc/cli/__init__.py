@@ -52,7 +52,27 @@ def _parser(full: Iterable[str], listed: Iterable[str] = COMMANDS,
     for name in full:
         entry = COMMANDS[name]
         getattr(importlib.import_module(entry.module), entry.add)(stubs[name])
+        if entry.program:  # a program file: --pou NAME of a PLCopen XML one (docs/sfc.md)
+            from softplc.cli.pou import add_pou
+
+            add_pou(stubs[name], entry.program)
     return parser
+
+
+def _finish(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.Namespace:
+    """`--pou NAME` folded into the program (FILE.xml#NAME); what cannot mean anything is a
+    usage error here, before the command runs."""
+    dest = COMMANDS[args.command].program
+    if dest and getattr(args, "pou", None) is not None:
+        from softplc.cli.pou import fold, label
+
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        command = sub.choices[args.command]  # its usage line, as for its other usage errors
+        try:
+            setattr(args, dest, fold(getattr(args, dest), args.pou, label(command, dest)))
+        except ValueError as exc:
+            command.error(str(exc))
+    return args
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -74,11 +94,13 @@ def parse(argv: Sequence[str]) -> argparse.Namespace:
     command = _command_of(argv)
     if command in COMMANDS and argv[0] == command:  # no top-level option: -h lists them all
         try:  # a parser of this command alone: the other 30 stubs cost ~8 ms (issue 40)
-            return _parser([command], [command], _Quick).parse_args(argv)
+            quick = _parser([command], [command], _Quick)
+            return _finish(quick, quick.parse_args(argv))
         except _Retry:
             pass  # a usage error, worded below as always (the usage line lists every command)
     if command is None or command in COMMANDS:
-        return _parser([command] if command else []).parse_args(argv)
+        whole = _parser([command] if command else [])
+        return _finish(whole, whole.parse_args(argv))
     import difflib  # only for a mistyped command
 
     near = difflib.get_close_matches(command, COMMANDS, n=1)

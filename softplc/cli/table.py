@@ -19,10 +19,11 @@ class Entry:
     """`module.add(parser)` adds the command's arguments and sets `func`, its handler.
     A plain class: `dataclasses` costs `inspect`, `ast` and `dis` at every start."""
 
-    __slots__ = ("add", "help", "module")
+    __slots__ = ("add", "help", "module", "program")
 
-    def __init__(self, module: str, add: str, help: str) -> None:
+    def __init__(self, module: str, add: str, help: str, program: str = "") -> None:
         self.module, self.add, self.help = module, add, help
+        self.program = program  # where its program goes (args.<program>): it takes --pou
 
 
 def _lifecycle(command: str, what: str) -> Entry:
@@ -36,27 +37,27 @@ _BREAK: Final = "softplc.debug.breakcli"
 
 COMMANDS: Final[dict[str, Entry]] = {
     "check": Entry(_LOCAL, "add_check", "validate and compile a program (or check a symbols "
-                   "file), its drivers' plants and channels; opens nothing"),
+                   "file), its drivers' plants and channels; opens nothing", "program"),
     "run": Entry("softplc.cli.runargs", "add_run",
-                 "run a soft PLC (scan process + Modbus/HTTP process)"),
+                 "run a soft PLC (scan process + Modbus/HTTP process)", "program"),
     "simulate": Entry(_LOCAL, "add_simulate",
-                      "run a program on a simulated plant in virtual time"),
+                      "run a program on a simulated plant in virtual time", "program"),
     "replay": Entry(_LOCAL, "add_replay",
-                    "re-run a trace's inputs and compare outputs bit for bit"),
+                    "re-run a trace's inputs and compare outputs bit for bit", "program"),
     "bench": Entry(_LOCAL, "add_bench", "benchmarks of the engine, scan timing and Modbus"),
     "analyze": Entry("softplc.analysis.cli", "add_analyze", "state-space and structural "
-                     "analysis of a program (YAML) or a PNML net"),
+                     "analysis of a program (YAML) or a PNML net", "net"),
     "import": Entry("softplc.sfc.importcmd", "add_import", "write a PLCopen XML SFC chart "
-                    "as a softplc program and symbols file (docs/sfc.md)"),
+                    "as a softplc program and symbols file (docs/sfc.md)", "chart"),
     "export": Entry("softplc.analysis.cli", "add_export",
-                    "write a program as PNML (ISO/IEC 15909-2)"),
+                    "write a program as PNML (ISO/IEC 15909-2)", "program"),
     "why": Entry(_DEBUG, "add_why", "why a transition fires or not: the places short of "
                  "tokens, the guard with the values it read, a delay, a conflict, forces; on a "
                  "running softplc, or at a scan of a trace; without a transition, why "
-                 "nothing moves (docs/debug.md)"),
+                 "nothing moves (docs/debug.md)", "program"),
     "vcd": Entry(_DEBUG, "add_vcd", "export a trace as a VCD file (IEEE 1364 value change "
                  "dump) for GTKWave and other waveform viewers: every symbol and every place's "
-                 "marking, scan by scan"),
+                 "marking, scan by scan", "program"),
     "break": Entry(_BREAK, "add_break", "breakpoints: pause the running PLC at the end of the "
                    "scan in which a transition fires or becomes enabled, or a condition becomes "
                    "true (docs/debug.md)"),
@@ -69,7 +70,7 @@ COMMANDS: Final[dict[str, Entry]] = {
                  "(docs/debug.md)"),
     "download": Entry(_CLIENT, "add_download", "download a program to a running softplc: the "
                       "program, its io image and subnets in one bundle (docs/programs.md, "
-                      "program bundles)"),
+                      "program bundles)", "program"),
     "upload": Entry(_CLIENT, "add_upload",
                     "get the running program back as files, byte for byte as downloaded"),
     "start": _lifecycle("start", "start a downloaded or reset program from its initial "
@@ -89,7 +90,7 @@ COMMANDS: Final[dict[str, Entry]] = {
     "keys": Entry("softplc.api.signcmds", "add_keys",
                   "an engineer's Ed25519 keys for signing programs, and a PLC's trusted keys"),
     "sign": Entry("softplc.api.signcmds", "add_sign", "sign a program (the bundle softplc "
-                  "download sends) or a bundle zip with an engineer's key: FILE.sig"),
+                  "download sends) or a bundle zip with an engineer's key: FILE.sig", "program"),
     "trust": Entry("softplc.api.trustcmds", "add_trust", "client certificates the OPC UA "
                    "server (STATE_DIR/pki) or, with --modbus, the Modbus/TCP Security port "
                    "trusts: a refused one waits in rejected/ until accepted"),

@@ -17,17 +17,17 @@ from softplc.sfc.load import load_chart
 
 
 def add_import(parser: argparse.ArgumentParser) -> None:
+    """`--pou NAME` comes with every command that takes a program (cli/table.py, cli/pou.py):
+    it reaches here folded into `chart` as FILE.xml#NAME."""
     parser.add_argument("chart", help="a PLCopen TC6 XML file holding an SFC POU")
     parser.add_argument("-o", "--output", required=True,
                         help="directory for <POU>.yaml and <POU>.io.yaml (created if needed)")
-    parser.add_argument("--pou", default=None,
-                        help="the SFC POU to import when the file has several")
     parser.set_defaults(func=cmd_import)
 
 
 def cmd_import(args: argparse.Namespace) -> int:
     try:
-        chart = load_chart(args.chart, args.pou)
+        chart = load_chart(args.chart)
     except ProgramError as exc:
         for problem in exc.problems:
             print(problem, file=sys.stderr)

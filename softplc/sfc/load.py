@@ -84,6 +84,9 @@ def _head(sidecar: str) -> list[str]:
 def load_chart(path: str | Path, pou: str | None = None, io_name: str = "") -> ChartProgram:
     """Read and verify the chart; raises ProgramError (XML lines) on any problem."""
     name, _, from_path = str(path).partition("#")
+    if pou and from_path and pou.upper() != from_path.upper():
+        raise ProgramError([Problem(name, 0, "", f"{path} and the POU {pou!r} name different "
+                                    "POUs: name it once")])
     pou = pou or from_path or None
     try:
         data = Path(name).read_bytes()

@@ -37,7 +37,7 @@ def choose_pou(root: Node, filename: str, name: str | None) -> Node:
     if len(pous) == 1:
         return pous[0]
     why = "no POU with an SFC body" if not pous else f"several SFC POUs ({names}): name one " \
-        "with FILE.xml#POU (or `softplc import --pou POU`)"
+        "with --pou POU or FILE.xml#POU"
     raise ProgramError([Problem(filename, root.line, "", why)])
 
 

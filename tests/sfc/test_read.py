@@ -127,7 +127,7 @@ def test_a_file_with_several_charts_needs_the_pou_named(tmp_path: Path) -> None:
     path = tmp_path / "two.xml"
     path.write_text(two, encoding="utf-8")
     (found,) = _problems(path)
-    assert "several SFC POUs (Chart, Other): name one with FILE.xml#POU" in found
+    assert "several SFC POUs (Chart, Other): name one with --pou POU or FILE.xml#POU" in found
     assert compile_file(f"{path}#Other").name == "Other"
     assert "no SFC POU named 'Nope'; SFC POUs in the file: Chart, Other" in \
         _problems(f"{path}#Nope")[0]
