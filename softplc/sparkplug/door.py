@@ -10,7 +10,11 @@ write policy (an input or `hmi_writable: false` symbol is refused, as is a write
 board still describes another program), the typed check (core/present.py `accepted`, as the
 HTTP API's); one audit record per command (iface "sparkplug"); the outcome as one line for
 the `Node Control/Command Status` metric. Everything that blocks (the trail's fsync, a
-command's reply) runs in one worker thread behind a bounded queue; a full queue refuses.
+command's reply) runs in one worker thread behind a bounded queue; a full queue refuses, and
+whatever fails in the worker is a `failed` record and an answered outcome, never its end.
+A command is judged against the running program: the last NBIRTH's metrics while that
+program runs, else the status board's (a download while the broker was away, before the next
+NBIRTH; an alias of the earlier birth is refused, a name is looked up anew).
 Does not know: MQTT, topics, payload bytes.
 """
 
@@ -21,7 +25,7 @@ import itertools
 import logging
 import queue
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import replace
 from typing import Any, Final, Protocol
 
@@ -69,8 +73,10 @@ class Door:
     thread) returns the lines written since the last call."""
 
     def __init__(self, config: SparkplugConfig, channel: Channel, source: SnapshotSource,
-                 audit: AuditSink) -> None:
+                 audit: AuditSink, board: Callable[[], Mapping[str, Any]] | None = None
+                 ) -> None:
         self.config = config
+        self._board = board  # the status board now: the running program's symbols
         self.who = Identity(None, "policy", granted=config.role)
         self._channel, self._source, self._audit = channel, source, audit
         self._ids = itertools.count(_FIRST_ID)
@@ -86,18 +92,8 @@ class Door:
     def submit(self, report: Report | None, metric: Metric) -> None:
         """A host's NCMD metric (from the node's thread): queued for the worker. `report`:
         the last NBIRTH's metrics, None before the first one (every write is refused)."""
-        symbol, program = None, ""
-        if report is not None:
-            if metric.name is None:  # by alias: a node metric's name, else a symbol's
-                names = {alias: name for name, alias in report.node_alias.items()}
-                if metric.alias in names:
-                    metric = replace(metric, name=names[metric.alias])
-            symbol = report.by_name.get(metric.name or "") if metric.name is not None \
-                else report.by_alias.get(metric.alias or -1)
-            program = str(report.document.get("program_hash") or "")
-        born = report is not None
         try:
-            self._waiting.put_nowait(lambda: self._handle(metric, symbol, program, born))
+            self._waiting.put_nowait(lambda: self._handle(report, metric))
         except queue.Full:
             self.refused_busy += 1
             with self._lock:  # audited by the worker when it is free again
@@ -136,10 +132,56 @@ class Door:
 
     # -- one command, in the worker ---------------------------------------------------------
 
-    def _handle(self, metric: Metric, symbol: SymbolMetric | None, program: str,
-                born: bool = True) -> None:
+    def _handle(self, report: Report | None, metric: Metric) -> None:
+        """Decide, apply and audit one command. Whatever fails in it is audited too (outcome
+        `failed`) and answered: the door goes on with the next."""
         target = metric.name if metric.name is not None else f"alias {metric.alias}" \
             if metric.alias is not None else "a metric without name or alias"
+        try:
+            action, target, outcome, why = self._decide(report, metric, target)
+        except Exception as exc:  # a bug: audited and answered, never the door's end
+            log.exception("Sparkplug command %s failed", target)
+            action = "command" if metric.name == COMMAND else "write"
+            outcome, why = "failed", f"the door failed ({type(exc).__name__}: {exc})"
+        line = f"#{next(self._numbers)} {action} {target}: {outcome}" + (f" ({why})" if why
+                                                                          else "")
+        self._record(action, outcome, why or "ok",
+                     {"metric": target, "value": _plain(metric.value)})
+        self._done.put(line)
+
+    def _view(self, report: Report) -> tuple[Report, bool]:
+        """The metrics to judge a command against: the last NBIRTH's, or the current
+        program's when another program runs since (a download while the broker was away: the
+        node's next NBIRTH is not out yet). True: the view is not what the host was born."""
+        if self._board is None:
+            return report, False
+        try:
+            running = self._source.latest().status.program_hash
+        except SnapshotUnavailable:
+            return report, False  # _write refuses what it cannot check
+        if running == str(report.document.get("program_hash") or ""):
+            return report, False
+        try:
+            document = self._board()
+        except TimeoutError:
+            return report, False
+        if str(document.get("program_hash") or "") != running:
+            return report, False  # the board still describes another program
+        return Report(document, 0.0), True
+
+    def _decide(self, report: Report | None, metric: Metric, target: str
+                ) -> tuple[str, str, str, str]:
+        """(action, target, outcome, why) of one command."""
+        symbol, program, born, stale = None, "", report is not None, False
+        if report is not None:
+            report, stale = self._view(report)
+            if metric.name is None:  # by alias: a node metric's name, else a symbol's
+                names = {alias: name for name, alias in report.node_alias.items()}
+                if metric.alias in names:
+                    metric = replace(metric, name=names[metric.alias])
+            symbol = report.by_name.get(metric.name or "") if metric.name is not None \
+                else report.by_alias.get(metric.alias or -1)
+            program = str(report.document.get("program_hash") or "")
         if metric.name is None and metric.alias is None:
             action, outcome, why = "write", "refused", "the metric has no name and no alias"
         elif not born and metric.name != COMMAND:
@@ -148,17 +190,19 @@ class Door:
             action, outcome, why = self._program_command(metric.value)
         elif metric.name in NODE or metric.name == STATUS:
             action, outcome, why = "write", "refused", f"{target} is read only"
+        elif stale and metric.name is None:
+            action, outcome, why = "write", "refused", (
+                "the program changed since the last NBIRTH: its aliases name other metrics "
+                "now; send the name, or the alias of the next NBIRTH")
         elif symbol is None:
-            action, outcome, why = "write", "refused", f"no metric {target} in the last NBIRTH"
+            action, outcome, why = "write", "refused", (
+                f"no metric {target} in the running program" if stale
+                else f"no metric {target} in the last NBIRTH")
         else:
             target = symbol.name
             action = "write"
             outcome, why = self._write(symbol, metric, program)
-        line = f"#{next(self._numbers)} {action} {target}: {outcome}" + (f" ({why})" if why
-                                                                          else "")
-        self._record(action, outcome, why or "ok",
-                     {"metric": target, "value": _plain(metric.value)})
-        self._done.put(line)
+        return action, target, outcome, why
 
     def _record(self, action: str, outcome: str, status: str, detail: dict[str, Any]) -> None:
         entry = {"user": None, "role": self.config.role.label, "via": "policy",
@@ -166,7 +210,7 @@ class Door:
                  "action": action, "outcome": outcome, "status": status, "detail": detail}
         try:
             self._audit.append(entry)
-        except OSError as exc:
+        except Exception as exc:  # a full disk, a value JSON cannot hold: logged, not fatal
             log.error("audit record of a Sparkplug %s not written: %s", action, exc)
 
     def _write(self, symbol: SymbolMetric, metric: Metric, program: str) -> tuple[str, str]:

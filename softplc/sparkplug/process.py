@@ -84,7 +84,7 @@ def process_main(config: SparkplugConfig, channel: Channel, shm_name: str, board
     mapping = SnapshotReader.attach(shm_name, config.sizes or ImageSizes())
     source = FreshSource(mapping)
     board = StatusBoard.attach(board_name)
-    door = Door(config, channel, source, AuditTrail(config.state_dir))
+    door = Door(config, channel, source, AuditTrail(config.state_dir), board.read)
 
     node = EdgeNode(config, Reader(board, source).read, door.submit)
     os.nice(NICE)
