@@ -47,25 +47,26 @@ class BootKeeper:
 
     def start(self, prep: Preparer) -> tuple[CompiledNet | None, dict[str, Any] | None]:
         """The program a start runs, and its analysis (reported, never a refusal: the person
-        at the console chose it): loaded from what `softplc run` compiled (config.compiled)
-        when it is that program, else compiled and analysed here (a loop built directly, the
-        boot program of an accepted download). `started` says which, for status."""
+        at the console chose it, or the PLC accepted it): loaded from what `softplc run`
+        compiled (config.compiled: the command line's program or the boot program) when it is
+        that program, else compiled and analysed here (a loop built directly). `started` says
+        which, for status."""
         began, compiled = time.monotonic_ns(), self.config.compiled
         net, _ = self.program(compiled)
         if net is None:
             return None, None
         loaded = compiled is not None and net.program_hash == compiled.program_hash
         analysis = compiled.analysis if loaded else prep.analyse(net, gate=False)
-        self.started = {"compiled_by": f"softplc run (pid {compiled.compiled_by})" if loaded
-                        else "scan process",
+        self.started = {"compiled_by": f"{compiled.compiled_in} (pid {compiled.compiled_by})"
+                        if loaded else "scan process",
                         "ready_ms": round((time.monotonic_ns() - began) / 1e6, 1)}
         return net, analysis
 
     def program(self, compiled: Any = None) -> tuple[CompiledNet | None, boot.BootProgram | None]:
         """The program to run: the command line's, else the boot program of the state dir.
-        The command line's is compiled by the CLI first, which reports its errors: `compiled`
-        (a StartProgram, runtime/compileproc.py) is loaded, not compiled again, for it and for
-        a boot program of the same hash."""
+        `softplc run` compiles either before this process starts and reports its errors:
+        `compiled` (a StartProgram, runtime/supervise/startprog.py) is loaded, not compiled
+        again, for the program it serves; only a loop built without it compiles here."""
         config = self.config
         if config.program:
             if compiled is not None:
@@ -90,19 +91,24 @@ class BootKeeper:
         if loaded is None:
             return None, None
         program = loaded
+        if compiled is not None and compiled.serves(program) and compiled.problem:
+            return self._no_longer(program, compiled.problem)  # as `softplc run` found
         try:
-            if compiled is not None and program.program_hash == compiled.program_hash:
-                net = compiled.load()  # a restart of the command line's program
+            if compiled is not None and compiled.serves(program):
+                net = compiled.load()
             elif program.bundle is not None:
                 net = self._prep.compile_bundle(program.bundle)  # unpacked anew if removed
             else:
                 net = compile_text(program.text, program.filename,
                                    Path(program.root) if program.root else None)
         except (ProgramError, bundles.BundleError, OSError) as exc:
-            self.source = f"none ({program.describe()} no longer compiles: {exc})"
-            return None, None
+            return self._no_longer(program, str(exc))
         self.source = program.describe()
         return net, program
+
+    def _no_longer(self, program: boot.BootProgram, why: str) -> tuple[None, None]:
+        self.source = f"none ({program.describe()} no longer compiles: {why})"
+        return None, None
 
     def stage(self, prepared: Prepared) -> None:
         """On the download's helper thread, before the download is decided: the program

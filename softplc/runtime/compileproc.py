@@ -6,10 +6,9 @@ download at a time over a private pipe, a compile that dies or runs past COMPILE
 turned into a refused download (the next download starts a new process), its budgets (a
 download past COMPILE_MEMORY_BYTES of address space or COMPILE_CPU_S of CPU is refused, by
 RLIMIT_AS and RLIMIT_CPU; after a MemoryError the process ends, the next download starts
-another), and its end with the scan process (pipe closed, or PR_SET_PDEATHSIG); `softplc run`'s
-start program compiled once (compile_start: in a compile process of the CLI's, at normal
-priority), its compiled form (StartProgram) what the scan process loads at every start and
-restart.
+another), and its end with the scan process (pipe closed, or PR_SET_PDEATHSIG); the same
+process, at normal priority (`background=False`), for `softplc run`'s start and boot programs
+(runtime/supervise/startprog.py: their requests know how they compile).
 Why a process: threads of the scan process share one interpreter lock with the scan. Paced
 between scans on a thread of the scan process (as it once was), a 10,000-transition compile
 took ~3 s of the scan process's time and still cost slots at 1 ms; here it takes ~0.8 s of
@@ -32,15 +31,11 @@ import signal
 import tempfile
 import threading
 import time
-from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
-from typing import Any
+from typing import Any, Protocol
 
-from softplc.core.net import CompiledNet
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.snapshot import CommandRequest
-from softplc.program import boot, wire
-from softplc.program.compiler import compile_file
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.prepare import AnalysisRefused, Built, CompilerFailed, Preparer
 from softplc.runtime.realtime import keep_off_scan_cpu
@@ -55,77 +50,23 @@ COMPILE_TIMEOUT_S = 120.0  # one download's compile and analysis; then it is ref
 # took 2.1 s, the gate's work budgets a few more.
 COMPILE_MEMORY_BYTES = 1 << 30
 COMPILE_CPU_S = 60
-IN_CLI_BYTES = 64 << 10  # a start program file up to this is compiled in the CLI itself
 BY_FILE_BYTES = 64 << 10  # a reply above a pipe's buffer goes through a file (_packed)
 OUT_OF_MEMORY_EXIT = 86  # its exit code after a MemoryError (when the refusal could not go)
 _CTX = multiprocessing.get_context("spawn")  # a fresh interpreter: nothing of the scan's
 
 
-@dataclass(frozen=True, slots=True)
-class StartRequest:
-    """`softplc run`'s program, to compile once; `plant` a --plant it must not conflict with."""
+class Compilable(Protocol):
+    """A request other than a download's, that knows how it compiles (runtime/supervise/
+    startprog.py: `softplc run`'s start program and boot program); its answer is a value."""
 
-    path: str
-    plant: str | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class StartProgram:
-    """The start program compiled: the net as bytes (program/wire.py), as a download's, and
-    its analysis (reported, never a refusal: the person at the console chose it). The
-    supervisor hands it to every scan process it starts (LoopConfig.compiled), so neither a
-    start nor a restart parses YAML. `conflict`: why it cannot run with --plant ("" if it can)."""
-
-    net: tuple[bytes, ...]
-    analysis: dict[str, Any] | None
-    program_hash: str
-    compiled_by: int  # the pid of the process that compiled it
-    conflict: str = ""
-    boot: Any = None  # its boot program (program/boot.py BootProgram: the bundle read here)
-
-    def load(self) -> CompiledNet:
-        """The net, loaded from its bytes (expressions compiled again, program/wire.py)."""
-        return wire.loads(self.net)
-
-
-def _start(prep: Preparer, req: StartRequest) -> StartProgram:
-    from softplc.runtime.runner import plant_conflict
-
-    net = compile_file(req.path)
-    conflict = (plant_conflict(net.io, req.plant) or "") if req.plant else ""
-    if conflict:
-        return StartProgram((), None, net.program_hash, os.getpid(), conflict)
-    return StartProgram(wire.dumps(net), prep.analyse(net, gate=False), net.program_hash,
-                        os.getpid(), boot=boot.from_file(req.path, net.program_hash))
-
-
-def compile_start(req: StartRequest, verify: str = "warn",
-                  timeout_s: float = COMPILE_TIMEOUT_S) -> StartProgram:
-    """`softplc run`'s program compiled and analysed once: in a compile process of the CLI's
-    (at normal priority: the start waits for it; ended after), or, for a program file up to
-    IN_CLI_BYTES, in the CLI itself, where starting that process (~0.5 s of CPU, 1.2 s more
-    to transport's first scan at load 7) costs more than the compile (~10 ms). Raises
-    ProgramError or CompilerFailed."""
-    from softplc.runtime.config import LoopConfig
-
-    config = LoopConfig(verify=verify)
-    with contextlib.suppress(OSError):  # unreadable: the compile says so, with its location
-        if os.path.getsize(req.path) <= IN_CLI_BYTES:
-            return _start(Preparer(config, lambda: None, lambda: ()), req)
-    compiler = CompileProcess(config, timeout_s, background=False)
-    try:
-        value = compiler.exchange(req)
-    finally:
-        compiler.close()
-    assert isinstance(value, StartProgram)
-    return value
+    def compile(self, prep: Preparer) -> Any: ...
 
 
 def compile_main(config: LoopConfig, conn: Connection,
                  memory_bytes: int = COMPILE_MEMORY_BYTES, cpu_s: float = COMPILE_CPU_S,
                  background: bool = True) -> None:
-    """Entry point of the compile process: a request in, a Built (a StartProgram for a
-    StartRequest) or an error out, until the scan process closes the pipe. A download over
+    """Entry point of the compile process: a request in, a Built (for a Compilable, what its
+    compile returns) or an error out, until the scan process closes the pipe. A download over
     the memory or CPU budget is refused."""
     from softplc.runtime.shared.procs import die_with_parent, name_process
 
@@ -146,8 +87,8 @@ def compile_main(config: LoopConfig, conn: Connection,
         _limit_cpu(cpu_s)
         gc.disable()  # collected once per download, below: full collections while the heap
         try:  # grows cost ~20 % of a big compile
-            reply: tuple[str, Any] = ("ok", _start(prep, req) if isinstance(req, StartRequest)
-                                      else prep.build(req))
+            reply: tuple[str, Any] = ("ok", prep.build(req) if isinstance(req, CommandRequest)
+                                      else req.compile(prep))
         except ProgramError as exc:  # paths as the sender knows them: a bundle's folder is here
             reply = ("error", ProgramError([
                 Problem(prep.relative(p.file), p.line, p.path, prep.relative(p.message))
@@ -330,8 +271,9 @@ class CompileProcess:
         assert isinstance(value, Built)
         return value
 
-    def exchange(self, req: CommandRequest | StartRequest) -> Any:
-        """One request, its answer (a Built, a StartProgram) or what the compile raised."""
+    def exchange(self, req: CommandRequest | Compilable) -> Any:
+        """One request, its answer (a Built, what a Compilable's compile returns) or what the
+        compile raised."""
         self.start()
         conn, proc = self._conn, self._proc  # close() may clear them meanwhile
         assert conn is not None and proc is not None

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from softplc.bench import netgen
-from softplc.runtime.compileproc import IN_CLI_BYTES, StartRequest, compile_start
+from softplc.runtime.supervise.startprog import IN_CLI_BYTES, StartRequest, compile_start
 from tests.runtime.test_supervision import ROOT, Run, runs  # noqa: F401 (the fixture)
 from tests.support import eventually_reachable
 

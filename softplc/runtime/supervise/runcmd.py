@@ -27,12 +27,12 @@ from typing import Any
 
 from softplc.api import secopts
 from softplc.core.problems import ProgramError
-from softplc.runtime.compileproc import StartProgram, StartRequest, compile_start
 from softplc.runtime.prepare import CompilerFailed
 from softplc.runtime.retain.writer import StateDirBusy, check_state_dir
 from softplc.runtime.shared.procs import name_process
 from softplc.runtime.supervise.leftovers import remove_stale_segments
 from softplc.runtime.supervise.sdnotify import Notifier
+from softplc.runtime.supervise.startprog import StartProgram, StartRequest, compile_start
 from softplc.runtime.supervise.supervisor import (
     RESTART_WINDOW_S,
     SCAN_RESTARTS,
@@ -169,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"softplc: --watchdog must be a number above 0, got {args.watchdog:g}",
               file=sys.stderr)
         return EXIT_USAGE
-    start = None  # compiled once, in a compile process; every scan process loads it
+    start = None  # compiled once, here or in a compile process; every scan process loads it
     if args.program:
         try:
             start = compile_start(StartRequest(args.program, args.plant),
@@ -219,6 +219,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"softplc: {exc}", file=sys.stderr)
         supervisor.stop()
         return EXIT_START
+    if supervisor.scan is None:  # a signal while the boot program compiled
+        supervisor.stop()
+        return EXIT_OK
     notifier = Notifier()
     notifier.send(f"READY=1\nMAINPID={os.getpid()}\nSTATUS=scanning")
     _banner(args, supervisor.status())

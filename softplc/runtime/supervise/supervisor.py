@@ -5,7 +5,8 @@ with outputs driven safe.
 Owns: process start order; the shared-memory segments (they outlive a scan process, so the
 service processes keep serving across a restart); restarting a dead scan process warm from
 the newest retain snapshot and the boot program, with backoff, at most SCAN_RESTARTS times in
-RESTART_WINDOW_S, then giving up (GaveUp), and STOPPED if it died paused at a breakpoint
+RESTART_WINDOW_S, then giving up (GaveUp), its boot program compiled before
+(supervise/startprog.py), and STOPPED if it died paused at a breakpoint
 (its last status board says so; docs/debug.md); restarting a dead service process within
 the same kind of budget, each its own; stopping everything within STOP_S in every state, also
 while a child is still starting: the scan process first (outputs safe, confirmed by the
@@ -41,6 +42,7 @@ from softplc.runtime.shared.channel import Channel
 from softplc.runtime.shared.procs import ReadySignal, StopFlag
 from softplc.runtime.shared.shm import SnapshotWriter
 from softplc.runtime.supervise.leftovers import SHM_PREFIX, record_semaphores
+from softplc.runtime.supervise.startprog import for_boot
 
 SCAN_RESTARTS: Final = 5  # scan process restarts allowed within RESTART_WINDOW_S
 COMM_RESTARTS: Final = 5  # restarts of each service process allowed within RESTART_WINDOW_S
@@ -184,6 +186,10 @@ class Supervisor:
         # service processes keep their mappings (and say "stale") across a restart.
         self.segment = SnapshotWriter.create(self.loop_config.sizes, self.shm_name)
         self.board = StatusBoard.create(self.board_name)
+        if not self.loop_config.program:  # the boot program, compiled here (design.md §12)
+            self._boot_compiled()
+        if stopping():
+            return  # no scan process: stop() has nothing to make safe
         self.start_scan(self.loop_config, timeout_s)
         if not stopping():
             self.start_services(timeout_s)
@@ -303,6 +309,8 @@ class Supervisor:
         self.restarts += 1
         # Event numbers go on: HTTP's Last-Event-ID and OPC UA's LastEventSeq hold across it
         self.event_seq = max(self.event_seq, newest_seq(self.status()))
+        if self.loop_config.state_dir:
+            self._boot_compiled()
         config = dataclasses.replace(
             self.loop_config, restarts=self.restarts, restart_reason=self.restart_reason,
             paused_at_restart=self.paused_at_restart, first_event_seq=self.event_seq,
@@ -316,6 +324,12 @@ class Supervisor:
             return f"restart {self.restarts} failed: {exc}"
         record_semaphores(self.tag)
         return f"scan process restarted (restart {self.restarts}, pid {self.scan.pid})"
+
+    def _boot_compiled(self) -> None:
+        """The state directory's boot program (the last one accepted) compiled before a scan
+        process starts with it, and kept for the next restart: no scan process parses YAML."""
+        self.loop_config = dataclasses.replace(
+            self.loop_config, compiled=for_boot(self.loop_config, self._stopping))
 
     def _service_died(self, service: ServiceProcess) -> str:
         code = service.proc.exitcode

@@ -1,0 +1,105 @@
+"""The boot program is compiled off the scan process (docs/design.md sections 7 and 12; issue 40
+item 2): after an accepted download, a supervisor's restart of a killed scan process, and a
+`softplc run` without a program, get the state directory's boot program compiled by `softplc
+run` (a small one in itself, a big one in a compile process of its own); the scan process
+loads the compiled form. A boot program that no longer compiles is reported and the PLC serves.
+Real `softplc run` processes, counted by SOFTPLC_COMPILE_LOG (a line per compile: pid, process
+name, file); the scan process found by its name in `ps`."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+from pathlib import Path
+
+from softplc.program import boot
+from tests.runtime.test_supervision import ROOT, Run, runs  # noqa: F401 (the fixture)
+from tests.support import eventually_reachable
+
+
+def compiles(log: Path) -> list[tuple[int, str, str]]:
+    """(pid, process name, file) of every compile so far."""
+    if not log.exists():
+        return []
+    return [(int(pid), name, source) for pid, name, source in
+            (line.split(" ", 2) for line in log.read_text(encoding="utf-8").splitlines())]
+
+
+def scan_process(supervisor: int) -> int:
+    """The pid of the supervisor's child named softplc-scan in `ps`."""
+    listed = subprocess.run(["ps", "-o", "pid=,comm=", "--ppid", str(supervisor)],
+                            capture_output=True, text=True, check=False, timeout=10).stdout
+    found = [int(pid) for pid, comm in (line.split() for line in listed.splitlines())
+             if comm == "softplc-scan"]
+    assert len(found) == 1, listed
+    return found[0]
+
+
+def test_a_restart_after_a_download_compiles_the_boot_program_off_the_scan(
+        tmp_path: Path, runs: list[Run]) -> None:  # noqa: F811 (the fixture)
+    log, state = tmp_path / "compiles.log", tmp_path / "state"
+    run = Run(ROOT, "programs/transport.yaml", state, "--plant", "transport",
+              env={"SOFTPLC_COMPILE_LOG": str(log)})
+    runs.append(run)
+    first = eventually_reachable(lambda: (s := run.status())["state"] == "RUNNING" and s, 60,
+                                 "RUNNING")
+    text = (ROOT / "programs" / "transport.yaml").read_text(encoding="utf-8")
+    changed = text.replace("places:\n", "places:\n  spare: {}\n", 1)
+    assert changed != text
+    assert run.api.download(changed, online=True, name="transport.yaml")["ok"]
+    downloaded = eventually_reachable(
+        lambda: (s := run.status())["program_hash"] != first["program_hash"] and s, 30,
+        "the download running")
+    eventually_reachable(lambda: run.status()["scan_count"] > downloaded["scan_count"] + 150,
+                         30, "scans after the download (a snapshot of it)")
+    scan = scan_process(run.proc.pid)
+    assert scan == first["scan_pid"]
+    os.kill(scan, signal.SIGKILL)
+    again = eventually_reachable(
+        lambda: (s := run.status()).get("restarts") == 1 and s["state"] == "RUNNING"
+        and not s["stale"] and s, 60, "the restarted scan process RUNNING")
+    assert again["program_hash"] == downloaded["program_hash"]
+    assert again["start_mode"] == "warm"
+    assert "boot program transport.yaml" in again["program_source"]
+    by = again["start_program"]["compiled_by"]
+    assert by == f"softplc run (pid {run.proc.pid})", by
+    seen = compiles(log)
+    # The start program by `softplc run`, the download by the scan process's compile process,
+    # the boot program for the restart by `softplc run` again: none by a scan process.
+    assert [pid == run.proc.pid for pid, _, _ in seen] == [True, False, True], seen
+    assert seen[1][1] == "softplc-compile" and seen[-1][1] == "softplc", seen
+    assert seen[-1][2].endswith("programs/transport.yaml")
+    assert run.stop() == 0
+
+    # `softplc run` without a program: the boot program (the download) compiled by it too.
+    log.unlink()
+    run = Run(ROOT, "", state, env={"SOFTPLC_COMPILE_LOG": str(log)})
+    runs.append(run)
+    started = eventually_reachable(lambda: (s := run.status())["program_hash"] and s, 60,
+                                   "the boot program loaded")
+    assert started["program_hash"] == downloaded["program_hash"]
+    assert started["start_program"]["compiled_by"] == f"softplc run (pid {run.proc.pid})"
+    assert [(pid, name) for pid, name, _ in compiles(log)] == [(run.proc.pid, "softplc")]
+    assert run.stop() == 0
+
+
+def test_a_boot_program_that_no_longer_compiles_is_reported_and_the_plc_serves(
+        tmp_path: Path, runs: list[Run]) -> None:  # noqa: F811 (the fixture)
+    log, state = tmp_path / "compiles.log", tmp_path / "state"
+    boot.save(state, boot.BootProgram(str(ROOT / "programs" / "gone.yaml"),
+                                      "program: gone\nplaces: [\n", str(ROOT), None, "0" * 16))
+    run = Run(ROOT, "", state, env={"SOFTPLC_COMPILE_LOG": str(log)})
+    runs.append(run)
+    status = run.status()
+    assert status["state"] == "EMPTY"
+    assert status["program_source"].startswith(
+        "none (boot program gone.yaml (last accepted) no longer compiles: "), status
+    assert [(pid, name) for pid, name, _ in compiles(log)] == [(run.proc.pid, "softplc")]
+    os.kill(scan_process(run.proc.pid), signal.SIGKILL)  # a restart reports it likewise
+    again = eventually_reachable(
+        lambda: (s := run.status()).get("restarts") == 1 and not s["stale"] and s, 60,
+        "the restarted scan process")
+    assert again["program_source"] == status["program_source"]
+    assert all(name != "softplc-scan" for _, name, _ in compiles(log)), compiles(log)
+    assert run.stop() == 0
