@@ -26,7 +26,7 @@ from softplc.core.net import CompiledNet, InputArc, OutputArc, Transition
 from softplc.core.problems import Problem, ProgramError
 from softplc.sfc.load import is_plcopen
 from softplc.sfc.reader import read_chart
-from softplc.sfc.writechart import write_chart
+from softplc.sfc.writechart import NotWritten, write_chart
 
 _IEC = {"bool": "BOOL", "int": "INT", "word": "UINT", "dint": "DINT", "udint": "UDINT",
         "real": "REAL", "lreal": "LREAL"}
@@ -98,8 +98,8 @@ def _from_chart(net: CompiledNet,
             "(edited since it was compiled?): the net alone is exported"
     try:
         return write_chart(chart, data), ""
-    except ValueError as exc:  # macro steps; objects the reader did not pair
-        return None, f"the chart is not written back: {exc}"
+    except NotWritten as exc:  # the chart itself is refused: no inference of its net either
+        raise ProgramError([Problem(name, exc.line, "", exc.message)]) from None
 
 
 def layout(net: CompiledNet) -> dict[str, tuple[float, float]]:

@@ -15,14 +15,24 @@ Does not know: the net, YAML; whether the chart is the one a net was compiled fr
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from typing import Protocol, TypeVar
 from xml.sax.saxutils import quoteattr
 
+from softplc.core.errors import SoftplcError
 from softplc.core.xmltree import Node, parse_xml
 from softplc.sfc.graph import WIRING
 from softplc.sfc.model import IEC_TYPES, Chart, Variable
 from softplc.sfc.pous import choose_pou
+
+
+class NotWritten(SoftplcError, ValueError):
+    """The chart cannot be written back; `line` is where in its file."""
+
+    def __init__(self, line: int, message: str) -> None:
+        super().__init__(message)
+        self.line, self.message = line, message
 
 
 class _Lined(Protocol):
@@ -82,8 +92,11 @@ class _Writer:
         # localId (the last of a repeated one); each pair checked by its XML line.
         objs = {n.attrs["localId"]: n for n in self.sfc.children  # type: ignore[union-attr]
                 if "localId" in n.attrs}
-        if any(n.tag == "macroStep" for n in objs.values()):
-            raise ValueError("macro steps are not written back (their body is inlined)")
+        for n in objs.values():
+            if n.tag == "macroStep":
+                raise NotWritten(n.line, f"macro step {n.attrs.get('name', '')!r}: a chart "
+                                 "with macro steps is not written back (softplc inlines their "
+                                 "bodies; the flattened names are no IEC identifiers)")
         self.trans = _paired([n for n in objs.values() if n.tag == "transition"],
                              chart.transitions)
         self.acts = _paired([a for b in objs.values() if b.tag == "actionBlock"
@@ -209,7 +222,8 @@ creationDateTime="1970-01-01T00:00:00"/>
 def _paired(nodes: list[Node], items: Sequence[T]) -> dict[int, T]:
     """Each XML object -> the chart's item read from it (the same order, the same line)."""
     if len(nodes) != len(items) or any(n.line != i.line for n, i in zip(nodes, items, strict=True)):
-        raise ValueError("the chart's transitions and actions do not pair with the file's")
+        raise NotWritten(nodes[0].line if nodes else 1, "the chart's transitions and actions "
+                         "do not pair with the file's objects")
     return {id(n): i for n, i in zip(nodes, items, strict=True)}
 
 
@@ -226,4 +240,5 @@ def variable(v: Variable, doc: str | None) -> str:
 
 
 def _comment_safe(text: str) -> str:
-    return text.replace("--", "- -")
+    """A file name inside an XML comment, which may not hold `--`."""
+    return re.sub("-(?=-)", "- ", text)

@@ -210,7 +210,19 @@ def test_an_edited_chart_is_never_exported_as_the_chart(tmp_path: Path) -> None:
     assert (first.file, first.line) == (str(chart), 1)
     assert "compiles to another net than the one exported" in first.message
     assert any("a chart keeps actions on steps" in p.message for p in rest)  # inferred: refused
-    other = replace(compile_file(ROOT / "tests/sfc/examples/codesys_press.xml"),
-                    source=str(chart))  # another chart's net, named after this file
+    elsewhere = tmp_path / "other.xml"  # another chart, its POU named as this one's
+    elsewhere.write_text(chart_xml(replace(QUALIFIERS, pou="CounterSFC")), encoding="utf-8")
+    other = replace(compile_file(elsewhere), source=str(chart))
     with pytest.raises(ProgramError, match="compiles to another net"):
         export_plcopen(other, compile_file)
+
+
+def test_a_chart_with_macro_steps_is_refused_at_the_macro_step(tmp_path: Path) -> None:
+    path = ROOT / "tests/sfc/macro/mixer_macro.xml"
+    with pytest.raises(ProgramError) as exc:
+        export_plcopen(compile_file(path), compile_file)  # not inferred: flattened names
+    [problem] = exc.value.problems
+    line = next(n.line for n in parse_xml(path.read_bytes(), str(path)).walk()
+                if n.tag == "macroStep")
+    assert (problem.file, problem.line) == (str(path), line)
+    assert "a chart with macro steps is not written back" in problem.message
