@@ -176,7 +176,7 @@ class _Macros:
             self._rewire(node, ends)
             if node.tag == "jumpStep" and self.scope.get(node.attrs.get("localId", "")) == prefix:
                 self._jump(node, names, prefix)
-        return out
+        return [n for n in out if not (n.tag == "actionBlock" and set(preds(n)) & set(ends))]
 
     def _macro(self, node: Node, prefix: str, ids: str,
                depth: int) -> tuple[list[Node], Node, Node] | None:
@@ -223,7 +223,7 @@ class _Macros:
         inner id holds one more `/` than the level's)."""
         for conn in (c for c in node.walk() if c.tag == "connection"):
             ref = conn.attrs.get("refLocalId", "")
-            if ref in ends and node.tag == "actionBlock":
+            if ref in ends and node.tag == "actionBlock":  # then left out (level())
                 self.problem(node, "an action block on a macro step: attach the actions to "
                              "the steps in its body")
             elif ref in ends:

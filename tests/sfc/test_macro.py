@@ -38,7 +38,8 @@ def _run(path: Path, inputs: list[dict[str, int]]) -> list[tuple[object, ...]]:
     for k, values in enumerate(inputs, start=1):
         bench.set(**values)
         bench.scan(k * 10_000_000)
-        steps = sorted(p.replace("Fill.", "Fill_") for p, n in bench.marking().items() if n)
+        steps = sorted(p.replace("Fill.Last.", "Fill_").replace("Fill.", "Fill_")
+                       for p, n in bench.marking().items() if n)
         trace.append((tuple(steps), *(bench.get(o) for o in OUTPUTS)))
     return trace
 
@@ -50,6 +51,28 @@ def test_the_expanded_macro_runs_as_the_chart_written_flat(seed: int) -> None:
     assert macro == flat
     visited = {s for steps, *_ in macro for s in steps}
     assert visited == {"Idle", "Fill_Open", "Fill_Settle", "Fill_Done"}  # the run went through
+
+
+NESTED = (  # mixer_macro.xml's step Done and its action block inside a macro step Last
+    '<macroStep localId="11" name="Last"><position x="300" y="260"/><connectionPointIn>'
+    '<connection refLocalId="9"/></connectionPointIn><connectionPointOut/><body><SFC>\n'
+    '<step localId="1" name="Done" initialStep="true"><position x="0" y="0"/>'
+    '<connectionPointOut formalParameter=""/></step>\n'
+    '<actionBlock localId="2"><position x="0" y="0"/><connectionPointIn><connection '
+    'refLocalId="1"/></connectionPointIn>\\1</actionBlock>\n</SFC></body></macroStep>')
+
+
+def test_a_nested_macro_runs_as_the_chart_written_flat(tmp_path: Path) -> None:
+    path = tmp_path / "nested.xml"
+    path.write_text(re.sub(r'<step localId="11" name="Done">.*?<actionBlock localId="12">.*?'
+                           r'(<action .*?</action>)\s*</actionBlock>', NESTED,
+                           MACRO.read_text(encoding="utf-8"), count=1, flags=re.S))
+    chart = load_chart(path).chart
+    assert [s.name for s in chart.steps] == ["Idle", "Fill.Open", "Fill.Settle",
+                                             "Fill.Last.Done"]
+    assert next(a for a in chart.actions if a.qualifier == "P1").step == "Fill.Last.Done"
+    inputs = _inputs(7, 600)
+    assert _run(path, inputs) == _run(FLAT, inputs)
 
 
 def test_inner_steps_are_prefixed_and_keep_their_xml_lines() -> None:
@@ -148,3 +171,14 @@ def test_verification_names_the_inner_steps_at_their_lines(tmp_path: Path) -> No
         "condition is FALSE" in found
     assert f"{path}:{settle}: unreachable step Fill.Settle: no sequence of transitions from " \
         "the initial steps activates it" in found
+
+
+def test_an_action_block_on_the_macro_step_is_refused_alone(tmp_path: Path) -> None:
+    block = ('<actionBlock localId="9"><position x="0" y="0"/><connectionPointIn><connection '
+             'refLocalId="3"/></connectionPointIn><action localId="0"><reference name="Stir"/>'
+             '</action></actionBlock>\n            ')
+    path = _variant(tmp_path, ('<transition localId="4">', block + '<transition localId="4">'))
+    at = _line(path, '<actionBlock localId="9">')
+    assert _problems(path) == [f"{path}:{at}: an "
+                               "action block on a macro step: attach the actions to the steps "
+                               "in its body"]
