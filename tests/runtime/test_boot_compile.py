@@ -8,12 +8,24 @@ name, file); the scan process found by its name in `ps`."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import shutil
 import signal
 import subprocess
 from pathlib import Path
 
+from softplc.bench import netgen
 from softplc.program import boot
+from softplc.program import bundle as bundles
+from softplc.runtime.config import LoopConfig
+from softplc.runtime.supervise.startprog import (
+    COMPILE_PROCESS,
+    HERE,
+    IN_CLI_BYTES,
+    compile_boot,
+    for_boot,
+)
 from tests.runtime.test_supervision import ROOT, Run, runs  # noqa: F401 (the fixture)
 from tests.support import eventually_reachable
 
@@ -103,3 +115,40 @@ def test_a_boot_program_that_no_longer_compiles_is_reported_and_the_plc_serves(
     assert again["program_source"] == status["program_source"]
     assert all(name != "softplc-scan" for _, name, _ in compiles(log)), compiles(log)
     assert run.stop() == 0
+
+
+def test_a_big_boot_program_compiles_in_a_compile_process_and_a_bundle_here(
+        tmp_path: Path) -> None:
+    (tmp_path / "programs").mkdir()
+    shutil.copytree(ROOT / "io_images", tmp_path / "io_images")
+    text = netgen.to_yaml(netgen.ring(1200), "../io_images/transport.yaml")
+    assert len(text) > IN_CLI_BYTES
+    config = LoopConfig(root=str(tmp_path), state_dir=str(tmp_path / "state"))
+    big = compile_boot(boot.BootProgram(str(tmp_path / "programs" / "ring.yaml"), text,
+                                        str(tmp_path)), config)
+    assert big.compiled_in == COMPILE_PROCESS and big.compiled_by != os.getpid()
+    assert not big.problem and len(big.load().transitions) == 1200
+    packed = bundles.pack(bundles.from_files(ROOT / "programs" / "transport.yaml"))
+    program = boot.BootProgram("transport.yaml", "", None, packed, "")
+    small = compile_boot(program, config)
+    assert (small.compiled_in, small.compiled_by) == (HERE, os.getpid())
+    assert small.load().name == "transport" and small.serves(program)
+    broken = compile_boot(boot.BootProgram("x.yaml", "", None, b"not a zip", ""), config)
+    assert broken.problem and not broken.net and broken.serves(broken.boot)
+
+
+def test_the_compiled_boot_program_is_kept_for_the_next_restart(tmp_path: Path) -> None:
+    state = tmp_path / "state"
+    config = LoopConfig(root=str(ROOT), state_dir=str(state))
+    assert for_boot(config) is None  # no boot program: nothing to compile
+    text = (ROOT / "programs" / "tank.yaml").read_text(encoding="utf-8")
+    boot.save(state, boot.BootProgram(str(ROOT / "programs" / "tank.yaml"), text, str(ROOT)))
+    compiled = for_boot(config)
+    assert compiled.load().name == "tank"
+    kept = dataclasses.replace(config, compiled=compiled)
+    assert for_boot(kept) is compiled  # the same boot program: not compiled again
+    assert for_boot(kept, stopping=lambda: True) is compiled
+    boot.save(state, boot.BootProgram(str(ROOT / "programs" / "other.yaml"),
+                                      text.replace("3s", "4s"), str(ROOT)))
+    other = for_boot(kept)  # another boot program (a download accepted since): compiled
+    assert other is not compiled and not other.problem and other.serves(boot.load(state))
