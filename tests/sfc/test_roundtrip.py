@@ -8,9 +8,11 @@ written as if it were the chart."""
 from __future__ import annotations
 
 import random
+import re
 import shutil
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import defusedxml.ElementTree as DET  # type: ignore[import-untyped]
 import pytest
@@ -20,6 +22,9 @@ from softplc.core.problems import ProgramError
 from softplc.core.xmltree import Node, parse_xml
 from softplc.program.compiler import compile_file
 from softplc.sfc.export import export_plcopen
+from softplc.sfc.model import Chart
+from softplc.sfc.reader import read_chart
+from softplc.sfc.writechart import write_chart
 from tests.core.helpers import Bench
 from tests.sfc.chartxml import ChartSpec, chart_xml
 from tests.sfc.compare import compare
@@ -226,3 +231,26 @@ def test_a_chart_with_macro_steps_is_refused_at_the_macro_step(tmp_path: Path) -
                 if n.tag == "macroStep")
     assert (problem.file, problem.line) == (str(path), line)
     assert "a chart with macro steps is not written back" in problem.message
+
+
+def _unlined(items: list[Any]) -> list[Any]:
+    return [replace(i, line=0) for i in items]
+
+
+def test_the_chart_reads_back_the_same_steps_transitions_actions_and_interface(
+        chart: Path) -> None:
+    """In the chart's own terms (the reader's model), with an FB instance declared as well."""
+    data = chart.read_bytes().replace(b"</localVars>", b'<variable name="t9"><type><derived '
+                                      b'name="TON"/></type></variable></localVars>', 1)
+    first = read_chart(data, str(chart))
+    second = read_chart(write_chart(first, data).encode(), "back.xml")
+    assert _unlined(second.steps) == _unlined(first.steps)
+    assert [replace(t, condition=t.condition.strip()) for t in _unlined(second.transitions)] \
+        == [replace(t, condition=t.condition.strip()) for t in _unlined(first.transitions)]
+    def actions(c: Chart) -> list[Any]:  # an inline body is named after its XML line
+        return [replace(a, name=re.sub(r"_inline\d+$", "_inline", a.name))
+                for a in _unlined(c.actions)]
+    assert actions(second) == actions(first)
+    assert {k: replace(v, line=0) for k, v in second.variables.items()} == \
+        {k: replace(v, line=0) for k, v in first.variables.items()}
+    assert first.variables["T9"].iec == "TON"
