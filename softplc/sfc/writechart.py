@@ -140,7 +140,7 @@ creationDateTime="1970-01-01T00:00:00"/>
 
     # The POU: interface, actions, transitions.
     def interface(self) -> str:
-        docs = {v.attrs.get("name", "").upper(): d.all_text() for v in self.pou.walk()
+        docs = {v.attrs.get("name", "").upper(): d.all_text().strip() for v in self.pou.walk()
                 if v.tag == "variable" and (d := v.child("documentation")) is not None}
         groups: list[tuple[str, list[str]]] = []
         for v in sorted(self.chart.variables.values(), key=lambda v: v.line):
@@ -193,7 +193,7 @@ creationDateTime="1970-01-01T00:00:00"/>
             return f"<actionBlock{head}{_pins(n, PINS[0])}" \
                 f"{''.join(self.action(a) for a in n.all('action'))}</actionBlock>"
         if n.tag == "comment":
-            text = (n.child("content") or n).all_text()
+            text = (n.child("content") or n).all_text().strip()
             return f"<comment{head}<content><xhtml:p>{cdata(text)}</xhtml:p></content></comment>"
         return ""  # an inVariable wired into a condition (written inline), or FBD the reader skips
 

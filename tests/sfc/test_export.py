@@ -95,7 +95,9 @@ def test_a_chart_with_stored_actions_and_st_bodies_is_written_back(tmp_path: Pat
     assert [(a.step, a.qualifier, a.name) for a in c.actions] == \
         [(a.step, a.qualifier, a.name) for a in read_chart(
             (ROOT / "programs/drilling_sfc.xml").read_bytes(), "drilling_sfc.xml").actions]
-    assert "<![CDATA[parts_drilled := parts_drilled + 1;]]>" in back.read_text(encoding="utf-8")
+    text = back.read_text(encoding="utf-8")
+    assert "<![CDATA[parts_drilled := parts_drilled + 1;]]>" in text
+    assert "<documentation><xhtml:p><![CDATA[parts drilled since start]]></xhtml:p>" in text
 
 
 def test_the_named_pou_of_a_file_with_several_is_written_back(tmp_path: Path) -> None:

@@ -109,8 +109,8 @@ def test_the_exported_chart_runs_the_same_trace(chart: Path, tmp_path: Path) -> 
 
 def drawing(path: Path) -> dict[str, object]:
     """Every drawn object by localId: tag, position, size, each pin's relPosition and each
-    connection's routing points (CODESYS's inVariables feeding conditions are left out: the
-    export writes their ST inline)."""
+    connection's routing points, a comment's text (CODESYS's inVariables feeding conditions
+    are left out: the export writes their ST inline)."""
     sfc = next(n for n in parse_xml(path.read_bytes(), str(path)).walk() if n.tag == "SFC")
 
     def xy(n: Node | None) -> tuple[float, float] | None:
@@ -125,7 +125,8 @@ def drawing(path: Path) -> dict[str, object]:
     return {n.attrs["localId"]: (n.tag, xy(n.child("position")), n.attrs.get("width"),
                                  n.attrs.get("height"), pins(n),
                                  [(a.attrs.get("localId"), xy(a.child("relPosition")), pins(a))
-                                  for a in n.all("action")])
+                                  for a in n.all("action")],
+                                 (n.child("content") or Node("", {}, 0)).all_text().strip())
             for n in sfc.children if n.tag != "inVariable"}
 
 
