@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from softplc.core.problems import Problem
-from softplc.sfc import stored, timed
+from softplc.sfc import fbs, stored, timed
 from softplc.sfc.model import IEC_TYPES, Action, Chart, Transition, Variable
 from softplc.sfc.st import time_ms
 
@@ -79,9 +79,10 @@ def _program(chart: Chart, io_name: str, out: _Text, problems: list[Problem]) ->
                 f"{chart.file}:{s.line}", s.line)
     for name, comment, line in timed.places(chart):
         out.add(f"  {name}: {{}}  # {comment}", line)
-    for name, comment, line in stored.places(chart):
+    for name, comment, line in [*stored.places(chart), *fbs.places(chart)]:
         out.add(f"  {name}: {{tokens: 1}}  # {comment}", line)
     _check_actions(chart, problems)
+    fbs.check(chart, problems)
     timed.check(chart, problems)
     stored.check(chart, problems)
     out.add("transitions:")
@@ -94,6 +95,8 @@ def _program(chart: Chart, io_name: str, out: _Text, problems: list[Problem]) ->
         _transition(chart, t, top + 1, out, body)
     for t, body, first in stored.transitions(chart):
         _transition(chart, t, top + 1 if first else -1, out, body)
+    for t, body in fbs.transitions(chart):  # they write only the timers' own state
+        _transition(chart, t, 0, out, body)
     for step in chart.steps:  # one self-loop per step: two would take turns at one token
         bodies = [a for a in chart.actions if a.step == step.name and a.qualifier == "N"
                   and a.statements]
@@ -165,8 +168,11 @@ _WORD = re.compile(r"(?<![\w.])([A-Za-z_]\w*)(?![\w(])")
 def sequential(statements: list[tuple[str, str]]) -> list[tuple[str, str]]:
     """ST statements see the assignments before them; softplc's `do:` reads the image as it
     was: each read of a variable written earlier in the list becomes that written expression
-    (`Cnt := Cnt + 1; OUT := Cnt;` -> `OUT = (Cnt + 1)`)."""
+    (`Cnt := Cnt + 1; OUT := Cnt;` -> `OUT = (Cnt + 1)`). A function block call is one
+    group (fbs.py): a target written `&X` reads the values from before its group's first
+    statement; `#X` carries a call's PT and is dropped."""
     pending: dict[str, str] = {}
+    seen = pending
     out = []
     for text, line in statements:
         word, _, rest = text.partition(" ")
@@ -174,11 +180,20 @@ def sequential(statements: list[tuple[str, str]]) -> list[tuple[str, str]]:
             pending[rest] = "false" if word == "reset" else "true"
             out.append((text, line))
             continue
+        if text.startswith(fbs.PT_MARK):
+            continue
         var, _, expr = text.partition(" = ")
-        expr = _WORD.sub(lambda m: f"({pending[m[1]]})" if m[1] in pending else m[1], expr)
+        if not var.startswith("&"):
+            seen = dict(pending)
+        var = var.lstrip("&")
+        expr = _WORD.sub(_reads(seen), expr)
         pending[var] = expr
         out.append((f"{var} = {expr}", line))
     return out
+
+
+def _reads(seen: dict[str, str]) -> Callable[[re.Match[str]], str]:
+    return lambda m: f"({seen[m[1]]})" if m[1] in seen else m[1]
 
 
 def _check_actions(chart: Chart, problems: list[Problem]) -> None:
@@ -213,8 +228,8 @@ def _symbols(chart: Chart, head: str, out: _Text, problems: list[Problem]) -> No
     out.add("symbols:")
     alloc = _Allocator(chart.variables.values())
     for v in chart.variables.values():
-        if v.kind == "fb":
-            continue  # an FB instance: refused where it is used (reader.py)
+        if v.kind.startswith("fb"):
+            continue  # an FB instance: its state below (fbs.py), or refused where used
         if v.iec not in IEC_TYPES:
             problems.append(Problem(chart.file, v.line, "", f"variable {v.name}: type {v.iec} is "
                             f"not supported (supported: {', '.join(IEC_TYPES)})"))
@@ -232,6 +247,9 @@ def _symbols(chart: Chart, head: str, out: _Text, problems: list[Problem]) -> No
             fields.append(f"init: {init}")
         out.add(f"  {v.name}: {{{', '.join(fields)}}}  # {v.section} {v.name} : {v.iec}, "
                 f"{chart.file}:{v.line}", v.line)
+    for name, v, part in fbs.symbols(chart):
+        out.add(f"  {name}: {{address: {q(alloc.next('bool'))}, type: bool}}  # {part} of "
+                f"{v.name} : {v.iec}, {chart.file}:{v.line}", v.line)
     for name, a in stored.latches(chart):
         out.add(f"  {name}: {{address: {q(alloc.next('bool'))}, type: bool}}  # latch of action "
                 f"{a.target} ({a.qualifier}) of step {a.step}, {chart.file}:{a.line}", a.line)

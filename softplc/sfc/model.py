@@ -30,7 +30,7 @@ class Variable:
 
     @property
     def kind(self) -> str:
-        return IEC_TYPES[self.iec][1] if self.iec in IEC_TYPES else "fb"
+        return IEC_TYPES[self.iec][1] if self.iec in IEC_TYPES else f"fb:{self.iec.upper()}"
 
 
 @dataclass(frozen=True, slots=True)

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 from softplc.core.errors import SoftplcError
 from softplc.core.units import parse_duration_ns
+from softplc.sfc import fbs
 
 # IEC types softplc reads, by the kind the translation checks operands with.
 BOOL, INT, REAL, TIME = "bool", "int", "real", "time"
@@ -30,7 +31,8 @@ _TOKEN = re.compile(r"""
 """, re.VERBOSE | re.DOTALL | re.IGNORECASE)
 SUPPORTED = ("ST supported: TRUE/FALSE, numbers, TIME literals (T#5s), variables, Step.X/Step.T, "
              "NOT, AND/&, OR, XOR, = <> < > <= >=, + - * /, parentheses, AND()/OR()/XOR()/"
-             "NOT()/ABS()/MIN()/MAX()/SEL()/LIMIT(), and `X := expr;` in action bodies")
+             "NOT()/ABS()/MIN()/MAX()/SEL()/LIMIT(), FB outputs T1.Q, and `X := expr;` and "
+             "calls `T1(IN := x, PT := T#5s);` (TON, TOF, TP, R_TRIG, F_TRIG) in action bodies")
 
 
 class StError(SoftplcError, ValueError):
@@ -166,6 +168,9 @@ class Parser:
         if word in ("TRUE", "FALSE"):
             return Node("lit", text=word.lower(), kind=BOOL, offset=tok.offset)
         if self.tok.text == "(":
+            if word in self.names and self.names[word][1].startswith("fb"):
+                raise StError(f"{tok.text}(...): a function block call is a statement; call "
+                              f"it in an action body and read {tok.text}.Q here", tok.offset)
             self.i += 1
             args = [self.expression()]
             while self.take(","):
@@ -176,15 +181,21 @@ class Parser:
             step, _, flag = word.partition(".")
             if step in self.steps and flag in ("X", "T"):
                 return Flag(self.steps[step], flag, tok.offset)
+            if step in self.names and self.names[step][1].startswith("fb"):
+                try:
+                    sym = fbs.output(*self.names[step], flag, tok.offset)
+                except fbs.FbError as exc:
+                    raise StError(exc.message, exc.offset) from None
+                return Node("var", text=sym, kind=BOOL, offset=tok.offset)
             raise StError(f"{tok.text!r}: only the step flags Step.X and Step.T may be "
                           "dotted (no structure or function block fields)", tok.offset)
         if word not in self.names:
             raise StError(f"unknown variable {tok.text!r}: declare it in the POU's interface "
                           "or the configuration's globals", tok.offset)
         name, kind = self.names[word]
-        if kind == "fb":
-            raise StError(f"{tok.text!r} is a function block instance (TON, R_TRIG ...): "
-                          "function blocks are not supported; see docs/sfc.md", tok.offset)
+        if kind.startswith("fb"):
+            raise StError(f"{tok.text!r} is a function block instance: read its output "
+                          f"{tok.text}.Q; supported: {fbs.SUPPORTED}", tok.offset)
         return Node("var", text=name, kind=kind, offset=tok.offset)
 
     def at_end(self) -> None:
@@ -227,10 +238,16 @@ def parse_statements(text: str, names: Mapping[str, tuple[str, str]],
         if parser.take(";"):
             continue
         tok = parser.tok
+        fb = parser.names.get(tok.text.upper(), ("", ""))[1].startswith("fb")
+        if tok.kind == "id" and fb and parser.toks[parser.i + 1].text == "(":
+            out.extend(_fb_call(parser, tok))
+            if parser.tok.kind != "end":
+                parser.expect(";")
+            continue
         if tok.kind != "id" or parser.toks[parser.i + 1].text != ":=":
             raise StError(f"statement starting {tok.text!r} is not supported: action bodies "
-                          "may only hold assignments `X := expr;` (no IF, CASE, loops or "
-                          "function block calls)", tok.offset)
+                          "may only hold assignments `X := expr;` and calls of function "
+                          f"blocks ({fbs.SUPPORTED}); no IF, CASE or loops", tok.offset)
         if tok.text.upper() not in parser.names:
             raise StError(f"unknown variable {tok.text!r}", tok.offset)
         name, kind = parser.names[tok.text.upper()]
@@ -239,6 +256,28 @@ def parse_statements(text: str, names: Mapping[str, tuple[str, str]],
         if parser.tok.kind != "end":
             parser.expect(";")
     return out
+
+
+def _fb_call(parser: Parser, tok: Tok) -> list[tuple[str, str, Expr, int]]:
+    """`T1(IN := expr, PT := T#5s)` (formal arguments, any order) -> the statements it is."""
+    inst, kind = parser.names[tok.text.upper()]
+    parser.i += 2
+    args: dict[str, tuple[str, str, int]] = {}
+    while parser.take(")") is None:
+        if args:
+            parser.expect(",")
+        p = parser.tok
+        if p.kind != "id" or parser.toks[parser.i + 1].text != ":=":
+            raise StError(f"{inst}(...): arguments must be formal, `IN := expr` (positional "
+                          "arguments and output bindings `=>` are not supported)", p.offset)
+        parser.i += 2
+        args[p.text.upper()] = (*emit(parser.expression()), p.offset)
+    try:
+        stmts = fbs.expand(inst, kind, args, tok.offset)
+    except fbs.FbError as exc:
+        raise StError(exc.message, exc.offset) from None
+    return [(t, k, Node("lit", text=x, kind=k, offset=tok.offset), tok.offset)
+            for t, k, x in stmts]
 
 
 def emit(expr: Expr) -> tuple[str, str]:
@@ -351,5 +390,4 @@ def _call(expr: Node) -> tuple[str, str]:
         return f"({parts[2][0]} if {parts[0][0]} else {parts[1][0]})", parts[1][1]
     if name == "LIMIT":
         return f"min(max({parts[1][0]}, {parts[0][0]}), {parts[2][0]})", parts[1][1]
-    raise StError(f"function {name}() is not supported (function blocks such as TON, TOF, "
-                  "R_TRIG are not called in conditions); " + SUPPORTED, expr.offset)
+    raise StError(f"function {name}() is not supported; " + SUPPORTED, expr.offset)

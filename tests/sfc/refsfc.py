@@ -23,7 +23,13 @@ Rules it implements (docs/sfc.md states the same choices for the net):
   SD_FF/SL_FF is set while the step is active and held reset while a step with an R of the
   same BOOL is active (R dominant); a TON runs on the latch (from the first scan the latch is
   set at the start of the scan, the Step.T clock), not on the step: SD is the TON's Q, SL the
-  latch AND NOT Q. A new activation while latched changes nothing; only an R ends it.
+  latch AND NOT Q. A new activation while latched changes nothing; only an R ends it;
+- standard function blocks (RefFb): TON, TOF, TP as the IEC bodies matiec writes (a STATE
+  machine per instance, Q changed only by a call), R_TRIG/F_TRIG as IEC's two lines; an
+  instance runs when a body calling it runs (`T1(IN := x, PT := T#5s);`, formal arguments,
+  a missing input keeps its last value) and `T1.Q` reads its output. The timers read the
+  scan clock docs/sfc.md states: START_TIME is the time of the scan after the starting call,
+  and a call's CURRENT_TIME is the time of the scan before its own.
 """
 
 from __future__ import annotations
@@ -129,9 +135,14 @@ def read(xml_text: str, pou_name: str | None = None) -> RefChart:
                     durations[(step, name)] = _ms(lit if "#" in lit else f"T#{lit}")
     bodies = {a.get("name"): _text(a) for a in pou.iter() if _local(a.tag) == "action"
               and a.get("name")} | inline
-    types = {v.get("name"): _local(next(iter(_kids(v, "type")[0])).tag)
+    types = {v.get("name"): _type(next(iter(_kids(v, "type")[0])))
              for v in pou.iter() if _local(v.tag) == "variable"}
     return RefChart(steps, initial, transitions, actions, bodies, types, durations)
+
+
+def _type(node: Any) -> str:
+    """BOOL, INT, ... or a derived type's name (TON, R_TRIG ...)."""
+    return str(node.get("name")).upper() if _local(node.tag) == "derived" else _local(node.tag)
 
 
 def _condition(cond: Any, pou: Any, objs: dict[str, Any]) -> str:
@@ -226,10 +237,84 @@ def _apply(op: str, a: Any, b: Any) -> Any:
             "+": lambda: a + b, "-": lambda: a - b, "*": lambda: a * b}[op]()
 
 
-def run_statements(text: str, env: dict[str, Any]) -> None:
+FB_TYPES = ("TON", "TOF", "TP", "R_TRIG", "F_TRIG")
+_PENDING = -1  # START_TIME of a timer started in this scan: the next scan's time
+
+
+class RefFb:
+    """One function block instance, its body as in IEC 61131-3 (Ed.3 Table 43-44, the
+    bistables and edges; the timers' STATE machines as matiec's standard_FB.txt writes them).
+    `cur` is the time the call reads (the previous scan's), `start` a timer's START_TIME."""
+
+    def __init__(self, typ: str) -> None:
+        self.typ, self.state, self.q, self.m = typ, 0, False, False
+        self.inp, self.prev_in, self.pt, self.start = False, False, 0, _PENDING
+
+    def call(self, args: dict[str, Any], cur: int) -> None:
+        if self.typ in ("R_TRIG", "F_TRIG"):
+            clk = bool(args["CLK"])
+            self.q = (clk and not self.m) if self.typ == "R_TRIG" else (not clk and not self.m)
+            self.m = clk if self.typ == "R_TRIG" else not clk
+            return
+        self.inp, self.pt = bool(args.get("IN", self.inp)), args.get("PT", self.pt)
+        inp = self.inp
+        up = self.state == 0 and not self.prev_in and inp
+        ran_out = self.start != _PENDING and self.start + self.pt <= cur
+        if self.typ == "TON":
+            if up:
+                self.state, self.q, self.start = 1, False, _PENDING
+            elif not inp:
+                self.state, self.q = 0, False
+            elif self.state == 1 and ran_out:
+                self.state, self.q = 2, True
+        elif self.typ == "TOF":
+            if self.state == 0 and self.prev_in and not inp:
+                self.state, self.start = 1, _PENDING
+            elif inp:
+                self.state = 0
+            elif self.state == 1 and ran_out:
+                self.state = 2
+            self.q = inp or self.state == 1
+        else:  # TP
+            if up:
+                self.state, self.q, self.start = 1, True, _PENDING
+            elif self.state == 1 and ran_out:
+                self.state, self.q = 2, False
+            if self.state == 2 and not inp:
+                self.state = 0
+        self.prev_in = inp
+
+
+def _split_args(text: str) -> list[str]:
+    out, depth, cur = [], 0, ""
+    for ch in text:
+        depth += {"(": 1, ")": -1}.get(ch, 0)
+        if ch == "," and depth == 0:
+            out.append(cur)
+            cur = ""
+        else:
+            cur += ch
+    return [*out, cur] if cur.strip() else out
+
+
+def run_statements(text: str, env: dict[str, Any], fbs: dict[str, RefFb] | None = None,
+                   cur: int = 0) -> None:
+    fbs = fbs or {}
+
+    def value(expr: str) -> Any:
+        return Eval(expr, env | {f"{n}.Q": fb.q for n, fb in fbs.items()}).expr()
+
     for stmt in (s for s in text.split(";") if s.strip()):
+        call = re.fullmatch(r"\s*(\w+)\s*\((.*)\)\s*", stmt, re.DOTALL)
+        if call is not None and call[1].upper() in fbs:
+            args = {}
+            for arg in _split_args(call[2]):
+                name, _, expr = arg.partition(":=")
+                args[name.strip().upper()] = value(expr)
+            fbs[call[1].upper()].call(args, cur)
+            continue
         target, _, expr = stmt.partition(":=")
-        env[target.strip()] = Eval(expr, env).expr()
+        env[target.strip()] = value(expr)
 
 
 class RefSfc:
@@ -240,12 +325,18 @@ class RefSfc:
         self.active = set(chart.initial)
         self.since: dict[str, int | None] = dict.fromkeys(chart.initial, None)
         self.env: dict[str, Any] = {v: (False if t == "BOOL" else 0)
-                                    for v, t in chart.types.items()}
+                                    for v, t in chart.types.items() if t not in FB_TYPES}
+        self.fbs = {v.upper(): RefFb(t) for v, t in chart.types.items() if t in FB_TYPES}
+        self.now, self.prev = -(10 ** 9), -(10 ** 9)  # this scan's and the previous one's
         self.pulsed: set[str] = set()
         self.latched: dict[str, int | None] = {}  # SD/SL BOOL -> when its TON started
 
     def scan(self, now_ms: int, inputs: dict[str, Any]) -> None:
         self.env.update(inputs)
+        self.prev, self.now = self.now, now_ms
+        for fb in self.fbs.values():
+            if fb.start == _PENDING:
+                fb.start = now_ms  # a timer started in the last scan counts from this one
         for var, start in self.latched.items():
             if start is None:
                 self.latched[var] = now_ms  # the TON sees the latch from this scan on
@@ -257,6 +348,7 @@ class RefSfc:
             env[f"{s}.X"] = s in self.active
             start = self.since.get(s)
             env[f"{s}.T"] = now_ms - start if s in self.active and start is not None else 0
+        env |= {f"{n}.Q": fb.q for n, fb in self.fbs.items()}
         left, entered, free = set(), set(), set(self.active)
         for t in sorted(self.c.transitions, key=lambda t: t.key):
             if all(s in free for s in t.sources) and Eval(t.condition, env).expr():
@@ -289,7 +381,7 @@ class RefSfc:
             runs = (qual == "N" and (step in self.active or step in gone)) or \
                 (qual == "P1" and step in new) or (qual == "P0" and step in gone)
             if body is not None and runs:
-                run_statements(body, self.env)
+                run_statements(body, self.env, self.fbs, self.prev)
         for qual, value in (("S", True), ("R", False)):
             for step, q, name in self.c.actions:
                 if q == qual and step in new:
