@@ -199,4 +199,5 @@ def to_compiled(net: GenNet) -> CompiledNet:
         np.array(net.initial, np.int64), np.full(n_places, -1, np.int64),
         np.zeros(n_places, np.bool_), MappingProxyType({}), ts, net.order,
         MappingProxyType({}), MappingProxyType({}), MappingProxyType({}),
-        tuple(tuple(sorted(s)) for s in touching), empty, empty)
+        tuple(tuple(sorted(s)) for s in touching), empty, empty,
+        unconditioned=tuple(t.index for t in ts if not t.pre and not t.test))

@@ -103,6 +103,10 @@ class CompiledNet:
     place_where: tuple[tuple[str, int], ...] = ()
     transition_where: tuple[tuple[str, int], ...] = ()
     retain: tuple[Retain, ...] = ()  # per place (docs/retain.md); () : every place retained
+    # Transitions without an input or read arc (the marking never holds them back for want of
+    # tokens): with `touching`, what a first look at a marking must check (core/waiting.py).
+    # None: not known (a net built by hand), every transition is checked.
+    unconditioned: tuple[int, ...] | None = None
 
     @property
     def rank(self) -> dict[int, int]:
@@ -168,7 +172,10 @@ class NetState:
         )
 
     def marking_by_name(self, net: CompiledNet) -> dict[str, int]:
-        return {net.place_names[p]: int(n) for p, n in enumerate(self.marking) if n}
+        # The marked places only, found in C: a loop over 10,000 places took 0.85 ms, on the
+        # scan thread at each status document.
+        marking, names = self.marking, net.place_names
+        return {names[p]: int(marking[p]) for p in np.flatnonzero(marking).tolist()}
 
 
 def places_marked(net: CompiledNet, retain: Retain) -> tuple[int, ...]:

@@ -260,8 +260,7 @@ def _build(spec: ProgramSpec, io: IoImage, c: _Compiler) -> CompiledNet:
         raise ProgramError(sorted(set(c.problems)))
     n_places = len(spec.places)
     touching: list[set[int]] = [set() for _ in range(n_places)]
-    guard_deps: dict[str, set[int]] = defaultdict(set)
-    edge_deps: dict[str, set[int]] = defaultdict(set)
+    guard_deps, edge_deps = defaultdict[str, set[int]](set), defaultdict[str, set[int]](set)
     busy_drivers: dict[str, list[tuple[int, int]]] = defaultdict(list)
     bounded = [p.capacity is not None for p in spec.places]
     for t in transitions:
@@ -303,6 +302,7 @@ def _build(spec: ProgramSpec, io: IoImage, c: _Compiler) -> CompiledNet:
         place_where=tuple((p.where.file, p.where.line) for p in spec.places),
         transition_where=tuple((t.where.file, t.where.line) for t in spec.transitions),
         retain=tuple(Retain(p.retain) for p in spec.places),
+        unconditioned=tuple(t.index for t in transitions if not t.pre and not t.test),
     )
 
 
