@@ -78,17 +78,19 @@ class _Routes:
         signature = request.headers.get(SIGNATURE_HEADER)
         # The exact bytes, before anything else reads them: nothing unsigned reaches a parser,
         # and no signed version older than the running one unless allowed.
-        signer = await self._signing.check(body, signature, allow_older)
-        if signer is None:
+        # One signed download at a time at every door: its version checked and advanced as one.
+        async with self._signing.turn(None if dry_run else signature):
+            signer = await self._signing.check(body, signature, allow_older)
+            if signer is None:
+                reply = await self._send(request, body, name, (online, replace, dry_run))
+                return self._answer(reply, None, None)
+            if not dry_run:
+                await self._signing.remember(body, signer)
             reply = await self._send(request, body, name, (online, replace, dry_run))
-            return self._answer(reply, None, None)
-        if not dry_run:
-            await self._signing.remember(body, signer)
-        reply = await self._send(request, body, name, (online, replace, dry_run))
-        note = ""
-        if signature and not dry_run and _taken(reply):
-            note = await self._signing.applied(body, signature, signer, allow_older)
-        return self._answer(reply, signer, f"signed by {signer}{note}")
+            note = ""
+            if signature and not dry_run and _taken(reply):
+                note = await self._signing.applied(body, signature, signer, allow_older)
+            return self._answer(reply, signer, f"signed by {signer}{note}")
 
     async def _send(self, request: web.Request, body: bytes, name: str | None,
                     flags: tuple[bool, bool, bool]) -> CommandReply | Record:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any, Final
 
@@ -33,6 +34,16 @@ class DownloadSigning:
     def keys(self) -> KeysSeen:
         """For status: read again only when the directory changed (gate.status_keys)."""
         return self.gate.status_keys()
+
+    @contextlib.asynccontextmanager
+    async def turn(self, signature: str | None) -> AsyncIterator[None]:
+        """The gate's turn (one signed download at a time at every door); 422 when it does
+        not come."""
+        try:
+            async with self.gate.turn(signature):
+                yield
+        except ProgramRefused as exc:
+            raise ApiProblem(422, exc.reason, refusal=Refusal.SIGNATURE.value) from None
 
     async def check(self, body: bytes, signature: str | None,
                     allow_older: bool = False) -> str | None:

@@ -153,17 +153,23 @@ class ProgramHandling:
         checked = _download_args(values)
         if isinstance(checked, Outcome):
             return checked
-        text, online, name, signature, allow_older = checked
-        body = text.encode("utf-8")
-        try:  # the exact bytes, before anything parses them: as the HTTP door
-            signer = await asyncio.to_thread(self._gate.admit, body, signature, allow_older)
+        try:  # one signed download at a time at every door: its version checked and advanced
+            async with self._gate.turn(checked[3]):
+                return await self._download(*checked)
         except ProgramRefused as exc:
             return Outcome(ua.StatusCodes.BadSecurityChecksFailed, exc.reason,
                            problems=(exc.reason,))
+
+    async def _download(self, text: str, online: bool, name: str | None, signature: str | None,
+                        allow_older: bool) -> Outcome:
+        body = text.encode("utf-8")
+        # the exact bytes, before anything parses them: as the HTTP door (ProgramRefused)
+        signer = await asyncio.to_thread(self._gate.admit, body, signature, allow_older)
         if signer is not None:
             await asyncio.to_thread(self._gate.remember, body, signer)
-        outcome = await self._send(CommandRequest(next(self._ids), command, program_text=text,
-                                                  program_path=name, online=online))
+        outcome = await self._send(CommandRequest(next(self._ids), Command.DOWNLOAD,
+                                                  program_text=text, program_path=name,
+                                                  online=online))
         if signer is None or signature is None or not outcome.ok:
             return outcome
         # The version now runs; the message (and so the audit record) says it, and a rollback.

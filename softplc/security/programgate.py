@@ -9,18 +9,22 @@ per change), the check of the exact bytes before anything parses them, the rollb
 signed version older than the running one is refused unless an engineer allows it; the
 version file is versions.py's), and the signers of accepted bodies in STATE_DIR/signers.json
 (SHA-256 of the body -> the key's name, the last KEEP), which status matches against the
-running program.
+running program; the turn (`turn`: one signed download at a time across doors and processes,
+so that checking the running version and advancing it are one decision).
 Does not know: HTTP, OPC UA, the scan, Ed25519 (signing.py), how a program is parsed.
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
+import fcntl
 import hashlib
 import json
 import logging
 import os
 import threading
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Final
@@ -40,6 +44,9 @@ from softplc.security.signing import (
 log = logging.getLogger(__name__)
 
 SIGNERS_FILE: Final = "signers.json"
+TURN_FILE: Final = "signed_version.lock"
+TURN_WAIT_S: Final = 30.0  # a signed download waits this long for another one to be taken
+_TURN_POLL_S: Final = 0.02
 KEEP: Final = 64  # signed bodies remembered; the running one is the newest but a few
 
 
@@ -130,9 +137,41 @@ class ProgramGate:
         except SignatureRefused as exc:
             raise ProgramRefused(exc.reason) from None
         running = versions.read(self.state_dir)
-        if reason := versions.refusal(running, signed.version, allow_older):
+        digest = hashlib.sha256(body).hexdigest()
+        if reason := versions.refusal(running, signed.version, allow_older, digest):
             raise ProgramRefused(reason)
         return signed.signer
+
+    @contextlib.asynccontextmanager
+    async def turn(self, signature: str | None) -> AsyncIterator[None]:
+        """One signed download at a time, at every door and in every process of the PLC
+        (flock on STATE_DIR/signed_version.lock): a door holds it from `admit` until `applied`
+        or its refusal, so that the check of the running version and its advance are one
+        decision (two signed downloads at once both passed the check, and the one applied
+        last ran whatever the version file said). Waits at most TURN_WAIT_S, polling: a
+        cancelled wait holds nothing. Raises ProgramRefused when the turn does not come.
+        Without a signature there is no version to decide: no turn is taken."""
+        if not signature:
+            yield
+            return
+        try:
+            fd = os.open(self.state_dir / TURN_FILE, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC,
+                         0o600)
+        except OSError as exc:
+            raise ProgramRefused(f"{DOWNLOAD_REFUSED}: {self.state_dir / TURN_FILE} cannot be "
+                                 f"opened ({exc.strerror or exc}): the running signed version "
+                                 "cannot be decided") from None
+        try:
+            loop = asyncio.get_running_loop()
+            deadline_s = loop.time() + TURN_WAIT_S
+            while not _locked(fd):
+                if loop.time() >= deadline_s:
+                    raise ProgramRefused(f"{DOWNLOAD_REFUSED}: another signed download is "
+                                         f"being taken (waited {TURN_WAIT_S:g} s): try again")
+                await asyncio.sleep(_TURN_POLL_S)
+            yield
+        finally:
+            os.close(fd)  # releases the lock
 
     def applied(self, body: bytes, signature: str, signer: str,
                 allow_older: bool = False) -> str:
@@ -195,3 +234,11 @@ def _stamp(directory: Path) -> tuple[object, ...] | None:
 
 def _stats(info: os.stat_result) -> tuple[int, int, int, int]:
     return info.st_ino, info.st_mtime_ns, info.st_ctime_ns, info.st_size
+
+
+def _locked(fd: int) -> bool:
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    return True
