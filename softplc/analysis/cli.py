@@ -156,11 +156,12 @@ def cmd_export(args: argparse.Namespace) -> int:
         from softplc.sfc.export import export_plcopen  # refuses a net that is not an SFC
 
         try:
-            out.write_text(export_plcopen(net, compile_file), encoding="utf-8")
+            chart = export_plcopen(net, compile_file)
         except ProgramError as exc:
             print(exc, file=sys.stderr)
             return 1
-        print(f"{args.program} -> {out}: an SFC of {len(net.place_names)} steps")
+        out.write_text(chart, encoding="utf-8")  # steps, not the net's helper places:
+        print(f"{args.program} -> {out}: an SFC of {chart.count('<step ')} steps")
         return 0
     io_ref = os.path.relpath(Path(net.io.path).resolve(), out.resolve().parent)
     # Embedded so that the file analyses wherever it is copied (docs/analysis.md, PNML).

@@ -131,3 +131,15 @@ def test_without_the_compiler_a_chart_net_is_inferred_as_before(tmp_path: Path) 
     second = compile_file(back)
     assert [replace(t, line=0) for t in first.transitions] == \
         [replace(t, line=0) for t in second.transitions]
+
+
+def test_the_command_counts_the_chart_s_steps_not_the_net_s_places(tmp_path: Path) -> None:
+    spec = ChartSpec(["S0", "S1"], ["S0"], [(["S0"], ["S1"], "i"), (["S1"], ["S0"], "NOT i")],
+                     [("S1", "S", "o"), ("S0", "R", "o"), ("S1", "L@T#20ms", "p")],
+                     {"i": ("BOOL", "%IX0.0"), "o": ("BOOL", "%QX0.0"), "p": ("BOOL", "%QX0.1")})
+    chart = tmp_path / "chart.xml"
+    chart.write_text(chart_xml(spec), encoding="utf-8")
+    assert len(compile_file(chart).place_names) > 2  # set/reset memory, the L timer
+    done = export(chart, tmp_path / "back.xml")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.endswith("back.xml: an SFC of 2 steps\n")
