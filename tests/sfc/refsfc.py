@@ -219,7 +219,7 @@ class Eval:
                 self.i += 1
                 args.append(self.expr())
             self.i += 1
-            return {"AND": all, "OR": any}[tok](args)
+            return {"AND": all, "OR": any, "SEL": lambda a: a[2] if a[0] else a[1]}[tok](args)
         return self.env[tok]
 
 
