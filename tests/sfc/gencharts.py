@@ -5,7 +5,10 @@ divergence of 2-3 one-step branches, or a simultaneous divergence of 2 branches 
 joined again. Conditions are random ST over four BOOL inputs, sometimes `Step.T >= T#..`.
 Actions: N on BOOL outputs, S/R on one output, P1/P0 pulses, ST bodies (N, P1, P0), each
 body writing its own counter so the order of bodies within a scan cannot matter, and timed
-L, D, DS, SD, SL actions on BOOLs of their own.
+L, D, DS, SD, SL actions on BOOLs of their own. Function blocks: one instance of each of
+TON, TOF, TP, R_TRIG, F_TRIG (`F0`..`F4`), each called (or not) from one ST body (N, P1 or
+P0) with a random IN/CLK and its Q copied to a BOOL of its own; conditions sometimes read
+`Fk.Q` (of a block that may never be called: its Q stays FALSE).
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from hypothesis import strategies as st
 from tests.sfc.chartxml import ChartSpec
 
 INPUTS = ["i0", "i1", "i2", "i3"]
+FBS = ["TON", "TOF", "TP", "R_TRIG", "F_TRIG"]
 ATOMS = st.sampled_from([*INPUTS, "TRUE"])
 
 
@@ -34,8 +38,12 @@ def charts(draw: st.DrawFn) -> ChartSpec:
     names = iter(f"S{i}" for i in range(1, 100))
 
     def cond(step: str) -> str:
-        if draw(st.integers(0, 5)) == 0:
+        pick = draw(st.integers(0, 6))
+        if pick == 0:
             return f"{step}.T >= T#{draw(st.sampled_from([10, 20, 50]))}ms"
+        if pick == 1:
+            fb = f"F{draw(st.integers(0, len(FBS) - 1))}.Q"
+            return fb if draw(st.booleans()) else f"({fb} OR {draw(condition(1))})"
         return draw(condition())
 
     for _ in range(draw(st.integers(1, 4))):
@@ -112,6 +120,16 @@ def _actions(draw: st.DrawFn, steps: list[str]
             actions.append((step, f"{qual}@T#{ms}ms", f"t{i}"))
             if qual in ("DS", "SD", "SL"):
                 actions.append(("S0", "R", f"t{i}"))
+    for i, typ in enumerate(FBS):
+        variables[f"F{i}"] = (f'derived name="{typ}"', "")
+        variables[f"fq{i}"] = ("BOOL", f"%QX2.{i}")
+        if draw(st.booleans()):
+            qual = draw(st.sampled_from(["N", "N", "P1", "P0"]))
+            step = draw(st.sampled_from(steps if qual != "P1" else steps[1:] or steps))
+            arg = f"CLK := {draw(condition(1))}" if typ.endswith("TRIG") else \
+                f"IN := {draw(condition(1))}, PT := T#{draw(st.sampled_from([10, 20, 50]))}ms"
+            bodies[f"fb{i}"] = f"F{i}({arg}); fq{i} := F{i}.Q;"
+            actions.append((step, qual, f"fb{i}"))
     return actions, variables, bodies
 
 
