@@ -182,6 +182,7 @@ class Door:
             symbol = report.by_name.get(metric.name or "") if metric.name is not None \
                 else report.by_alias.get(metric.alias or -1)
             program = str(report.document.get("program_hash") or "")
+            target = metric.name or target  # a node metric's alias: its name
         if metric.name is None and metric.alias is None:
             action, outcome, why = "write", "refused", "the metric has no name and no alias"
         elif not born and metric.name != COMMAND:

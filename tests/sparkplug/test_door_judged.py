@@ -31,7 +31,7 @@ from softplc.security.roles import Role
 from softplc.sparkplug.codec import DOUBLE, Metric
 from softplc.sparkplug.config import SparkplugConfig
 from softplc.sparkplug.door import Door
-from softplc.sparkplug.metrics import Report
+from softplc.sparkplug.metrics import COMMAND, Report
 
 BEFORE: Mapping[str, Any] = {"program_hash": "h1", "program": "p1", "symbols": {
     "fill_to": {"type": "real", "address": "%MD1", "direction": "memory"},
@@ -111,7 +111,8 @@ def test_commands_after_a_download_are_judged_against_the_running_program(
         door.submit(old_birth, Metric("fill_to", DOUBLE, 2.5))
         door.submit(old_birth, Metric(None, None, 2.5, old_birth.by_name["level"].alias))
         door.submit(old_birth, Metric("level", DOUBLE, 1.0))
-        lines = _outcomes(door, 4)
+        door.submit(old_birth, Metric(None, None, "stop", old_birth.node_alias[COMMAND]))
+        lines = _outcomes(door, 5)
     finally:
         door.close()
     assert lines == [
@@ -120,10 +121,13 @@ def test_commands_after_a_download_are_judged_against_the_running_program(
         f"#3 write alias {old_birth.by_name['level'].alias}: refused (the program changed "
         "since the last NBIRTH: its aliases name other metrics now; send the name, or the "
         "alias of the next NBIRTH)",
-        "#4 write level: refused (no metric level in the running program)"]
+        "#4 write level: refused (no metric level in the running program)",
+        # a node metric's alias is the same in every birth: still the command metric
+        "#5 stop Node Control/Command: refused (program commands are off "
+        "(--sparkplug-commands))"]
     assert plc.writes == [HmiWrite(parse_address("%MW20"), (7,))]
     assert [r["outcome"] for r in _trail(tmp_path)] == ["queued", "refused", "refused",
-                                                        "refused"]
+                                                        "refused", "refused"]
 
 
 def test_without_a_change_the_last_birth_is_the_judge(tmp_path: Path) -> None:
