@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from softplc.core.problems import Problem
 from softplc.sfc import fbs, stored, timed
 from softplc.sfc.model import IEC_TYPES, Action, Chart, Transition, Variable
-from softplc.sfc.st import time_ms
+from softplc.sfc.st import STEP_X, time_ms
 
 
 @dataclass(slots=True)
@@ -106,7 +106,7 @@ def _program(chart: Chart, io_name: str, out: _Text, problems: list[Problem]) ->
                               (step.name,), f"N actions {names} run every scan while "
                               f"{step.name} is active")
             _transition(chart, runs, -1, out, sequential(
-                [(f"{v} = {e}", str(a.line)) for a in bodies for v, e in a.statements]))
+                [s for a in bodies for s in _body(a, True)]))
 
 
 def _transition(chart: Chart, t: Transition, priority: int, out: _Text,
@@ -148,7 +148,7 @@ def _do(chart: Chart, t: Transition) -> list[tuple[str, str]]:
     for a in acts(left, ("P0", "N")):
         if a.target and a.qualifier == "P0":
             out.append((f"pulse {a.target}", str(a.line)))
-        out.extend((f"{v} = {e}", str(a.line)) for v, e in a.statements)
+        out.extend(_body(a, False))
     out.extend(timed.on_leave(chart, left))
     out.extend(timed.on_enter(chart, entered))
     out.extend(stored.on_enter(chart, entered))
@@ -158,8 +158,16 @@ def _do(chart: Chart, t: Transition) -> list[tuple[str, str]]:
     for a in acts(entered, ("P1", "P", "N")):
         if a.target and a.qualifier in ("P1", "P"):
             out.append((f"pulse {a.target}", str(a.line)))
-        out.extend((f"{v} = {e}", str(a.line)) for v, e in a.statements)
+        out.extend(_body(a, True))
     return sequential(out)
+
+
+def _body(a: Action, active: bool) -> list[tuple[str, str]]:
+    """An ST body's statements where it runs: its own step's X is TRUE while the step is
+    active (entry, every scan) and FALSE in the final execution (IEC runs it after the
+    step was left); P0 runs on leaving, so FALSE."""
+    x = "true" if active else "false"
+    return [(f"{v} = {e.replace(STEP_X + a.step, x)}", str(a.line)) for v, e in a.statements]
 
 
 _WORD = re.compile(r"(?<![\w.])([A-Za-z_]\w*)(?![\w(])")
@@ -212,6 +220,13 @@ def _check_actions(chart: Chart, problems: list[Problem]) -> None:
             problems.append(Problem(chart.file, a.line, "", f"{a.target} is both an N action "
                             "(on while the step is) and stored/pulsed elsewhere (S, R, P): "
                             "softplc drives it one way only"))
+        others = sorted({m for _, e in a.statements
+                         for m in re.findall(STEP_X + r"([\w.]+)", e) if m != a.step})
+        if others:
+            problems.append(Problem(chart.file, a.line, "", f"action {a.name} of step {a.step} "
+                            f"reads {others[0]}.X: a body reads only its own step's X (TRUE "
+                            "while it runs, FALSE in its final execution); the activity of "
+                            "another step after the clearing is not known where it runs"))
         if a.statements and a.qualifier == "N":
             if a.name in bodies and bodies[a.name] != a.step:
                 problems.append(Problem(chart.file, a.line, "", f"action {a.name} (N, ST body) "

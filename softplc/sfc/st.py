@@ -21,6 +21,7 @@ from softplc.sfc import fbs
 
 # IEC types softplc reads, by the kind the translation checks operands with.
 BOOL, INT, REAL, TIME = "bool", "int", "real", "time"
+STEP_X = "__X_"  # `S1.X` in a body: TRUE or FALSE where the body runs (emit.py)
 
 _TOKEN = re.compile(r"""
     (?P<ws>\s+|\(\*.*?\*\)|//[^\n]*)
@@ -107,6 +108,7 @@ class Parser:
                  steps: Mapping[str, str]) -> None:
         self.toks, self.i = tokens(text), 0
         self.names, self.steps = names, steps
+        self.body = False  # an action body: Step.X is a marker emit.py resolves (STEP_X)
 
     @property
     def tok(self) -> Tok:
@@ -179,6 +181,8 @@ class Parser:
             return Node("call", tuple(args), text=word, offset=tok.offset)
         if "." in word:
             step, _, flag = word.partition(".")
+            if step in self.steps and flag == "X" and self.body:
+                return Node("var", text=STEP_X + self.steps[step], kind=BOOL, offset=tok.offset)
             if step in self.steps and flag in ("X", "T"):
                 return Flag(self.steps[step], flag, tok.offset)
             if step in self.names and self.names[step][1].startswith("fb"):
@@ -234,6 +238,7 @@ def parse_statements(text: str, names: Mapping[str, tuple[str, str]],
                      steps: Mapping[str, str]) -> list[tuple[str, str, Expr, int]]:
     """`X := expr;` ... -> [(declared X, X's kind, expr, offset)]; anything else refused."""
     parser, out = Parser(text, names, steps), []
+    parser.body = True
     while parser.tok.kind != "end":
         if parser.take(";"):
             continue

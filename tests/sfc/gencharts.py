@@ -7,8 +7,8 @@ Actions: N on BOOL outputs, S/R on one output, P1/P0 pulses, ST bodies (N, P1, P
 body writing its own counter so the order of bodies within a scan cannot matter, and timed
 L, D, DS, SD, SL actions on BOOLs of their own. Function blocks: one instance of each of
 TON, TOF, TP, R_TRIG, F_TRIG (`F0`..`F4`), each called (or not) from one ST body (N, P1 or
-P0) with a random IN/CLK and its Q copied to a BOOL of its own; conditions sometimes read
-`Fk.Q` (of a block that may never be called: its Q stays FALSE).
+P0) with a random IN/CLK (at times its own step's X) and its Q copied to a BOOL of its own;
+conditions sometimes read `Fk.Q` (of a block that may never be called: Q stays FALSE).
 """
 
 from __future__ import annotations
@@ -126,8 +126,10 @@ def _actions(draw: st.DrawFn, steps: list[str]
         if draw(st.booleans()):
             qual = draw(st.sampled_from(["N", "N", "P1", "P0"]))
             step = draw(st.sampled_from(steps if qual != "P1" else steps[1:] or steps))
-            arg = f"CLK := {draw(condition(1))}" if typ.endswith("TRIG") else \
-                f"IN := {draw(condition(1))}, PT := T#{draw(st.sampled_from([10, 20, 50]))}ms"
+            inp = draw(st.sampled_from([draw(condition(1)), f"{step}.X",  # its own step
+                                        f"({step}.X AND {draw(condition(1))})"]))
+            arg = f"CLK := {inp}" if typ.endswith("TRIG") else \
+                f"IN := {inp}, PT := T#{draw(st.sampled_from([10, 20, 50]))}ms"
             bodies[f"fb{i}"] = f"F{i}({arg}); fq{i} := F{i}.Q;"
             actions.append((step, qual, f"fb{i}"))
     return actions, variables, bodies

@@ -27,7 +27,8 @@ Rules it implements (docs/sfc.md states the same choices for the net):
 - standard function blocks (RefFb): TON, TOF, TP as the IEC bodies matiec writes (a STATE
   machine per instance, Q changed only by a call), R_TRIG/F_TRIG as IEC's two lines; an
   instance runs when a body calling it runs (`T1(IN := x, PT := T#5s);`, formal arguments,
-  a missing input keeps its last value) and `T1.Q` reads its output. The timers read the
+  a missing input keeps its last value) and `T1.Q` reads its output (a body reads Step.X
+  after the clearing: FALSE in an N body's final execution). The timers read the
   scan clock docs/sfc.md states: START_TIME is the time of the scan after the starting call,
   and a call's CURRENT_TIME is the time of the scan before its own.
 """
@@ -298,11 +299,12 @@ def _split_args(text: str) -> list[str]:
 
 
 def run_statements(text: str, env: dict[str, Any], fbs: dict[str, RefFb] | None = None,
-                   cur: int = 0) -> None:
+                   cur: int = 0, flags: dict[str, bool] | None = None) -> None:
     fbs = fbs or {}
 
     def value(expr: str) -> Any:
-        return Eval(expr, env | {f"{n}.Q": fb.q for n, fb in fbs.items()}).expr()
+        return Eval(expr, env | (flags or {}) | {f"{n}.Q": fb.q for n, fb in fbs.items()}
+                    ).expr()
 
     for stmt in (s for s in text.split(";") if s.strip()):
         call = re.fullmatch(r"\s*(\w+)\s*\((.*)\)\s*", stmt, re.DOTALL)
@@ -381,7 +383,8 @@ class RefSfc:
             runs = (qual == "N" and (step in self.active or step in gone)) or \
                 (qual == "P1" and step in new) or (qual == "P0" and step in gone)
             if body is not None and runs:
-                run_statements(body, self.env, self.fbs, self.prev)
+                run_statements(body, self.env, self.fbs, self.prev,
+                               {f"{s}.X": s in self.active for s in self.c.steps})
         for qual, value in (("S", True), ("R", False)):
             for step, q, name in self.c.actions:
                 if q == qual and step in new:

@@ -105,6 +105,31 @@ def test_a_call_without_in_keeps_the_last_in_and_q_feeds_its_own_in(tmp_path: Pa
     assert compare(path, [{"i0": False}] * 16) is None
 
 
+def test_a_step_timer_on_its_own_step_x_restarts_with_each_activation(tmp_path: Path) -> None:
+    # The IEC idiom `T1(IN := S1.X, PT := ...)` in S1's N body: X is TRUE while the body
+    # runs and FALSE in its final execution (the scan S1 is left), so the TON is reset
+    # there and starts over at the next activation. S1 entered at 1 (the first call, a
+    # rise), T1 starts at 2, Q at the call of 6 (30 ms to the scan before), seen by the
+    # condition at 7; entered again at 9, left at 15. With IN := TRUE instead the TON is
+    # never reset, and the second visit would end at once (10).
+    spec = ChartSpec(["S0", "S1", "S2"], ["S0"],
+                     [(["S0"], ["S1"], "i0"), (["S1"], ["S2"], "T1.Q"), (["S2"], ["S1"], "i3")],
+                     [("S1", "N", "body")],
+                     {"i0": ("BOOL", "%IX0.0"), "i3": ("BOOL", "%IX0.3"),
+                      "q0": ("BOOL", "%QX0.0"), "T1": fb("TON")},
+                     {"body": "T1(IN := S1.X, PT := T#30ms); q0 := T1.Q;"})
+    path = tmp_path / "steptimer.xml"
+    path.write_text(chart_xml(spec), encoding="utf-8")
+    scans = [{"i0": k == 1, "i3": k == 9} for k in range(18)]
+    assert compare(path, scans) is None
+    bench, s1 = Bench(compile_file(path)), ""
+    for k, values in enumerate(scans[1:], start=1):
+        bench.set(**{n: int(v) for n, v in values.items()})
+        bench.scan(k * 10 * MS)
+        s1 += str(bench.marking().get("S1", 0))
+    assert s1 == "11111100111111000", s1
+
+
 @pytest.mark.parametrize(("body", "cond", "extra", "line_has"), [
     ("C1(CU := i0, PV := 3); q0 := C1.Q;", "i3", {"C1": fb("CTU")},
      "C1 is an instance of CTU: function blocks supported: TON, TOF, TP"),
@@ -121,6 +146,7 @@ def test_a_call_without_in_keeps_the_last_in_and_q_feeds_its_own_in(tmp_path: Pa
     ("R1(IN := i0);", "i3", {"R1": fb("R_TRIG")}, "R_TRIG has the inputs CLK"),
     ("q0 := i0;", "T1(IN := i0)", {"T1": fb("TON")}, "a function block call is a statement"),
     ("q0 := T1;", "i3", {"T1": fb("TON")}, "read its output T1.Q"),
+    ("q0 := S1.X;", "i3", {}, "reads S1.X: a body reads only its own step's X"),
     ("T1(IN := i0, PT := T#1s);", "i3", {"T1": fb("TON"), "T1_Q": ("BOOL", "")},
      "its state is kept in T1_Q"),
 ])
