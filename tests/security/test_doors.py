@@ -18,6 +18,7 @@ the Sparkplug door's program commands are acts of the one table.
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from pathlib import Path
 
@@ -115,12 +116,16 @@ def _reaches_and_calls(tree: ast.AST) -> tuple[bool, set[str]]:
     return reaches, called
 
 
+@functools.cache
+def _trees() -> dict[str, ast.Module]:
+    """Every module of softplc, parsed once for all the tests here."""
+    return {str(path.relative_to(ROOT)): ast.parse(path.read_text(encoding="utf-8"),
+                                                   str(path))
+            for path in sorted(ROOT.rglob("*.py"))}
+
+
 def _modules() -> dict[str, tuple[bool, set[str]]]:
-    found = {}
-    for path in sorted(ROOT.rglob("*.py")):
-        rel = str(path.relative_to(ROOT))
-        found[rel] = _reaches_and_calls(ast.parse(path.read_text(encoding="utf-8"), rel))
-    return found
+    return {rel: _reaches_and_calls(tree) for rel, tree in _trees().items()}
 
 
 def test_every_module_that_reaches_the_scan_is_a_listed_door_or_no_door() -> None:
@@ -183,8 +188,7 @@ def test_doors_that_decide_elsewhere_still_ask() -> None:
 
 
 def test_every_http_client_is_listed() -> None:
-    clients = {str(p.relative_to(ROOT)) for p in sorted(ROOT.rglob("*.py"))
-               if _http_client(ast.parse(p.read_text(encoding="utf-8")))}
+    clients = {rel for rel, tree in _trees().items() if _http_client(tree)}
     assert sorted(clients - set(HTTP_CLIENTS)) == [], \
         "HTTP clients not listed in tests/security/test_doors.py HTTP_CLIENTS"
     assert sorted(set(HTTP_CLIENTS) - clients) == [], "listed but no HTTP client: strike off"
