@@ -47,6 +47,7 @@ def _reduce_compiled(expr: Compiled) -> tuple[Any, ...]:
 _TABLE = copyreg.dispatch_table.copy()
 _TABLE[MappingProxyType] = _reduce_proxy
 _TABLE[Compiled] = _reduce_compiled
+Piece = bytes | memoryview  # a view: a piece still in the buffer it arrived in (replyfile.py)
 CHUNK = 256  # entries of a long field per piece: a place's entry loads in ~0.1 µs ...
 OBJECT_CHUNK = 32  # ... a transition (a tree of objects) in ~4.5 µs: ~150 µs a piece
 
@@ -68,7 +69,7 @@ class _Pickler(pickle.Pickler):
 
 
 class _Unpickler(pickle.Unpickler):
-    def __init__(self, data: bytes, scopes: list[Scope]) -> None:
+    def __init__(self, data: Piece, scopes: list[Scope]) -> None:
         super().__init__(io.BytesIO(data))
         self.scopes = scopes
 
@@ -83,7 +84,7 @@ def _dump(obj: Any, scopes: dict[int, tuple[int, Scope]]) -> bytes:
     return buffer.getvalue()
 
 
-def _load(data: bytes, scopes: list[Scope]) -> Any:
+def _load(data: Piece, scopes: list[Scope]) -> Any:
     return _Unpickler(data, scopes).load()
 
 
@@ -117,11 +118,11 @@ def dumps(net: CompiledNet) -> tuple[bytes, ...]:
     return (table, head, *pieces)
 
 
-def loads(pieces: tuple[bytes, ...]) -> CompiledNet:
+def loads(pieces: tuple[Piece, ...]) -> CompiledNet:
     return drain(loading(pieces))
 
 
-def loading(pieces: tuple[bytes, ...]) -> Steps[CompiledNet]:
+def loading(pieces: tuple[Piece, ...]) -> Steps[CompiledNet]:
     """loads(), a piece a step (core/steps.py): the scan thread loads a download between
     scans."""
     scopes = pickle.loads(pieces[0])

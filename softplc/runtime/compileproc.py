@@ -28,7 +28,6 @@ import os
 import pickle
 import resource
 import signal
-import tempfile
 import threading
 import time
 from multiprocessing.connection import Connection, wait
@@ -36,6 +35,7 @@ from typing import Any, Protocol
 
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.snapshot import CommandRequest
+from softplc.runtime import replyfile
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.prepare import AnalysisRefused, Built, CompilerFailed, Preparer
 from softplc.runtime.realtime import keep_off_scan_cpu
@@ -50,7 +50,6 @@ COMPILE_TIMEOUT_S = 120.0  # one download's compile and analysis; then it is ref
 # took 2.1 s, the gate's work budgets a few more.
 COMPILE_MEMORY_BYTES = 1 << 30
 COMPILE_CPU_S = 60
-BY_FILE_BYTES = 64 << 10  # a reply above a pipe's buffer goes through a file (_packed)
 OUT_OF_MEMORY_EXIT = 86  # its exit code after a MemoryError (when the refusal could not go)
 _CTX = multiprocessing.get_context("spawn")  # a fresh interpreter: nothing of the scan's
 
@@ -105,43 +104,13 @@ def compile_main(config: LoopConfig, conn: Connection,
             reply = ("error", CompilerFailed(
                 f"internal compiler error ({type(exc).__name__}: {exc})"))
         try:
-            conn.send_bytes(_packed(pickle.dumps(reply, protocol=5)))
+            conn.send_bytes(replyfile.pack(reply))
         except (OSError, ValueError):
             return
         del reply
         _limit_cpu(None)
         gc.enable()
         gc.collect()  # between downloads, where nobody waits
-
-
-def _packed(data: bytes) -> bytes:
-    """A reply over BY_FILE_BYTES written to a file in /dev/shm (memory), its name sent
-    instead: the scan process's download thread reads it in one system call, the interpreter
-    lock released, and unpickles it in one stretch (~0.1 ms for 10,000 transitions, 1.4 MB);
-    through the pipe it came in ~25 reads of 64 KiB, each taking the lock from the scan again
-    while this process, at nice 10, wrote the next (issue 40 item 8). Named as leftovers.py
-    removes it when this process is gone."""
-    if len(data) <= BY_FILE_BYTES or not os.path.isdir("/dev/shm"):
-        return data
-    fd, path = tempfile.mkstemp(prefix=f"softplc_{os.getpid()}_reply_", dir="/dev/shm")
-    with os.fdopen(fd, "wb") as out:
-        out.write(data)
-    return pickle.dumps(("file", path), protocol=5)
-
-
-def _unpacked(message: bytes) -> tuple[str, Any]:
-    """A reply as _packed sent it: (kind, value)."""
-    reply = pickle.loads(message)
-    if reply[0] != "file":
-        return reply[0], reply[1]
-    try:
-        with open(reply[1], "rb") as src:
-            data = src.read()  # one read of its size: the lock released meanwhile
-    finally:
-        with contextlib.suppress(OSError):
-            os.unlink(reply[1])
-    kind, value = pickle.loads(data)  # the interpreter lock held throughout
-    return kind, value
 
 
 def _over_memory(memory_bytes: int) -> str:
@@ -289,7 +258,7 @@ class CompileProcess:
             waited = time.monotonic_ns()
             reply = conn.recv_bytes()
             received = time.monotonic_ns()
-            kind, value = _unpacked(reply)
+            kind, value = replyfile.unpack(reply)
             self.last_reply = {"receive_ms": (received - waited) / 1e6,
                                "read_and_unpickle_ms": (time.monotonic_ns() - received) / 1e6}
             del reply

@@ -6,8 +6,7 @@ without blocking (the compile process's answer polled, the net loaded and its en
 step at a time, the devices' opening polled; at its turn, a dry run's answer built from the
 PLC copied at that boundary, a stale carry plan made again); the order of commands (a command
 sent after a download waits until the download is decided, except stop and kill, which are
-never held: the downloads still being prepared ahead of one are withdrawn); the burial of a
-replaced net, a step at a time.
+never held: the downloads still being prepared ahead of one are withdrawn); burials.
 What blocks runs on one helper thread, and only that: the exchange with the compile process
 (runtime/compileproc.py) and the opening of a new io image's devices and the staging of the
 boot program (runtime/prepare.py). The steps' costs: runtime/steplog.py.
@@ -31,6 +30,7 @@ from softplc.core.snapshot import DOWNLOAD_REFUSED, CommandReply, CommandRequest
 from softplc.core.steps import Steps, drain
 from softplc.devices.driver import DeviceError
 from softplc.program.teardown import burying
+from softplc.program.wire import Piece
 from softplc.runtime.bootkeeper import BootNotKept
 from softplc.runtime.prepare import (
     AnalysisRefused,
@@ -166,7 +166,7 @@ class DownloadJob:
         self._load(built.net, built.analysis)
         return True
 
-    def _load(self, net: CompiledNet | tuple[bytes, ...],
+    def _load(self, net: CompiledNet | tuple[Piece, ...],
               analysis: dict[str, Any] | None) -> None:
         self._steps = self.prep.finishing(self.request, net, analysis)
         # Loading allocates a net's worth of objects: a full collection meanwhile holds the

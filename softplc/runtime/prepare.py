@@ -64,7 +64,7 @@ class Built:
     (program/wire.py), the analysis gate's summary, and the folders bundles were unpacked in
     (stripped from messages)."""
 
-    net: tuple[bytes, ...]
+    net: tuple[wire.Piece, ...]
     analysis: dict[str, Any] | None
     bundle_roots: tuple[str, ...] = ()
 
@@ -201,7 +201,7 @@ class Preparer:
                 prepared.drivers = open_drivers(prepared.net.io, self.config.seed, None)
         return work
 
-    def finishing(self, req: CommandRequest, net: CompiledNet | tuple[bytes, ...],
+    def finishing(self, req: CommandRequest, net: CompiledNet | tuple[wire.Piece, ...],
                    analysis: dict[str, Any] | None) -> Steps[Prepared]:
         """Everything the swap needs, a step at a time: the net loaded (when it came as bytes
         from the compile process: every expression compiled again from its text by the
