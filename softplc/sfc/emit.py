@@ -167,7 +167,8 @@ def _body(a: Action, active: bool) -> list[tuple[str, str]]:
     active (entry, every scan) and FALSE in the final execution (IEC runs it after the
     step was left); P0 runs on leaving, so FALSE."""
     x = "true" if active else "false"
-    return [(f"{v} = {e.replace(STEP_X + a.step, x)}", str(a.line)) for v, e in a.statements]
+    own = re.compile(re.escape(STEP_X + a.step) + r"(?![\w.])")
+    return [(f"{v} = {own.sub(x, e)}", str(a.line)) for v, e in a.statements]
 
 
 _WORD = re.compile(r"(?<![\w.])([A-Za-z_]\w*)(?![\w(])")
