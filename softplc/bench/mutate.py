@@ -2,16 +2,19 @@
 tests, one seeded sample of mutants per module.
 
 Owns: the map of module -> fast tests (no socket, no process, seconds each), the private
-copies of the tree (one per worker: the working tree is never written, others run tests in
-it meanwhile), pytest per mutant with a timeout inside a whole-run budget, the report (JSON
-and Markdown) and the known-equivalent mutants read from a file.
+copies of the last commit (one per worker: the working tree is never written nor measured,
+others edit and run tests in it meanwhile), pytest per mutant with a timeout inside a
+whole-run budget, its process group killed on SIGTERM/SIGINT, the report (JSON and Markdown)
+and the known-equivalent mutants read from a file.
 Does not know: how a mutant is made (mutants.py), what the modules do.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib.util
+import io
 import json
 import os
 import queue
@@ -19,7 +22,9 @@ import shutil
 import signal
 import subprocess
 import sys
+import tarfile
 import tempfile
+import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -68,6 +73,8 @@ TARGETS: dict[str, tuple[str, ...]] = {
 IGNORED = (".git", ".venv", "__pycache__", ".hypothesis", ".mypy_cache", ".ruff_cache",
            ".pytest_cache", "*.egg-info", "build", "state", "*.trace.jsonl")
 KILLED, SURVIVED, TIMEOUT, NOT_RUN = "killed", "survived", "timed out", "not run"
+_LIVE: set[int] = set()  # process groups of the pytest runs going on
+_STOPPING = threading.Event()
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,6 +107,34 @@ def _pytest(settings: Settings, tests: Sequence[str]) -> list[str]:
             *tests]
 
 
+@contextmanager
+def committed(root: Path) -> Iterator[Path]:
+    """The last commit of `root` as files in a temporary folder (a run measures what is
+    committed, never an edit in progress); `root` itself when it is not a git checkout."""
+    if not (root / ".git").exists():
+        yield root
+        return
+    snapshot = Path(tempfile.mkdtemp(prefix="softplc-mutate-head-"))
+    try:
+        archive = subprocess.run(["git", "-C", str(root), "archive", "--format=tar", "HEAD"],
+                                 check=True, capture_output=True).stdout
+        with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+            tar.extractall(snapshot, filter="data")
+        yield snapshot
+    finally:
+        shutil.rmtree(snapshot, ignore_errors=True)
+
+
+def stop(signum: int, _frame: object = None) -> None:
+    """SIGTERM or SIGINT: every pytest run going on is killed with its children (each has its
+    own process group), no new one starts, and the run ends (its copies removed)."""
+    _STOPPING.set()
+    for group in list(_LIVE):
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(group, signal.SIGKILL)
+    raise SystemExit(128 + signum)
+
+
 def _copy(root: Path, settings: Settings) -> Path:
     tree = Path(tempfile.mkdtemp(prefix="softplc-mutate-")) / "tree"
     shutil.copytree(root, tree, symlinks=True, ignore=shutil.ignore_patterns(*IGNORED))
@@ -126,12 +161,17 @@ def _run(tree: Path, path: str, text: str, tests: Sequence[str], settings: Setti
         proc = subprocess.Popen(_pytest(settings, tests), cwd=tree, env=env,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                 start_new_session=True)
+        _LIVE.add(proc.pid)
         try:
+            if _STOPPING.is_set():  # stop() came between the start and the line above
+                raise subprocess.TimeoutExpired(proc.args, 0)
             status: int | None = proc.wait(timeout_s)
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)  # its own group: pytest and its children
             proc.wait()
             status = None
+        finally:
+            _LIVE.discard(proc.pid)
         return status, time.monotonic() - start
     finally:
         target.write_bytes(original)
@@ -175,7 +215,7 @@ def run(root: Path, targets: Mapping[str, Sequence[str]], settings: Settings,
 
         def one(module: Module, mutant: Mutant) -> None:
             status: int | None = 0
-            if module.baseline_s is None or time.monotonic() > deadline:
+            if module.baseline_s is None or time.monotonic() > deadline or _STOPPING.is_set():
                 verdict = NOT_RUN
             else:
                 tree = trees.get()
@@ -279,8 +319,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     settings = Settings(args.seed, args.sample, args.jobs, args.budget_s, args.timeout_factor)
     targets = {p: t for p, t in TARGETS.items()
                if not args.module or any(part in p for part in args.module)}
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, stop)
     start = time.monotonic()
-    modules = run(Path.cwd(), targets, settings)
+    with committed(Path.cwd()) as root:
+        if root != Path.cwd():
+            print("mutating the last commit (uncommitted edits are not in it)", file=sys.stderr)
+        modules = run(root, targets, settings)
     took_s = time.monotonic() - start
     equivalent = load_equivalent(args.equivalent)
     for out in (args.json, args.markdown):

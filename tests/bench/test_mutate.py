@@ -5,13 +5,19 @@ are never written."""
 
 from __future__ import annotations
 
+import os
 import random
+import signal
+import subprocess
+import threading
+import time
 from pathlib import Path
 
 import pytest
 
+from softplc.bench import mutate
 from softplc.bench.mutants import every, mutated, sample
-from softplc.bench.mutate import KILLED, SURVIVED, TIMEOUT, Settings, markdown, run
+from softplc.bench.mutate import KILLED, SURVIVED, TIMEOUT, Settings, committed, markdown, run
 
 TINY = '''def add(a: int, b: int) -> int:
     return a + b
@@ -118,3 +124,85 @@ def test_a_run_takes_its_mutants_in_the_order_of_the_seeded_draw(
     assert len(many.outcomes[SURVIVED]) == 6  # the test looks at nothing: all survive
     ran = log.read_text().split("\0")[:-1]
     assert ran[1:] == [mutated(MANY, m) for m in drawn]  # after the baseline, as drawn
+
+
+def test_a_run_mutates_the_last_commit_not_an_edit_in_progress(tmp_path: Path) -> None:
+    (tmp_path / "repo").mkdir()
+    (tmp_path / "plain").mkdir()
+    root = project(tmp_path / "repo")
+    git = ["git", "-C", str(root), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    subprocess.run([*git, "add", "."], check=True)
+    subprocess.run([*git, "commit", "-q", "-m", "tiny"], check=True)
+    (root / "tiny.py").write_text(TINY.replace("a + b", "a * b"))  # an edit in progress
+    (root / "scratch.py").write_text("x = 1\n")  # and a file never committed
+    with committed(root) as snapshot:
+        assert snapshot != root
+        assert (snapshot / "tiny.py").read_text() == TINY
+        assert (snapshot / "tests" / "test_tiny.py").read_text() == TEST
+        assert not (snapshot / "scratch.py").exists()
+    assert not snapshot.exists()
+    plain = project(tmp_path / "plain")  # not a checkout: the folder as it is
+    with committed(plain) as same:
+        assert same == plain
+
+
+SLEEPS = '''import subprocess
+
+
+def test_sleeps() -> None:
+    subprocess.run(["sleep", "120"])
+'''
+
+
+def test_stop_kills_the_running_pytest_and_its_children(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    root = project(tmp_path)
+    (root / "tests" / "test_sleeps.py").write_text(SLEEPS)
+    monkeypatch.setenv("PYTEST_DISABLE_PLUGIN_AUTOLOAD", "1")
+    settings = Settings(hypothesis=False)
+    result: list[tuple[int | None, float]] = []
+    worker = threading.Thread(target=lambda: result.append(
+        mutate._run(root, "tiny.py", TINY, ("tests/test_sleeps.py",), settings, 300.0)))
+    worker.start()
+    try:
+        deadline = time.monotonic() + 60
+        while not (mutate._LIVE and _sleeping(tmp_path)) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        (group,) = mutate._LIVE
+        assert _sleeping(tmp_path)  # pytest started its child
+        with pytest.raises(SystemExit) as ended:
+            mutate.stop(signal.SIGTERM)
+        assert ended.value.code == 128 + signal.SIGTERM
+        worker.join(30)
+        assert not worker.is_alive() and not mutate._LIVE
+        assert _running(group) == []  # the whole group: pytest and its sleep (zombies aside)
+        assert not _sleeping(tmp_path)
+    finally:
+        mutate._STOPPING.clear()
+
+
+def _running(group: int) -> list[int]:
+    """The processes of process group `group` that are not zombies."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        try:
+            if proc.name.isdigit():
+                fields = (proc / "stat").read_text().rpartition(")")[2].split()
+                if int(fields[2]) == group and fields[0] != "Z":
+                    found.append(int(proc.name))
+        except (OSError, ValueError, IndexError):
+            continue
+    return found
+
+
+def _sleeping(root: Path) -> bool:
+    """A `sleep 120` whose working directory is under `root` is running."""
+    for proc in Path("/proc").iterdir():
+        try:
+            if proc.name.isdigit() and (proc / "cmdline").read_bytes() == b"sleep\x00120\x00" \
+                    and str(root) in os.readlink(proc / "cwd"):
+                return True
+        except OSError:
+            continue
+    return False
