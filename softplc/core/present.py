@@ -217,7 +217,7 @@ def accepted(type_name: str | None, value: object, symbol: str,
         value = int(value)
     try:
         return raw_of(t, stored(t, value))
-    except (TypeRangeError, TypeError):
+    except (TypeRangeError, TypeError, OverflowError):  # OverflowError: an int past a double
         raise refused from None
 
 

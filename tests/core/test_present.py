@@ -116,6 +116,11 @@ def test_typed_values_become_the_bits_a_program_write_stores() -> None:
     ("real", "12.5", 'symbol s is a real: the value must be a finite number, |x| <= 3.402823e+38, '
                      'not "12.5"'),
     ("int", None, "symbol s is an int: the value must be a whole number -32768..32767, not null"),
+    # A JSON integer past what a double holds (it raised OverflowError through every door).
+    ("real", 10**400, "symbol s is a real: the value must be a finite number, "
+                      "|x| <= 3.402823e+38, not 1000000000000000000000000000000000000000"),
+    ("lreal", -(10**400), "symbol s is an lreal: the value must be a finite number, "
+                          "not -100000000000000000000000000000000000000"),
 ])
 def test_a_value_the_type_cannot_take_is_refused_naming_symbol_type_and_range(
         type_name: str, value: object, text: str) -> None:
