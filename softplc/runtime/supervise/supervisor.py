@@ -311,6 +311,8 @@ class Supervisor:
         self.event_seq = max(self.event_seq, newest_seq(self.status()))
         if self.loop_config.state_dir:
             self._boot_compiled()
+            if self._stopping():  # heard while it compiled: stop() follows, nothing to start
+                return f"restart {self.restarts} not started: stopping"
         config = dataclasses.replace(
             self.loop_config, restarts=self.restarts, restart_reason=self.restart_reason,
             paused_at_restart=self.paused_at_restart, first_event_seq=self.event_seq,
