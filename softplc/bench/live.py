@@ -233,17 +233,21 @@ class LiveRuntime:
                  start: bool = True, plant: str | None = "transport", record: bool = True,
                  capacity_s: float = 120.0, api: bool = True, modbus: bool = True,
                  watchdog: float = BENCH_WATCHDOG, realtime: Realtime = NORMAL,
-                 opcua: bool = False) -> None:
+                 opcua: bool = False, keeps_state: bool = False) -> None:
+        """`keeps_state`: the scan process keeps the boot program and retain in the state
+        directory, as `softplc run` does by default (--state-dir state); off, only the
+        communication process uses it (users, audit)."""
         sizes = ImageSizes()
         self.period_ns = period_ns
         self.record = record
+        self._state_dir = tempfile.TemporaryDirectory(prefix="softplc-bench-")
         loop_config = LoopConfig(
             program=str(program) if program else None, start=start, period_ns=period_ns,
-            plant=plant, root=str(ROOT), sizes=sizes, watchdog=watchdog, realtime=realtime)
+            plant=plant, root=str(ROOT), sizes=sizes, watchdog=watchdog, realtime=realtime,
+            state_dir=self._state_dir.name if keeps_state else None)
         self.modbus_port = free_port() if modbus else None
         self.api_port = free_port() if api else None
         self.opcua_port = free_port() if opcua else None
-        self._state_dir = tempfile.TemporaryDirectory(prefix="softplc-bench-")
         comm_config = CommConfig(
             modbus=("127.0.0.1", self.modbus_port) if self.modbus_port else None,
             api=("127.0.0.1", self.api_port) if self.api_port else None,

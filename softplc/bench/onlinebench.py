@@ -213,7 +213,7 @@ def _session(busy_wait: bool, sizes: tuple[int, ...], counts: dict[int, int], pe
     realtime = Realtime(busy_wait=True, cpu=recommended().cpu) if busy_wait else Realtime()
     runtime = LiveRuntime(program=None, start=False, plant=None, period_ns=period_ns,
                           modbus=False, capacity_s=300 + 30 * sum(counts.values()),
-                          realtime=realtime)
+                          realtime=realtime, keeps_state=True)  # as `softplc run`: boot, retain
     mine = os.sched_getaffinity(0)
     try:
         progress(f"online_change: starting the runtime (scan waiting {wait})")
