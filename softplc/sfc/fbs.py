@@ -91,9 +91,8 @@ def expand(inst: str, kind: str, args: dict[str, tuple[str, str, int]],
                           f"{', '.join(inputs)}", at)
     x = f"{inst}_"
     if typ in TRIGGERS:
-        if "CLK" not in args:
-            raise FbError(f"{inst}(...): a {typ} call needs CLK := ...", offset)
-        e = _bool(args["CLK"], f"{inst}.CLK")
+        last = f"{x}M" if typ == "R_TRIG" else f"(not {x}M)"  # no CLK: the last CLK
+        e = _bool(args["CLK"], f"{inst}.CLK") if "CLK" in args else last
         if typ == "R_TRIG":  # IEC: Q := CLK AND NOT M; M := CLK;
             return [(f"{x}Q", "bool", f"({e} and not {x}M)"), (f"&{x}M", "bool", e)]
         return [(f"{x}Q", "bool", f"((not {e}) and not {x}M)"),  # F_TRIG: M := NOT CLK

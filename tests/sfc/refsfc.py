@@ -253,7 +253,7 @@ class RefFb:
 
     def call(self, args: dict[str, Any], cur: int) -> None:
         if self.typ in ("R_TRIG", "F_TRIG"):
-            clk = bool(args["CLK"])
+            clk = bool(args.get("CLK", self.m if self.typ == "R_TRIG" else not self.m))
             self.q = (clk and not self.m) if self.typ == "R_TRIG" else (not clk and not self.m)
             self.m = clk if self.typ == "R_TRIG" else not clk
             return

@@ -93,11 +93,13 @@ def test_a_block_not_called_keeps_its_outputs(tmp_path: Path) -> None:
 
 def test_a_call_without_in_keeps_the_last_in_and_q_feeds_its_own_in(tmp_path: Path) -> None:
     # A self-restarting TON (IN := NOT T1.Q: a pulse every PT) reads the Q of the call before;
-    # T2 is called with IN once (P1 of S1 is not used: one call site), then without it.
+    # T2 is never given IN (one call site: IN stays as declared); F1 called again without
+    # CLK in the same scan sees the CLK it had (no edge: Q FALSE, even at the first call).
     body = ("T1(IN := NOT T1.Q, PT := T#20ms); q0 := T1.Q; "
-            "T2(PT := T#20ms); q1 := T2.Q;")
-    path = _write(tmp_path, body, {"T1": fb("TON"), "T2": fb("TON")})
-    got = _run(path, [False] * 16, ["q0", "q1"])
+            "T2(PT := T#20ms); q1 := T2.Q; F1(CLK := i0); F1(); q2 := F1.Q;")
+    path = _write(tmp_path, body, {"T1": fb("TON"), "T2": fb("TON"), "F1": fb("F_TRIG")})
+    got = _run(path, [False] * 16, ["q0", "q1", "q2"])
+    assert got["q2"] == "0" * 16  # F1() after F1(CLK := i0): the same CLK, no edge
     # T1: rise at 0, start at 1, Q at the call that sees 20 ms up to the scan before: 4;
     # IN falls (NOT Q) at 5, rises at 6, starts at 7, Q at 10: a pulse every 6 scans.
     assert got["q0"] == "0000100000100000"
