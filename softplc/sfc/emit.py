@@ -81,6 +81,10 @@ def _program(chart: Chart, io_name: str, out: _Text, problems: list[Problem]) ->
         out.add(f"  {name}: {{}}  # {comment}", line)
     for name, comment, line in [*stored.places(chart), *fbs.places(chart)]:
         out.add(f"  {name}: {{tokens: 1}}  # {comment}", line)
+    every = [a for a in chart.actions if not a.step]  # reader.py: wired FB calls, every scan
+    for a in every:
+        out.add(f"  {a.name}: {{tokens: 1}}  # blocks of the SFC body, run every scan, "
+                f"{chart.file}:{a.line}: always marked", a.line)
     _check_actions(chart, problems)
     fbs.check(chart, problems)
     timed.check(chart, problems)
@@ -97,6 +101,10 @@ def _program(chart: Chart, io_name: str, out: _Text, problems: list[Problem]) ->
         _transition(chart, t, top + 1 if first else -1, out, body)
     for t, body in fbs.transitions(chart):  # they write only the timers' own state
         _transition(chart, t, 0, out, body)
+    for a in every:
+        runs = Transition(f"{a.name}_runs", a.line, (a.name,), (a.name,), "blocks of the "
+                          "SFC body run every scan")
+        _transition(chart, runs, -1, out, sequential(_body(a, True)))
     for step in chart.steps:  # one self-loop per step: two would take turns at one token
         bodies = [a for a in chart.actions if a.step == step.name and a.qualifier == "N"
                   and a.statements]
@@ -158,6 +166,9 @@ def _do(chart: Chart, t: Transition) -> list[tuple[str, str]]:
     for a in acts(entered, ("P1", "P", "N")):
         if a.target and a.qualifier in ("P1", "P"):
             out.append((f"pulse {a.target}", str(a.line)))
+        out.extend(_body(a, True))
+    stay = [s for s in t.sources if s in t.targets]  # left and entered again: still active,
+    for a in acts(stay, ("N",)):  # so its N bodies run this scan too (its self-loop cannot)
         out.extend(_body(a, True))
     return sequential(out)
 

@@ -172,3 +172,23 @@ def test_an_instance_called_from_two_actions_is_refused(tmp_path: Path) -> None:
     path.write_text(chart_xml(spec), encoding="utf-8")
     with pytest.raises(ProgramError, match="call an instance from one action"):
         compile_file(path)
+
+
+def test_an_n_body_runs_in_the_scan_its_step_loops_on_itself(tmp_path: Path) -> None:
+    # A transition from S0 back to S0 leaves the step active: its N body (and the calls in
+    # it) runs in that scan as in every other (the net's self-loop cannot fire then).
+    spec = ChartSpec(["S0", "S1"], ["S0"],
+                     [(["S0"], ["S0"], "i0"), (["S0"], ["S1"], "i3"), (["S1"], ["S0"], "TRUE")],
+                     [("S0", "N", "body")],
+                     {"i0": ("BOOL", "%IX0.0"), "i3": ("BOOL", "%IX0.3"),
+                      "c": ("INT", "%QW0"), "R1": fb("R_TRIG"), "q0": ("BOOL", "%QX0.0")},
+                     {"body": "c := c + 1; R1(CLK := i0); q0 := R1.Q;"})
+    path = tmp_path / "loop.xml"
+    path.write_text(chart_xml(spec), encoding="utf-8")
+    scans = [{"i0": k == 3, "i3": False} for k in range(6)]
+    assert compare(path, scans) is None
+    bench = Bench(compile_file(path))
+    for k, values in enumerate(scans[1:], start=1):
+        bench.set(**{n: int(v) for n, v in values.items()})
+        bench.scan(k * 10 * MS)
+        assert (bench.get("c"), bench.get("q0")) == (k + 1, int(k == 3)), k
