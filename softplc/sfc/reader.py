@@ -12,10 +12,12 @@ from __future__ import annotations
 from softplc.core.problems import Problem, ProgramError
 from softplc.core.xmltree import Node as XNode
 from softplc.core.xmltree import parse_xml
+from softplc.sfc.fbd import EVERY_SCAN, FbdError, Network, named_output
 from softplc.sfc.graph import Wiring, position
 from softplc.sfc.model import Action, Chart, Transition, Variable
 from softplc.sfc.pous import choose_pou, variables
 from softplc.sfc.st import (
+    STEP_X,
     TIME,
     Expr,
     Flag,
@@ -55,6 +57,8 @@ class _Reader:
         self.chart, self.pou, self.wiring, self.problems = chart, pou, wiring, problems
         self.names = {k: (v.name, v.kind) for k, v in chart.variables.items()}
         self.steps = {s.upper(): s for s in wiring.steps}
+        self.network = Network(wiring.objs.values(), self.names)
+        self.calls: list[tuple[str, int]] = []  # FB calls of wired networks (every scan)
 
     def problem(self, line: int, message: str) -> None:
         self.problems.append(Problem(self.chart.file, line, "", message))
@@ -79,6 +83,7 @@ class _Reader:
             self.chart.transitions.append(t)
         for block in (n for n in self.wiring.objs.values() if n.tag == "actionBlock"):
             self._actions(block)
+        self._every_scan([*self.network.calls, *self.calls])
 
     def _condition(self, node: XNode) -> tuple[str, int, bool, str | None]:
         cond = node.child("condition")
@@ -94,14 +99,20 @@ class _Reader:
         pin = cond.child("connectionPointIn") or cond
         links = [c.attrs.get("refLocalId", "") for c in pin.all("connection")]
         obj = self.wiring.objs.get(links[0]) if len(links) == 1 else None
-        if obj is not None and obj.tag == "inVariable" and obj.child("expression") is not None:
+        if obj is not None and obj.tag == "inVariable" and obj.child("expression") is not None \
+                and obj.attrs.get("negated", "false").lower() not in ("true", "1"):
             expr = obj.child("expression")
             return expr.all_text(), expr.line, negated, None  # type: ignore[union-attr]
-        what = f"{obj.tag} {obj.attrs.get('typeName', '')}".strip() if obj is not None else \
-            "nothing"
-        self.problem(cond.line, f"condition wired from {what}: FBD/LD networks in an SFC "
-                     "body are not supported; write the condition in ST (inline)")
-        return "FALSE", cond.line, False, None
+        wired = self._wired(self.network, pin, cond.line)
+        return wired or "FALSE", cond.line, negated, None
+
+    def _wired(self, network: Network, pin: XNode, line: int) -> str | None:
+        """The ST a network (FBD blocks, LD contacts) wired into `pin` computes."""
+        try:
+            return network.pin(pin, "the condition", line)
+        except FbdError as exc:
+            self.problem(exc.line, exc.message)
+            return None
 
     def _named_transition(self, ref: XNode) -> tuple[str, int]:
         name = ref.attrs.get("name", "")
@@ -109,12 +120,29 @@ class _Reader:
                   if t.attrs.get("name", "").upper() == name.upper()]
         body = bodies[0].child("body") if bodies else None
         st = body.child("ST") if body is not None else None
+        graphic = next((body.child(k) for k in ("FBD", "LD") if body is not None and
+                        body.child(k) is not None), None)
+        if st is None and graphic is not None:
+            return self._graphic_transition(name, graphic, ref.line)
         if st is None:
             kind = body.children[0].tag if body is not None and body.children else "no"
-            self.problem(ref.line, f"named transition {name!r} has {kind} body: only ST "
-                         "bodies are supported")
+            self.problem(ref.line, f"named transition {name!r} has {kind} body: only ST, FBD "
+                         "and LD bodies are supported")
             return "FALSE", ref.line
         return st.all_text(), _text_line(st)
+
+    def _graphic_transition(self, name: str, body: XNode, line: int) -> tuple[str, int]:
+        """An FBD/LD body: its outVariable or coil named after the transition is the value."""
+        out = named_output(body, name)
+        if out is None:
+            self.problem(line, f"named transition {name!r}: its {body.tag} body holds no "
+                         f"outVariable or coil named {name} (the transition's value)")
+            return "FALSE", line
+        network = Network(body.children, self.names)
+        pin = out.child("connectionPointIn")
+        text = self._wired(network, pin if pin is not None else out, out.line)
+        self.calls.extend(network.calls)
+        return text or "FALSE", out.line
 
     def _steps_in(self, node: XNode) -> dict[str, str]:
         """The steps ST names in this object: inside a macro step, its own steps go by their
@@ -263,6 +291,27 @@ class _Reader:
             self.problem(act.line, f"action {name!r} has a {kind} body: only ST is supported")
             return None, act.line
         return st.all_text(), _text_line(st)
+
+
+    def _every_scan(self, calls: list[tuple[str, int]]) -> None:
+        """The FB instances of wired networks run every scan, in one action on no step
+        (emit.py: a self-loop on an always-marked place), as Beremiz's hidden
+        COMPUTE_FUNCTION_BLOCKS does."""
+        stmts: list[tuple[str, str]] = []
+        for call, line in calls:
+            try:
+                parsed = parse_statements(call, self.names, self.steps)
+                if any(STEP_X in emit(e)[0] for _, _, e, _ in parsed):
+                    raise StError(f"{call.strip()} reads a step's X: a block in the SFC body "
+                                  "runs every scan, where softplc's statements do not read a "
+                                  "step's activity; drive a BOOL with an N action on the step "
+                                  "and wire that (as the OpenPLC Editor's charts do)", 0)
+                stmts += [(v, self._assign(v, k, e)) for v, k, e, _ in parsed]
+            except StError as exc:
+                self.problem(line, f"block in the SFC body: {exc.message}")
+        if stmts and not self.problems:
+            name = _unique(EVERY_SCAN, {s.upper() for s in self.wiring.steps})
+            self.chart.actions.append(Action("", "N", name, calls[0][1], None, tuple(stmts)))
 
 
 def _conjuncts(expr: Expr) -> list[Expr]:
