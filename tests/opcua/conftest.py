@@ -91,3 +91,16 @@ def transport_plc(tmp_path: Path) -> Iterator[Plc]:
         yield plc
     finally:
         stop_plc(plc.proc)
+
+
+@pytest.fixture(scope="module")
+def shared_plc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Plc]:
+    """One transport PLC for the tests of a module that leave it as they found it (they
+    read, or write and restore; none downloads or changes the lifecycle state for good):
+    a start of `softplc run` with OPC UA took 7-15 s of the suite's time in each test."""
+    state_dir = tmp_path_factory.mktemp("shared_plc")
+    plc = start_plc("programs/transport.yaml", state_dir)
+    try:
+        yield plc
+    finally:
+        stop_plc(plc.proc)

@@ -11,7 +11,6 @@ import signal
 import time
 from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta
-from pathlib import Path
 
 import pytest
 from asyncua import Client, ua
@@ -25,10 +24,14 @@ from tests.support import free_port
 NS_URI = "urn:softplc"
 
 
-@pytest.fixture
-def plc_with_api(tmp_path: Path) -> Iterator[tuple[Plc, int]]:
+@pytest.fixture(scope="module")
+def plc_with_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Plc, int]]:
+    """One PLC for the module (a start costs 7-15 s): each test leaves it as it found it
+    (the frozen scan process is thawed and Good again; a write to a counter changes no
+    other test's facts)."""
     api_port = free_port()
-    plc = start_plc("programs/transport.yaml", tmp_path, "--api", f"127.0.0.1:{api_port}")
+    plc = start_plc("programs/transport.yaml", tmp_path_factory.mktemp("scada"), "--api",
+                    f"127.0.0.1:{api_port}")
     try:
         yield plc, api_port
     finally:

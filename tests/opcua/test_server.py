@@ -62,9 +62,9 @@ class Collector:
         return [str(getattr(e, "EventName", "")) for e in self.events]
 
 
-def test_browse_read_and_anonymous_refusals(transport_plc: Plc) -> None:
+def test_browse_read_and_anonymous_refusals(shared_plc: Plc) -> None:
     async def body() -> None:
-        async with _client(transport_plc) as client:
+        async with _client(shared_plc) as client:
             ns = await client.get_namespace_index(NS_URI)
             symbols = await _node(client, ns, "PLC.Symbols").get_children()
             names = {(await n.read_browse_name()).Name: n for n in symbols}
@@ -100,18 +100,18 @@ async def _bigger(node: Node, than: int) -> bool:
     return int(await node.read_value()) > than
 
 
-def test_wrong_token_is_refused_at_activation(transport_plc: Plc) -> None:
+def test_wrong_token_is_refused_at_activation(shared_plc: Plc) -> None:
     async def body() -> None:
         with pytest.raises(ua.uaerrors.BadUserAccessDenied):
-            async with _client(transport_plc, "not-the-token"):
+            async with _client(shared_plc, "not-the-token"):
                 pass
 
     asyncio.run(body())
 
 
-def test_operator_writes_journaled_and_refused_with_status_codes(transport_plc: Plc) -> None:
+def test_operator_writes_journaled_and_refused_with_status_codes(shared_plc: Plc) -> None:
     async def body() -> None:
-        async with _client(transport_plc, transport_plc.token) as client:
+        async with _client(shared_plc, shared_plc.token) as client:
             ns = await client.get_namespace_index(NS_URI)
             hold = _node(client, ns, "PLC.Symbols.hold")
             await hold.write_value(ua.Variant(True, ua.VariantType.Boolean))
@@ -222,6 +222,6 @@ async def _has_symbol(client: Client, ns: int, name: str) -> bool:
     return True
 
 
-def test_state_dir_token_is_private(transport_plc: Plc) -> None:
-    mode = Path(transport_plc.state_dir / "api_token").stat().st_mode & 0o777
+def test_state_dir_token_is_private(shared_plc: Plc) -> None:
+    mode = Path(shared_plc.state_dir / "api_token").stat().st_mode & 0o777
     assert mode == 0o600
