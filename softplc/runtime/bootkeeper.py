@@ -11,8 +11,10 @@ Does not know: the scan, the channel.
 from __future__ import annotations
 
 import contextlib
+import pickle
 import time
 from concurrent.futures import ThreadPoolExecutor
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +31,34 @@ from softplc.runtime.runner import plant_conflict
 
 class BootNotKept(DownloadRefused):
     """A download refused because it could not be kept as the boot program."""
+
+
+class Awaited:
+    """A start program that `softplc run` is compiling while this process starts
+    (supervise/startprog.py BootForms): it comes over a pipe from the supervisor (a StartProgram;
+    None when the supervisor stopped first)."""
+
+    def __init__(self, conn: Connection | None) -> None:
+        self._conn = conn
+
+    def __reduce__(self) -> tuple[type[Awaited], tuple[Connection | None]]:
+        # Spawned with it: its pipe; once read (the config goes on to the compile process): none
+        conn = self._conn
+        return Awaited, (None if conn is None or conn.closed else conn,)
+
+    def receive(self) -> Any:
+        if self._conn is None:
+            return None
+        try:
+            value = pickle.loads(self._conn.recv_bytes())  # from the supervisor, our parent
+        except (EOFError, OSError):
+            value = None
+        self._conn.close()
+        return value
+
+    def close(self) -> None:
+        if self._conn is not None:
+            self._conn.close()
 
 
 class BootKeeper:
@@ -52,6 +82,11 @@ class BootKeeper:
         that program, else compiled and analysed here (a loop built directly). `started` says
         which, for status."""
         began, compiled = time.monotonic_ns(), self.config.compiled
+        if isinstance(compiled, Awaited):
+            compiled = compiled.receive()
+            if compiled is None:
+                self.source = "none (softplc run stopped before the boot program compiled)"
+                return None, None
         net, _ = self.program(compiled)
         if net is None:
             return None, None

@@ -9,7 +9,9 @@ name, file); the scan process found by its name in `ps`."""
 from __future__ import annotations
 
 import dataclasses
+import multiprocessing
 import os
+import pickle
 import shutil
 import signal
 import subprocess
@@ -18,13 +20,14 @@ from pathlib import Path
 from softplc.bench import netgen
 from softplc.program import boot
 from softplc.program import bundle as bundles
+from softplc.runtime.bootkeeper import Awaited
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.supervise.startprog import (
     COMPILE_PROCESS,
     HERE,
     IN_CLI_BYTES,
+    BootForms,
     compile_boot,
-    for_boot,
 )
 from tests.runtime.test_supervision import ROOT, Run, runs  # noqa: F401 (the fixture)
 from tests.support import eventually_reachable
@@ -140,15 +143,30 @@ def test_a_big_boot_program_compiles_in_a_compile_process_and_a_bundle_here(
 def test_the_compiled_boot_program_is_kept_for_the_next_restart(tmp_path: Path) -> None:
     state = tmp_path / "state"
     config = LoopConfig(root=str(ROOT), state_dir=str(state))
-    assert for_boot(config) is None  # no boot program: nothing to compile
+    forms = BootForms(multiprocessing.get_context("spawn"))
+    assert forms.for_scan(config) == (config, None)  # no boot program: nothing to compile
     text = (ROOT / "programs" / "tank.yaml").read_text(encoding="utf-8")
     boot.save(state, boot.BootProgram(str(ROOT / "programs" / "tank.yaml"), text, str(ROOT)))
-    compiled = for_boot(config)
-    assert compiled.load().name == "tank"
-    kept = dataclasses.replace(config, compiled=compiled)
-    assert for_boot(kept) is compiled  # the same boot program: not compiled again
-    assert for_boot(kept, stopping=lambda: True) is compiled
+    config, given = forms.for_scan(config)
+    assert isinstance(given, Awaited)  # a scan process starts meanwhile, and waits for it
+    config, again = forms.for_scan(config)  # a restart before it compiled: the same compile
+    compiled = given.receive()
+    assert compiled.load().name == "tank" and again.receive() == compiled
+    config, kept = forms.for_scan(config)
+    assert kept == compiled == config.compiled  # the same boot program: not compiled again
     boot.save(state, boot.BootProgram(str(ROOT / "programs" / "other.yaml"),
                                       text.replace("3s", "4s"), str(ROOT)))
-    other = for_boot(kept)  # another boot program (a download accepted since): compiled
-    assert other is not compiled and not other.problem and other.serves(boot.load(state))
+    config, other = forms.for_scan(config)  # another boot program (a download since): compiled
+    other = other.receive()
+    assert other != compiled and not other.problem and other.serves(boot.load(state))
+    pickle.loads(pickle.dumps(dataclasses.replace(config, compiled=given)))  # read: picklable
+
+
+def test_a_scan_process_gets_no_form_when_softplc_run_stops_first(tmp_path: Path) -> None:
+    state = tmp_path / "state"
+    text = netgen.to_yaml(netgen.ring(1200), "../../io_images/transport.yaml")
+    boot.save(state, boot.BootProgram(str(state / "p" / "ring.yaml"), text, None))
+    forms = BootForms(multiprocessing.get_context("spawn"))
+    _, given = forms.for_scan(LoopConfig(state_dir=str(state)))
+    forms.cancel()
+    assert given.receive() is None

@@ -219,9 +219,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"softplc: {exc}", file=sys.stderr)
         supervisor.stop()
         return EXIT_START
-    if supervisor.scan is None:  # a signal while the boot program compiled
-        supervisor.stop()
-        return EXIT_OK
     notifier = Notifier()
     notifier.send(f"READY=1\nMAINPID={os.getpid()}\nSTATUS=scanning")
     _banner(args, supervisor.status())

@@ -1,7 +1,8 @@
 """What `softplc run` compiles before a scan process starts, so that no scan process parses YAML
 (docs/design.md section 12): its start program (compile_start), or else the state
 directory's boot program (compile_boot: a start without a program, and every restart of the
-scan process once a download was accepted; for_boot: unless the form it has serves it).
+scan process once a download was accepted; BootForms: unless the form it has serves it,
+while that scan process starts).
 
 Owns: the requests (StartRequest, BootRequest) and their compiled form (StartProgram, what the
 scan process loads: runtime/bootkeeper.py); where they compile: a program up to IN_CLI_BYTES
@@ -17,9 +18,10 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
+import pickle
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +30,7 @@ from softplc.core.problems import ProgramError
 from softplc.program import boot, wire
 from softplc.program import bundle as bundles
 from softplc.program.compiler import compile_file, compile_text
+from softplc.runtime.bootkeeper import Awaited
 from softplc.runtime.compileproc import COMPILE_TIMEOUT_S, CompileProcess
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.prepare import CompilerFailed, Preparer
@@ -133,27 +136,83 @@ def compile_boot(program: boot.BootProgram, config: LoopConfig,
                             problem=f"internal compiler error ({type(exc).__name__}: {exc})")
 
 
-def for_boot(config: LoopConfig, stopping: Callable[[], bool] = lambda: False) -> Any:
-    """What a scan process about to start without a program loads (LoopConfig.compiled): the
-    state directory's boot program compiled (compile_boot, on a thread, so that `stopping()`
-    is heard meanwhile), or `config.compiled` when that serves it already (the command line's
-    program, a boot program compiled for an earlier restart), when there is none, when it
-    cannot be read (the scan process says why), or when `stopping()` came first."""
-    if not config.state_dir or not config.boot:
-        return config.compiled
-    try:
-        program = boot.load(config.state_dir)
-    except boot.BootUnreadable:
-        return config.compiled
-    if program is None or (config.compiled is not None and config.compiled.serves(program)):
-        return config.compiled
-    done: list[StartProgram] = []
-    worker = threading.Thread(target=lambda: done.append(compile_boot(program, config)),
-                              name="boot-compile", daemon=True)
-    worker.start()
-    while worker.is_alive() and not stopping():
-        worker.join(0.05)
-    return done[0] if done else config.compiled
+class BootForms:
+    """The supervisor's boot program, compiled for the scan processes it starts: a scan process
+    starts at once (its imports, ~0.5 s of CPU, while the boot program compiles on a thread of
+    the supervisor) and waits for the form (bootkeeper.Awaited), which is kept for the next
+    restart; one compile per boot program, whatever restarts come meanwhile."""
+
+    def __init__(self, ctx: Any) -> None:
+        self.ctx = ctx  # the supervisor's multiprocessing context (spawn): its pipes
+        self._job: _BootJob | None = None
+
+    def for_scan(self, config: LoopConfig) -> tuple[LoopConfig, Any]:
+        """The supervisor's configuration (holding the last form compiled) and what a scan
+        process about to start without a program gets as LoopConfig.compiled: a form that
+        serves the state directory's boot program, else an Awaited one; `config.compiled`
+        when there is none or it cannot be read (the scan process says why)."""
+        job = self._job
+        if job is not None and job.result is not None:
+            config, self._job = dataclasses.replace(config, compiled=job.result), None
+        if not config.state_dir or not config.boot:
+            return config, config.compiled
+        try:
+            program = boot.load(config.state_dir)
+        except boot.BootUnreadable:
+            return config, config.compiled
+        if program is None or (config.compiled is not None and config.compiled.serves(program)):
+            return config, config.compiled
+        if self._job is None or self._job.program != program:
+            self._job = _BootJob(program, config)
+        return config, self._job.awaited(self.ctx)
+
+    @staticmethod
+    def started(given: Any) -> None:
+        """After the scan process was spawned with `given`: this process's end of its pipe
+        closed, so that a scan process gone before it read makes the send fail, not block."""
+        if isinstance(given, Awaited):
+            given.close()
+
+    def cancel(self) -> None:
+        """At a stop: a scan process still waiting gets no form (it starts with no program)."""
+        if self._job is not None:
+            self._job.cancel()
+
+
+class _BootJob:
+    """One compile of a boot program (compile_boot) on a thread, its form sent to every scan
+    process that waits for it."""
+
+    def __init__(self, program: boot.BootProgram, config: LoopConfig) -> None:
+        self.program, self.config = program, config
+        self.result: StartProgram | None = None
+        self._lock = threading.Lock()
+        self._waiting: list[Connection] = []
+        threading.Thread(target=self._run, name="boot-compile", daemon=True).start()
+
+    def awaited(self, ctx: Any) -> StartProgram | Awaited:
+        with self._lock:
+            if self.result is not None:
+                return self.result
+            theirs, mine = ctx.Pipe(duplex=False)
+            self._waiting.append(mine)
+        return Awaited(theirs)
+
+    def _run(self) -> None:
+        result = compile_boot(self.program, self.config)
+        data = pickle.dumps(result, protocol=5)
+        with self._lock:
+            self.result, waiting, self._waiting = result, self._waiting, []
+        for conn in waiting:  # a scan process reads it after its imports
+            with contextlib.suppress(OSError, ValueError):  # gone meanwhile
+                conn.send_bytes(data)
+            conn.close()
+
+    def cancel(self) -> None:
+        with self._lock:
+            waiting, self._waiting = self._waiting, []
+        for conn in waiting:
+            conn.close()
 
 
 def _size(program: boot.BootProgram) -> int:

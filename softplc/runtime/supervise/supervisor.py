@@ -42,7 +42,7 @@ from softplc.runtime.shared.channel import Channel
 from softplc.runtime.shared.procs import ReadySignal, StopFlag
 from softplc.runtime.shared.shm import SnapshotWriter
 from softplc.runtime.supervise.leftovers import SHM_PREFIX, record_semaphores
-from softplc.runtime.supervise.startprog import for_boot
+from softplc.runtime.supervise.startprog import BootForms
 
 SCAN_RESTARTS: Final = 5  # scan process restarts allowed within RESTART_WINDOW_S
 COMM_RESTARTS: Final = 5  # restarts of each service process allowed within RESTART_WINDOW_S
@@ -117,6 +117,7 @@ class Supervisor:
         self.final: dict[str, Any] = {}
         self.segment: SnapshotWriter | None = None
         self.board: StatusBoard | None = None
+        self.boot_forms = BootForms(self.ctx)  # the boot program compiled for a scan process
 
     @property
     def modbus(self) -> Any:
@@ -186,11 +187,10 @@ class Supervisor:
         # service processes keep their mappings (and say "stale") across a restart.
         self.segment = SnapshotWriter.create(self.loop_config.sizes, self.shm_name)
         self.board = StatusBoard.create(self.board_name)
-        if not self.loop_config.program:  # the boot program, compiled here (design.md §12)
-            self._boot_compiled()
-        if stopping():
-            return  # no scan process: stop() has nothing to make safe
-        self.start_scan(self.loop_config, timeout_s)
+        config = self.loop_config
+        if not config.program:  # the boot program, compiled here (design.md §12)
+            config = dataclasses.replace(config, compiled=self._boot_form())
+        self.start_scan(config, timeout_s)
         if not stopping():
             self.start_services(timeout_s)
         record_semaphores(self.tag)
@@ -202,6 +202,7 @@ class Supervisor:
             args=(config, self.channel, self.shm_name, self.board_name, ready,
                   self.stop_scan, *self.scan_args))
         self.scan.start()
+        self.boot_forms.started(config.compiled)
         self._scan_says = ready
         self.stop_scan.bind(self.scan.pid)
         deadline = time.monotonic() + timeout_s
@@ -309,13 +310,11 @@ class Supervisor:
         self.restarts += 1
         # Event numbers go on: HTTP's Last-Event-ID and OPC UA's LastEventSeq hold across it
         self.event_seq = max(self.event_seq, newest_seq(self.status()))
-        if self.loop_config.state_dir:
-            self._boot_compiled()
-            if self._stopping():  # heard while it compiled: stop() follows, nothing to start
-                return f"restart {self.restarts} not started: stopping"
+        compiled = self._boot_form() if self.loop_config.state_dir else self.loop_config.compiled
         config = dataclasses.replace(
-            self.loop_config, restarts=self.restarts, restart_reason=self.restart_reason,
-            paused_at_restart=self.paused_at_restart, first_event_seq=self.event_seq,
+            self.loop_config, compiled=compiled, restarts=self.restarts,
+            restart_reason=self.restart_reason, paused_at_restart=self.paused_at_restart,
+            first_event_seq=self.event_seq,
             # The boot program (the last one accepted) and the newest snapshot: warm.
             program=None if self.loop_config.state_dir else self.loop_config.program,
             start=True)
@@ -327,11 +326,12 @@ class Supervisor:
         record_semaphores(self.tag)
         return f"scan process restarted (restart {self.restarts}, pid {self.scan.pid})"
 
-    def _boot_compiled(self) -> None:
-        """The state directory's boot program (the last one accepted) compiled before a scan
-        process starts with it, and kept for the next restart: no scan process parses YAML."""
-        self.loop_config = dataclasses.replace(
-            self.loop_config, compiled=for_boot(self.loop_config, self._stopping))
+    def _boot_form(self) -> Any:
+        """The state directory's boot program (the last one accepted) compiled here while a
+        scan process starts with it, and kept for the next restart: no scan process parses
+        YAML."""
+        self.loop_config, compiled = self.boot_forms.for_scan(self.loop_config)
+        return compiled
 
     def _service_died(self, service: ServiceProcess) -> str:
         code = service.proc.exitcode
@@ -355,6 +355,7 @@ class Supervisor:
         still runs after `timeout_s` is killed."""
         deadline = time.monotonic() + timeout_s
         self.stop_scan.set()
+        self.boot_forms.cancel()
         self._await_safe(min(deadline, time.monotonic() + SAFE_WAIT_S))
         for service in self.services:
             service.stop.set()
