@@ -36,10 +36,13 @@ Rules it implements (docs/sfc.md states the same choices for the net):
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import defusedxml.ElementTree as ET  # type: ignore[import-untyped]
+
+from tests.sfc.refnet import RefNet
 
 
 def _local(tag: str) -> str:
@@ -58,7 +61,7 @@ def _text(node: Any) -> str:
 class RefTransition:
     sources: list[str]
     targets: list[str]
-    condition: str
+    condition: str | Callable[[dict[str, Any], dict[str, Any]], Any]  # ST, or a network
     key: tuple[int, float, int]
 
 
@@ -71,6 +74,7 @@ class RefChart:
     bodies: dict[str, str]
     types: dict[str, str] = field(default_factory=dict)
     durations: dict[tuple[str, str], int] = field(default_factory=dict)  # (step, name) -> ms
+    nets: list[RefNet] = field(default_factory=list)  # FBD/LD networks wired into conditions
 
 
 def read(xml_text: str, pou_name: str | None = None) -> RefChart:
@@ -106,10 +110,11 @@ def read(xml_text: str, pou_name: str | None = None) -> RefChart:
         return out
 
     transitions = []
+    nets = [RefNet(sfc, lambda text, env: Eval(text, env).expr())]
     for lid, o in objs.items():
         if _local(o.tag) != "transition":
             continue
-        text = _condition(_kids(o, "condition")[0], pou, objs)
+        text = _condition(_kids(o, "condition")[0], pou, objs, nets)
         pos = _kids(o, "position")
         x = float(pos[0].get("x", 0)) if pos else 0.0
         transitions.append(RefTransition(
@@ -137,8 +142,8 @@ def read(xml_text: str, pou_name: str | None = None) -> RefChart:
     bodies = {a.get("name"): _text(a) for a in pou.iter() if _local(a.tag) == "action"
               and a.get("name")} | inline
     types = {v.get("name"): _type(next(iter(_kids(v, "type")[0])))
-             for v in pou.iter() if _local(v.tag) == "variable"}
-    return RefChart(steps, initial, transitions, actions, bodies, types, durations)
+             for v in pou.iter() if _local(v.tag) == "variable" and _kids(v, "type")}
+    return RefChart(steps, initial, transitions, actions, bodies, types, durations, nets)
 
 
 def _type(node: Any) -> str:
@@ -146,20 +151,36 @@ def _type(node: Any) -> str:
     return str(node.get("name")).upper() if _local(node.tag) == "derived" else _local(node.tag)
 
 
-def _condition(cond: Any, pou: Any, objs: dict[str, Any]) -> str:
-    """Inline ST, a named transition's `:= expr;` body, or a wired inVariable's expression."""
+def _condition(cond: Any, pou: Any, objs: dict[str, Any], nets: list[RefNet]
+               ) -> str | Callable[[dict[str, Any], dict[str, Any]], Any]:
+    """Inline ST, a named transition's `:= expr;` body or FBD/LD network (its outVariable or
+    coil named after it), a wired inVariable's expression, or a wired network."""
+    negated = cond.get("negated") == "true"
     if _kids(cond, "inline"):
         text = _text(_kids(cond, "inline")[0])
     elif _kids(cond, "reference"):
         name = _kids(cond, "reference")[0].get("name")
         body = next(t for t in pou.iter() if _local(t.tag) == "transition"
                     and t.get("name") == name)
+        graphic = [g for g in body.iter() if _local(g.tag) in ("FBD", "LD")]
+        if graphic:
+            out = next(o for o in graphic[0] if _local(o.tag) in ("outVariable", "coil") and
+                       _text(o).strip().upper().endswith(name.upper()))
+            nets.append(RefNet(graphic[0], nets[0].expr))
+            return _negated(nets[-1].wire(_kids(out, "connectionPointIn")[0]), negated)
         text = _text(body).split(":=", 1)[-1].strip().rstrip(";")
     else:
         pins = _kids(cond, "connectionPointIn") or [cond]
         ref = _kids(pins[0], "connection")[0].get("refLocalId")
+        if _local(objs[ref].tag) != "inVariable" or objs[ref].get("negated") == "true":
+            return _negated(nets[0].wire(pins[0]), negated)
         text = _text(next(e for e in objs[ref] if _local(e.tag) == "expression"))
-    return f"NOT ({text})" if cond.get("negated") == "true" else text
+    return f"NOT ({text})" if negated else text
+
+
+def _negated(wire: Callable[[dict[str, Any], dict[str, Any]], Any], negated: bool
+             ) -> Callable[[dict[str, Any], dict[str, Any]], Any]:
+    return (lambda env, fbs: not wire(env, fbs)) if negated else wire
 
 
 # ---- a small ST evaluator (its own tokenizer and precedence climbing) ----
@@ -220,7 +241,9 @@ class Eval:
                 self.i += 1
                 args.append(self.expr())
             self.i += 1
-            return {"AND": all, "OR": any, "SEL": lambda a: a[2] if a[0] else a[1]}[tok](args)
+            funcs: dict[str, Callable[[list[Any]], Any]] = {
+                "AND": all, "OR": any, "SEL": lambda a: a[2] if a[0] else a[1]}
+            return funcs[tok](args)
         return self.env[tok]
 
 
@@ -353,7 +376,9 @@ class RefSfc:
         env |= {f"{n}.Q": fb.q for n, fb in self.fbs.items()}
         left, entered, free = set(), set(), set(self.active)
         for t in sorted(self.c.transitions, key=lambda t: t.key):
-            if all(s in free for s in t.sources) and Eval(t.condition, env).expr():
+            clears = t.condition(env, self.fbs) if callable(t.condition) else \
+                Eval(t.condition, env).expr()
+            if all(s in free for s in t.sources) and clears:
                 free -= set(t.sources)
                 left |= set(t.sources)
                 entered |= set(t.targets)
@@ -364,6 +389,8 @@ class RefSfc:
         self._actions(before, left - entered, entered - (before - left), now_ms)
 
     def _actions(self, before: set[str], gone: set[str], new: set[str], now: int) -> None:
+        for net in self.c.nets:  # the blocks first, on the variables as the last scan left them
+            net.run_blocks(self.env, self.fbs, self.prev)
         for var in self.pulsed:
             self.env[var] = False
         self.pulsed = set()
