@@ -1,10 +1,11 @@
 """The boot program at work: which program a starting PLC runs, and every accepted download
 kept as the next start's program (written off the scan).
 
-Owns: the command line's program or else the state directory's boot program; the boot
-program rewritten only when it changed; a download staged as the next boot program before it
-is decided (a disk that cannot take it refuses the download: BootNotKept) and put in force
-when it is accepted. Storage itself: program/boot.py.
+Owns: the command line's program or else the state directory's boot program, loaded as
+`softplc run` compiled it (config.compiled; Awaited: still compiling while this process
+started); the boot program rewritten only when it changed; a download staged as the next
+boot program before it is decided (a disk that cannot take it refuses the download:
+BootNotKept) and put in force when it is accepted. Storage itself: program/boot.py.
 Does not know: the scan, the channel.
 """
 

@@ -1,5 +1,5 @@
-"""What `softplc run` compiles before a scan process starts, so that no scan process parses YAML
-(docs/design.md section 12): its start program (compile_start), or else the state
+"""What `softplc run` compiles for a scan process, so that no scan process parses YAML
+(docs/design.md section 12): its start program (compile_start, before), or else the state
 directory's boot program (compile_boot: a start without a program, and every restart of the
 scan process once a download was accepted; BootForms: unless the form it has serves it,
 while that scan process starts).

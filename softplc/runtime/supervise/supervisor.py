@@ -5,7 +5,7 @@ with outputs driven safe.
 Owns: process start order; the shared-memory segments (they outlive a scan process, so the
 service processes keep serving across a restart); restarting a dead scan process warm from
 the newest retain snapshot and the boot program, with backoff, at most SCAN_RESTARTS times in
-RESTART_WINDOW_S, then giving up (GaveUp), its boot program compiled before
+RESTART_WINDOW_S, then giving up (GaveUp), its boot program compiled meanwhile
 (supervise/startprog.py), and STOPPED if it died paused at a breakpoint
 (its last status board says so; docs/debug.md); restarting a dead service process within
 the same kind of budget, each its own; stopping everything within STOP_S in every state, also
