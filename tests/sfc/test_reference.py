@@ -19,7 +19,8 @@ from tests.sfc.refsfc import RefSfc, read
 
 EXAMPLES = Path(__file__).parent / "examples"
 PROGRAMS = Path(__file__).parents[2] / "programs"
-RUNNABLE = sorted([*EXAMPLES.glob("*.xml"), *PROGRAMS.glob("*_sfc.xml")])
+FBD = Path(__file__).parent / "fbd"  # conditions wired from FBD/LD networks (not exported)
+RUNNABLE = sorted([*EXAMPLES.glob("*.xml"), *FBD.glob("*.xml"), *PROGRAMS.glob("*_sfc.xml")])
 # No shrinking: a failure prints its chart (the assertion message) and stays fast.
 SETTINGS = settings(max_examples=scaled(15), deadline=None, derandomize=True,
                     phases=[Phase.explicit, Phase.reuse, Phase.generate],
