@@ -97,6 +97,13 @@ class _Writer:
                 raise NotWritten(n.line, f"macro step {n.attrs.get('name', '')!r}: a chart "
                                  "with macro steps is not written back (softplc inlines their "
                                  "bodies; the flattened names are no IEC identifiers)")
+        graphic = [a.line for a in chart.actions if not a.step] + [  # reader.py, sfc/fbd.py
+            t.line for g in pou.all("transitions") for t in g.all("transition")
+            if (b := t.child("body")) is not None and b.child("ST") is None]
+        if graphic:
+            raise NotWritten(graphic[0], "function blocks wired into conditions and FBD/LD "
+                             "named transitions are not written back (softplc reads them as ST "
+                             "and the blocks' calls; the network's drawing is not kept)")
         self.trans = _paired([n for n in objs.values() if n.tag == "transition"],
                              chart.transitions)
         self.acts = _paired([a for b in objs.values() if b.tag == "actionBlock"

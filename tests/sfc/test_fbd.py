@@ -11,6 +11,7 @@ import pytest
 
 from softplc.core.problems import ProgramError
 from softplc.program.compiler import compile_file
+from softplc.sfc.export import export_plcopen
 from tests.core.helpers import Bench
 from tests.sfc.compare import compare
 
@@ -127,3 +128,13 @@ def test_a_network_outside_the_subset_is_refused_at_its_object(
     message = str(info.value)
     assert said in message, message
     assert f"{path}:{_line(text, at)}:" in message, message
+
+
+@pytest.mark.parametrize("path", [OPENPLC, BEREMIZ], ids=lambda p: p.name)
+def test_a_chart_with_wired_blocks_is_not_exported(path: Path) -> None:
+    with pytest.raises(ProgramError) as info:
+        export_plcopen(compile_file(path), compile_file)  # the calls would be lost
+    [problem] = info.value.problems
+    assert problem.file == str(path)
+    assert "function blocks wired into conditions and FBD/LD named transitions are not " \
+        "written back" in problem.message
