@@ -8,12 +8,16 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import strategies as st
 
 from softplc.core.problems import ProgramError
 from softplc.program.compiler import compile_file
 from softplc.sfc.export import export_plcopen
 from tests.core.helpers import Bench
+from tests.fuzz.budget import scaled
 from tests.sfc.compare import compare
+from tests.sfc.fbdgen import fbd_chart, fbd_inputs
 
 FBD = Path(__file__).parent / "fbd"
 OPENPLC = FBD / "openplc_traffic_fbd.xml"
@@ -138,3 +142,15 @@ def test_a_chart_with_wired_blocks_is_not_exported(path: Path) -> None:
     assert problem.file == str(path)
     assert "function blocks wired into conditions and FBD/LD named transitions are not " \
         "written back" in problem.message
+
+
+@settings(max_examples=scaled(60), deadline=None, derandomize=True,
+          phases=[Phase.explicit, Phase.reuse, Phase.generate],
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(data=st.data())
+def test_generated_wired_conditions_agree_with_the_reference(
+        tmp_path_factory: pytest.TempPathFactory, data: st.DataObject) -> None:
+    path = tmp_path_factory.mktemp("fbd") / "gen.xml"
+    text = fbd_chart(data)
+    path.write_text(text, encoding="utf-8")
+    assert compare(path, fbd_inputs(data, 40)) is None, text
