@@ -33,7 +33,7 @@ from softplc.core.judge import NOTHING_OBSERVED, Observed
 from softplc.runtime.clock import MonotonicClock, Schedule
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.loop import ScanLoop
-from softplc.runtime.realtime import NORMAL, Realtime, apply
+from softplc.runtime.realtime import NORMAL, Realtime, apply, share_interpreter
 from softplc.runtime.scanproc import attached, scan_process_main
 from softplc.runtime.serve.comm import CommConfig
 from softplc.runtime.shared.board import StatusBoard
@@ -176,7 +176,7 @@ def bench_scan_main(config: LoopConfig, channel: Channel, shm_name: str, board_n
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     die_with_parent()
-    realtime = apply(config.realtime)
+    realtime = apply(config.realtime) + ", " + share_interpreter(config.period_ns)
     # The supervisor created both segments (it owns them, as for `softplc run`): publish into
     # them. Creating them here replaced the supervisor's, which then leaked in the harness.
     with attached(config, shm_name, board_name) as (writer, board):

@@ -19,7 +19,7 @@ from collections.abc import Iterator
 from softplc.core.problems import ProgramError
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.loop import ScanLoop
-from softplc.runtime.realtime import apply
+from softplc.runtime.realtime import apply, share_interpreter
 from softplc.runtime.retain.writer import StateDirBusy
 from softplc.runtime.shared.board import StatusBoard
 from softplc.runtime.shared.channel import Channel
@@ -53,6 +53,7 @@ def scan_process_main(config: LoopConfig, channel: Channel, shm_name: str, board
 
     threading.Thread(target=watch_parent, name="watch-parent", daemon=True).start()
     realtime = apply(config.realtime)  # after the watcher: it keeps normal scheduling
+    realtime += ", " + share_interpreter(config.period_ns)
     with attached(config, shm_name, board_name) as (writer, board):
         try:
             loop = ScanLoop(config, channel, writer, board=board)

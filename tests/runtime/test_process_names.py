@@ -46,6 +46,9 @@ def test_each_process_of_softplc_run_shows_its_name(tmp_path: Path) -> None:
         assert comm(status["scan_pid"]) == "softplc-scan"
         assert ours == ["softplc-http", "softplc-modbus", "softplc-opcua", "softplc-scan"]
         assert children(status["scan_pid"]) == [compile_pid]
+        # The scan process shares the interpreter a fifth of its period at a time (realtime.py).
+        fifth_ms = min(5.0, max(0.05, status["period_us"] / 5000))
+        assert status["realtime"].endswith(f"interpreter switch interval {fifth_ms:g} ms")
 
 
 def test_every_service_name_fits_linux_comm() -> None:

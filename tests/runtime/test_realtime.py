@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -14,7 +15,13 @@ from typing import Any
 
 import pytest
 
-from softplc.runtime.realtime import Realtime, apply, background_thread, keep_off_scan_cpu
+from softplc.runtime.realtime import (
+    Realtime,
+    apply,
+    background_thread,
+    keep_off_scan_cpu,
+    share_interpreter,
+)
 
 
 def probe(rt: Realtime, out: Connection) -> None:
@@ -120,3 +127,21 @@ def test_run_refuses_busy_wait_with_a_fifo_priority_before_starting_anything(
                  "--modbus", "127.0.0.1:0", "--api", "127.0.0.1:0"])
     assert code == EXIT_USAGE
     assert "--busy-wait with --rt-priority" in capsys.readouterr().err
+
+
+def switch_probe(periods: list[int], out: Connection) -> None:
+    seen = []
+    for period_ns in periods:
+        said = share_interpreter(period_ns)
+        seen.append((said, sys.getswitchinterval()))
+    out.send(seen)
+
+
+def test_the_scan_process_lets_a_helper_thread_hold_it_off_a_fifth_of_a_period_at_most() -> None:
+    """A thread holding the interpreter lock keeps the scan waiting up to the switch interval
+    (CPython's 5 ms: several slots at 1 ms): a fifth of the period, 50 us..5 ms, said."""
+    got = in_child(switch_probe, [1_000_000, 10_000_000, 100_000_000, 100_000])
+    assert [round(seconds * 1e6) for _, seconds in got] == [200, 2000, 5000, 50]
+    assert [said for said, _ in got] == [
+        "interpreter switch interval 0.2 ms", "interpreter switch interval 2 ms",
+        "interpreter switch interval 5 ms", "interpreter switch interval 0.05 ms"]
