@@ -1,9 +1,11 @@
 """PLCopen TC6 XML (tc6_0201, tc6_0200, tc6.xsd) -> Chart: conditions and actions.
 
-Owns: the three (four) forms of a transition condition (inline ST, a named transition's ST
-body, an inVariable wired into it, the 2008 bare connection), the split of a condition into
-step-flag arcs, a step-time delay and a guard, and actions with their qualifiers: what maps
-soundly onto the net and the located refusal of the rest (docs/sfc.md).
+Owns: the three (four) forms of a transition condition (inline ST, a named transition's ST,
+FBD or LD body, an inVariable or an FBD/LD network wired into it, the 2008 bare connection;
+sfc/fbd.py writes a network's ST, its function blocks' calls become one every-scan action
+on no step), the split of a condition into step-flag arcs, a step-time delay and a guard,
+and actions with their qualifiers: what maps soundly onto the net and the located refusal
+of the rest (docs/sfc.md).
 Does not know: YAML, the engine.
 """
 
