@@ -154,3 +154,18 @@ def test_generated_wired_conditions_agree_with_the_reference(
     text = fbd_chart(data)
     path.write_text(text, encoding="utf-8")
     assert compare(path, fbd_inputs(data, 40)) is None, text
+
+
+def test_a_negated_invariable_wired_into_a_condition_is_negated(tmp_path: Path) -> None:
+    # CODESYS's wired inVariable, negated: its expression was read and the negation dropped.
+    source = Path(__file__).parent / "examples" / "codesys_press.xml"
+    text = source.read_text(encoding="utf-8").replace(
+        '<inVariable localId="1">', '<inVariable localId="1" negated="true">', 1)
+    path = tmp_path / "negated.xml"
+    path.write_text(text, encoding="utf-8")
+    steps = ("Init", "Pressing")
+    assert _steps(source, {}, 1, steps) == ["Init"]  # start AND at_top: both inputs 0
+    assert _steps(path, {}, 1, steps) == ["Pressing"]  # NOT (start AND at_top)
+    scans = [{"start": k % 3 == 0, "at_top": k % 4 != 1, "at_bottom": k % 5 == 2}
+             for k in range(40)]
+    assert compare(path, scans) is None
