@@ -60,7 +60,7 @@ class Network:
         self.objs = {n.attrs["localId"]: n for n in objects if "localId" in n.attrs}
         self.names = names
         self.done: dict[str, bool] = {}  # block localId -> called (True) / being walked
-        self.calls: list[tuple[str, int]] = []  # (ST call statement, the block's line)
+        self.calls: list[tuple[str, int, str]] = []  # (ST call, the block's line, the block)
 
     def pin(self, pin: Node, what: str, line: int) -> str:
         """The ST value on an input pin (a connectionPointIn or its owner)."""
@@ -139,8 +139,7 @@ class Network:
         if inst and typ in (*fbs.TIMERS, *fbs.TRIGGERS):
             return self._instance(node, typ, inst, output)
         if typ not in (*LOGIC, *COMPARE, "NOT", "SEL") or inst:
-            raise FbdError(node.line, f"{_desc(node)}: block {typ or '?'} is outside the "
-                           f"subset; {SUPPORTED}")
+            raise FbdError(node.line, f"{_desc(node)} is outside the subset; {SUPPORTED}")
         lid = node.attrs["localId"]
         if self.done.get(lid) is False:
             raise FbdError(node.line, f"{_desc(node)} is in a loop: a network wired into a "
@@ -197,7 +196,8 @@ class Network:
     def _instance(self, node: Node, typ: str, inst: str, output: str) -> str:
         declared = self.names.get(inst.upper())
         if declared is None or declared[1] != f"fb:{typ}":
-            got = "not declared" if declared is None else f"declared {declared[1]}"
+            got = "not declared" if declared is None else \
+                f"declared as {declared[1].removeprefix('fb:').upper()}"
             raise FbdError(node.line, f"{_desc(node)}: the instance {inst} is {got}; declare "
                            f"`{inst} : {typ}` in the POU's interface")
         if (output or "Q").upper() != "Q":
@@ -213,7 +213,7 @@ class Network:
             args = self._inputs(node)
             self.done[lid] = True
             text = ", ".join(f"{p} := {v}" for p, v in args)
-            self.calls.append((f"{inst}({text});", node.line))
+            self.calls.append((f"{inst}({text});", node.line, _desc(node)))
         return _not(f"{inst}.Q", self._out_negated(node, "Q"))
 
 

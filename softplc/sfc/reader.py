@@ -60,7 +60,7 @@ class _Reader:
         self.names = {k: (v.name, v.kind) for k, v in chart.variables.items()}
         self.steps = {s.upper(): s for s in wiring.steps}
         self.network = Network(wiring.objs.values(), self.names)
-        self.calls: list[tuple[str, int]] = []  # FB calls of wired networks (every scan)
+        self.calls: list[tuple[str, int, str]] = []  # FB calls of wired networks (every scan)
 
     def problem(self, line: int, message: str) -> None:
         self.problems.append(Problem(self.chart.file, line, "", message))
@@ -295,12 +295,12 @@ class _Reader:
         return st.all_text(), _text_line(st)
 
 
-    def _every_scan(self, calls: list[tuple[str, int]]) -> None:
+    def _every_scan(self, calls: list[tuple[str, int, str]]) -> None:
         """The FB instances of wired networks run every scan, in one action on no step
         (emit.py: a self-loop on an always-marked place), as Beremiz's hidden
         COMPUTE_FUNCTION_BLOCKS does."""
         stmts: list[tuple[str, str]] = []
-        for call, line in calls:
+        for call, line, block in calls:
             try:
                 parsed = parse_statements(call, self.names, self.steps)
                 if any(STEP_X in emit(e)[0] for _, _, e, _ in parsed):
@@ -310,7 +310,7 @@ class _Reader:
                                   "and wire that (as the OpenPLC Editor's charts do)", 0)
                 stmts += [(v, self._assign(v, k, e)) for v, k, e, _ in parsed]
             except StError as exc:
-                self.problem(line, f"block in the SFC body: {exc.message}")
+                self.problem(line, f"{block} in the SFC body: {exc.message}")
         if stmts and not self.problems:
             name = _unique(EVERY_SCAN, {s.upper() for s in self.wiring.steps})
             self.chart.actions.append(Action("", "N", name, calls[0][1], None, tuple(stmts)))

@@ -95,7 +95,7 @@ def _line(text: str, needle: str) -> int:
 
 CASES = [  # (file, replace this, with this, the object whose line is reported, said)
     (OPENPLC, 'typeName="OR" height', 'typeName="SR" height', 'localId="16"',
-     "block SR is outside the subset; supported in a wired condition"),
+     "block SR (localId 16) is outside the subset; supported in a wired condition"),
     (OPENPLC, '<connection refLocalId="21"/>', "", 'localId="20"',
      "input CLK of block R_TRIG R_TRIG0 (localId 20) is not connected"),
     (OPENPLC, '<connection refLocalId="20" formalParameter="Q">',
@@ -107,7 +107,7 @@ CASES = [  # (file, replace this, with this, the object whose line is reported, 
     (OPENPLC, 'instanceName="TON2"', 'instanceName="TON9"', 'localId="25"',
      "the instance TON9 is not declared"),
     (OPENPLC, 'instanceName="TON2"', 'instanceName="R_TRIG0"', 'localId="25"',
-     "the instance R_TRIG0 is declared fb:R_TRIG"),
+     "the instance R_TRIG0 is declared as R_TRIG"),
     (BEREMIZ, '<contact localId="13" height="15" width="21" negated="false">',
      '<contact localId="13" height="15" width="21" negated="false" edge="rising">',
      'localId="13"', "an edge contact (rising/falling) is not supported"),
