@@ -75,7 +75,7 @@ def compile_main(config: LoopConfig, conn: Connection,
     prep = Preparer(config, lambda: None, lambda: ())
     if background:  # the CLI's start compile stays at normal priority: the start waits for it
         idle(0)  # imports done at normal priority (see starting()); every compile in background
-    no_memory = pickle.dumps(("ended", CompilerFailed(_over_memory(memory_bytes))), protocol=5)
+    no_memory = replyfile.pack(("ended", CompilerFailed(_over_memory(memory_bytes))))
     _limit_memory(memory_bytes)
     signal.signal(signal.SIGXCPU, _out_of_cpu)
     while True:
