@@ -15,13 +15,17 @@ import pickle
 import shutil
 import signal
 import subprocess
+import threading
 from pathlib import Path
+
+import pytest
 
 from softplc.bench import netgen
 from softplc.program import boot
 from softplc.program import bundle as bundles
 from softplc.runtime.bootkeeper import Awaited
 from softplc.runtime.config import LoopConfig
+from softplc.runtime.supervise import startprog
 from softplc.runtime.supervise.startprog import (
     COMPILE_PROCESS,
     HERE,
@@ -140,16 +144,23 @@ def test_a_big_boot_program_compiles_in_a_compile_process_and_a_bundle_here(
     assert broken.problem and not broken.net and broken.serves(broken.boot)
 
 
-def test_the_compiled_boot_program_is_kept_for_the_next_restart(tmp_path: Path) -> None:
+def test_the_compiled_boot_program_is_kept_for_the_next_restart(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     state = tmp_path / "state"
     config = LoopConfig(root=str(ROOT), state_dir=str(state))
     forms = BootForms(multiprocessing.get_context("spawn"))
     assert forms.for_scan(config) == (config, None)  # no boot program: nothing to compile
     text = (ROOT / "programs" / "tank.yaml").read_text(encoding="utf-8")
     boot.save(state, boot.BootProgram(str(ROOT / "programs" / "tank.yaml"), text, str(ROOT)))
+    # The compile waits for the test to let it go: on a loaded machine it finished before
+    # for_scan returned, and a finished form is handed out as it is (no Awaited).
+    go, real_compile = threading.Event(), startprog.compile_boot
+    monkeypatch.setattr(startprog, "compile_boot",
+                        lambda *args: go.wait(60) and real_compile(*args))
     config, given = forms.for_scan(config)
     assert isinstance(given, Awaited)  # a scan process starts meanwhile, and waits for it
     config, again = forms.for_scan(config)  # a restart before it compiled: the same compile
+    go.set()
     compiled = given.receive()
     assert compiled.load().name == "tank" and again.receive() == compiled
     config, kept = forms.for_scan(config)

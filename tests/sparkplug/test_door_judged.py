@@ -5,9 +5,9 @@ In this process: the door's worker thread, a real audit trail in a temporary sta
 the running program's status board as a document; the PLC side of the channel records what
 reached it.
 
-- A command whose handling raises (a Double too large for any float, sent to a real symbol)
-  is a `failed` record and an answered outcome, and the door takes the next command (it was
-  only logged: no record, no answer).
+- A command whose handling raises (the channel to the scan process broke under it) is a
+  `failed` record and an answered outcome, and the door takes the next command (it was only
+  logged: no record, no answer).
 - After a download while the broker was away, an NCMD that arrives before the node's next
   NBIRTH names its metric in the previous NBIRTH: it is judged against the running program
   (a symbol the new program added is written at its address; one it declared
@@ -45,11 +45,15 @@ AFTER: Mapping[str, Any] = {"program_hash": "h2", "program": "p2", "symbols": {
 class _Plc:
     """The scan's side of the channel and its snapshot, running `program`."""
 
-    def __init__(self, program: str) -> None:
+    def __init__(self, program: str, broken: int = 0) -> None:
         self.program = program
         self.writes: list[HmiWrite] = []
+        self.broken = broken  # writes that find the channel broken
 
     def send_hmi_write(self, write: HmiWrite) -> None:
+        if self.broken:
+            self.broken -= 1
+            raise BrokenPipeError("the scan process closed its end")
         self.writes.append(write)
 
     def send_command(self, request: CommandRequest, timeout_s: float = 5.0) -> CommandReply:
@@ -83,21 +87,21 @@ def _trail(state: Path) -> list[dict[str, Any]]:
 
 
 def test_a_failure_in_the_door_is_audited_answered_and_survived(tmp_path: Path) -> None:
-    plc = _Plc("h1")
+    plc = _Plc("h1", broken=1)
     door = _door(tmp_path, plc)
     try:
-        door.submit(Report(BEFORE, 0.0), Metric("fill_to", DOUBLE, 10 ** 400))
+        door.submit(Report(BEFORE, 0.0), Metric("fill_to", DOUBLE, 1.5))
         door.submit(Report(BEFORE, 0.0), Metric("fill_to", DOUBLE, 2.5))
         lines = _outcomes(door, 2)
     finally:
         door.close()
     assert len(lines) == 2, lines
-    assert lines[0].startswith("#1 write fill_to: failed (the door failed (OverflowError")
+    assert lines[0].startswith("#1 write fill_to: failed (the door failed (BrokenPipeError")
     assert lines[1] == "#2 write fill_to: queued"
     records = _trail(tmp_path)
     assert [(r["iface"], r["outcome"]) for r in records] == [("sparkplug", "failed"),
                                                              ("sparkplug", "queued")]
-    assert "OverflowError" in records[0]["status"]
+    assert "BrokenPipeError" in records[0]["status"]
     assert [w.address for w in plc.writes] == [parse_address("%MD1")]
 
 
