@@ -244,8 +244,22 @@ async def watch(run: CellRun, parts: int, timeout_s: float,
     report = CellReport()
     async with Watcher(run) as watcher:
         before: Sample | None = None
+        uncertain = False
         while time.monotonic() - watcher.began < timeout_s:
-            now = await watcher.sample()
+            try:
+                now = await watcher.sample()
+            except ua.UaStatusCodeError as exc:
+                if not ua.StatusCode(exc.code).is_uncertain():
+                    raise
+                # A PLC's snapshot went stale (its scan paused or starved): the server says
+                # so with the last usable value; no sample now, look again (said once).
+                if not uncertain:
+                    say(f"t={time.monotonic() - watcher.began:7.2f}s  values uncertain "
+                        f"({ua.StatusCode(exc.code).name}): waiting for fresh ones")
+                uncertain = True
+                await asyncio.sleep(poll_s)
+                continue
+            uncertain = False
             _record(report, before, now, say)
             before = report.last = now
             if not report.feed_ended and len(report.delivered_at) >= parts:
