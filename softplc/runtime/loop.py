@@ -83,6 +83,7 @@ class ScanLoop:
                              self.compiler)
         self.downloads = Downloads(self.prep, threaded=real, realtime=config.realtime)
         self._paced = False  # run() steps downloads between scans; by hand: at the boundary
+        self._drain_ns = config.period_ns // 5  # a command's frames per scan (channel.drain)
         self._driver_specs: tuple[object, ...] = ()
         self.retain: RetainWriter | None = None
         self.retained_ns = 0
@@ -178,7 +179,7 @@ class ScanLoop:
                 prepared.discard()
         if accepted is not None:
             self.swap_drivers(accepted)
-            self.boot.keep(accepted)
+            self.boot.keep(accepted, later=self._paced)  # run(): settled after the scan
             self.analysis = accepted.analysis
             if accepted.analysis and accepted.analysis["findings"]:
                 replies = [CommandReply(r.id, r.ok, f"{r.message}; {accepted.analysis['summary']}"
@@ -212,7 +213,7 @@ class ScanLoop:
         download swaps the net and may open devices, not the program's execution time)."""
         if self._retired:  # replaced last scan: its transient references are gone by now
             self.downloads.discard(self._retired)
-        requests, writes = self.channel.drain() if self.channel else ([], [])
+        requests, writes = self.channel.drain(self._drain_ns) if self.channel else ([], [])
         if requests:
             self.downloads.put(requests)
         if not self._paced and self.downloads.busy:  # scanned by hand (tests): no "between"
@@ -288,6 +289,7 @@ class ScanLoop:
                 if exec_ns > self.budget_ns or self.watchdog.over:
                     self._watchdog(exec_ns, done, watched=not handled_commands)
                 self.stats.record(exec_ns, late, skipped=schedule.advance(done))
+                self.boot.settle()  # in the slack: a thread woken in the scan would preempt it
         finally:
             self.hang.close()
 
