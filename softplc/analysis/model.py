@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from softplc.core.errors import SoftplcError
-from softplc.core.expr import Compiled
+from softplc.core.expr import Compiled, NoValues
 from softplc.core.net import ActionKind, CompiledNet
 from softplc.core.symbols import SymType
 
@@ -130,24 +130,12 @@ def _write_value(kind: ActionKind, value: Compiled | None) -> WriteValue:
         return 1  # set, pulse
     if not value.reads and not value.tokens and not value.edges:
         try:
-            return int(value(_NoContext()))  # a constant: reads nothing
+            return int(value(NoValues()))  # a constant: reads nothing
         except Exception:
             return value.text
     return value.text
 
 
-class _NoContext:
-    def symbol(self, name: str) -> int:
-        raise KeyError(name)
-
-    def previous(self, name: str) -> int:
-        raise KeyError(name)
-
-    def event(self, name: str) -> bool:
-        raise KeyError(name)
-
-    def token(self, var: str) -> Mapping[str, int]:
-        raise KeyError(var)
 
 
 class _Valuation:

@@ -25,7 +25,7 @@ from softplc.bench.refengine import RefEngine
 from softplc.bench.snakes_net import SnakesEngine
 from softplc.core.engine import Engine
 from softplc.core.errors import SoftplcError
-from softplc.core.expr import Value
+from softplc.core.expr import NoValues
 
 SIZES = (10, 100, 1_000, 10_000, 100_000)
 QUICK_SIZES = (10, 100, 1_000, 10_000)
@@ -45,20 +45,6 @@ class Runner(Protocol):
     def marking(self) -> list[int]: ...
 
 
-class _NoSymbols:
-    """EvalContext of a net without guards: nothing to read."""
-
-    def symbol(self, name: str) -> int:
-        raise KeyError(name)
-
-    def previous(self, name: str) -> int:
-        raise KeyError(name)
-
-    def event(self, name: str) -> bool:
-        return False
-
-    def token(self, var: str) -> Mapping[str, Value]:
-        raise KeyError(var)
 
 
 class OursRunner:
@@ -66,7 +52,7 @@ class OursRunner:
 
     def __init__(self, net: GenNet) -> None:
         self.engine = Engine(to_compiled(net))
-        self.ctx = _NoSymbols()
+        self.ctx = NoValues()
         self.now_ns = 0
 
     def step(self) -> Sequence[int]:

@@ -63,6 +63,23 @@ class EvalContext(Protocol):
     def token(self, var: str) -> Mapping[str, Value]: ...
 
 
+class NoValues:
+    """The EvalContext of what reads nothing (a constant, a net without guards): a symbol,
+    its previous value or a token read is a KeyError; no event is present."""
+
+    def symbol(self, name: str) -> int:
+        raise KeyError(name)
+
+    def previous(self, name: str) -> int:
+        raise KeyError(name)
+
+    def event(self, name: str) -> bool:
+        return False
+
+    def token(self, var: str) -> Mapping[str, Value]:
+        raise KeyError(var)
+
+
 @dataclass(frozen=True, slots=True)
 class Scope:
     """Names an expression may use. `consts` are substituted literally (subnet parameters)."""

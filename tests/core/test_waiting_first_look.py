@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from softplc.bench.netgen import random_sparse, to_compiled
+from softplc.core.expr import NoValues
 from softplc.core.net import CompiledNet, NetState
 from softplc.core.waiting import FIRST_LOOK, Waits, first_look, marking_enabled
 from softplc.program.compiler import compile_text
@@ -19,20 +20,6 @@ from softplc.program.compiler import compile_text
 ROOT = Path(__file__).resolve().parents[2]
 
 
-class _NoSymbols:
-    """What longest() reads for guards: these nets have none."""
-
-    def symbol(self, name: str) -> int:
-        raise KeyError(name)
-
-    def previous(self, name: str) -> int:
-        raise KeyError(name)
-
-    def event(self, name: str) -> bool:
-        return False
-
-    def token(self, var: str) -> dict[str, int]:
-        raise KeyError(var)
 
 
 def _state(net: CompiledNet, marked: list[bool]) -> NetState:
@@ -56,7 +43,7 @@ def test_the_first_look_holds_every_transition_the_marking_enables(
 
 
 def _waiting_names(waits: Waits, net: CompiledNet, state: NetState) -> list[str | None]:
-    return [w.transition for w in waits.longest(state, _NoSymbols(), 10**9)]
+    return [w.transition for w in waits.longest(state, NoValues(), 10**9)]
 
 
 def test_a_dense_first_look_is_spread_and_claims_nothing_until_it_is_done() -> None:

@@ -7,7 +7,6 @@ arguments in-process; the HTTP door and the CLI in tests/security/test_signing.p
 from __future__ import annotations
 
 import asyncio
-import shutil
 import stat
 from pathlib import Path
 
@@ -22,15 +21,6 @@ from softplc.security.programgate import ProgramGate, ProgramRefused
 from softplc.security.signing import SignatureRefused
 
 BODY = b"places: {p: 1}\n"
-
-
-@pytest.fixture
-def gate(keys: Path, tmp_path: Path) -> ProgramGate:
-    trusted = tmp_path / "trusted"
-    trusted.mkdir()
-    shutil.copy(keys / "alice.pub", trusted)
-    (tmp_path / "state").mkdir()
-    return ProgramGate(tmp_path / "state", trusted)
 
 
 def line(keys: Path, version: int | None, body: bytes = BODY) -> str:

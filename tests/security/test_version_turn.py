@@ -4,7 +4,6 @@ process; tests/security/test_version_race.py races two doors of a real `softplc 
 from __future__ import annotations
 
 import asyncio
-import shutil
 from pathlib import Path
 
 import pytest
@@ -14,15 +13,6 @@ from softplc.security.programgate import ProgramGate, ProgramRefused
 
 BODY = b"places: {p: 1}\n"
 OTHER = b"places: {q: 1}\n"
-
-
-@pytest.fixture
-def gate(keys: Path, tmp_path: Path) -> ProgramGate:
-    trusted = tmp_path / "trusted"
-    trusted.mkdir()
-    shutil.copy(keys / "alice.pub", trusted)
-    (tmp_path / "state").mkdir()
-    return ProgramGate(tmp_path / "state", trusted)
 
 
 def _line(keys: Path, body: bytes, version: int) -> str:
