@@ -85,7 +85,10 @@ def test_tank_page_shows_units_and_takes_engineering_ranges(browser: Any, tmp_pa
             "tag name", "td")[1].text
         until(lambda: past("level") == "47.002 %", 15, "the recent past shows the level",
               show=lambda: past("level"))
-        assert re.fullmatch(r"-?\d+\.\d °C", past("temperature")), past("temperature")
+        # Read while the table stands (a refresh between finding a row and reading it made
+        # the element stale beside 4 busy loops); then the value's form, exactly.
+        temperature = until(lambda: past("temperature"), 15, "the recent past's temperature")
+        assert re.fullmatch(r"-?\d+\.\d °C", temperature), temperature
         browser.find_element("id", "tl-name").send_keys("temperature")
         browser.find_element("id", "tl-plot").click()
         legend = until(lambda: js(browser, "const p = softplc.timeline.plot;"
