@@ -155,7 +155,8 @@ class BootKeeper:
         if program is None or self.config.state_dir is None:
             return
         try:
-            prepared.staged = boot.stage(self.config.state_dir, program)
+            prepared.staged, prepared.boot_program = boot.stage(self.config.state_dir,
+                                                                program), program
         except OSError as exc:
             raise BootNotKept(
                 f"it cannot be kept as the boot program in {self.config.state_dir} "
@@ -167,8 +168,8 @@ class BootKeeper:
         rename, off the scan). `later`: handed to the writer thread at settle(), after the
         scan (woken in the scan, the thread took the interpreter from it for 0.1-0.4 ms
         of the swap scan at a switch interval of 0.2 ms); `source` says it at once."""
-        program = self._boot_program(prepared.request, prepared.net)
         staged, prepared.staged = prepared.staged, None
+        program, prepared.boot_program = prepared.boot_program, None  # described when staged
         if program is None or staged is None:
             return
         self._later.append((staged, program))

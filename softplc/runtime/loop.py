@@ -25,7 +25,7 @@ from softplc.core.plc import Plc, ProgramCommand
 from softplc.core.problems import FaultCode
 from softplc.core.snapshot import CommandReply, CommandRequest, Refusal, Status
 from softplc.core.steps import Steps
-from softplc.runtime import netview, statusdoc, warmstart
+from softplc.runtime import statusdoc, warmstart
 from softplc.runtime.bootkeeper import BootKeeper
 from softplc.runtime.clock import Clock, MonotonicClock, Schedule
 from softplc.runtime.compileproc import CompileProcess
@@ -33,6 +33,7 @@ from softplc.runtime.config import LoopConfig as LoopConfig  # importable from h
 from softplc.runtime.download import Downloads, refusal_of
 from softplc.runtime.eventlog import EventLog
 from softplc.runtime.prepare import Prepared, Preparer, answering, boundary
+from softplc.runtime.realtime import HelperThreads
 from softplc.runtime.retain.writer import RetainWriter, capture
 from softplc.runtime.runner import ScanRunner, open_drivers
 from softplc.runtime.scanwatch import HangWatch
@@ -83,6 +84,7 @@ class ScanLoop:
                              self.compiler)
         self.downloads = Downloads(self.prep, threaded=real, realtime=config.realtime)
         self._paced = False  # run() steps downloads between scans; by hand: at the boundary
+        self.helpers = HelperThreads(config.realtime)
         self._drain_ns = config.period_ns // 5  # a command's frames per scan (channel.drain)
         self._driver_specs: tuple[object, ...] = ()
         self.retain: RetainWriter | None = None
@@ -98,17 +100,15 @@ class ScanLoop:
         if config.paused_at_restart:  # not run on (docs/debug.md): start_reason says why
             self._event("plc_restarted_stopped:paused", 0)
 
-    # -- retain -----------------------------------------------------------------------------
-
     def _sim_plants(self) -> dict[str, object]:
         return {d.name: d.plant for d in self.runner.drivers if hasattr(d, "plant")}
 
-    def _retain(self, now_ns: int, due: bool) -> None:
-        """At a scan boundary: hand a consistent copy to the writer thread when due."""
-        if self.retain is None or not due:
+    def _retain(self, now_ns: int) -> None:
+        """At a scan boundary, when due: a consistent copy handed to the writer thread."""
+        interval = self.config.retain_interval_ns
+        if self.retain is None or interval <= 0 or now_ns - self.retained_ns < interval:
             return
-        cap = capture(self.runner.plc, now_ns, self._sim_plants())
-        if cap is not None:
+        if (cap := capture(self.runner.plc, now_ns, self._sim_plants())) is not None:
             self.retain.submit(cap)
             self.retained_ns = now_ns
 
@@ -165,7 +165,18 @@ class ScanLoop:
     def _reply(self, reply: CommandReply) -> None:
         if reply.id == 0 or self.channel is None:
             return  # startup commands come from the command line, not from a client
-        self.channel.reply(reply)
+        self.channel.reply(reply, later=self._paced)  # run(): sent after the scan (_slack)
+
+    def _slack(self) -> None:
+        """After the scan and its publish: its replies (a client told "applied" reads the new
+        program) and the boot program handed to its writer (woken in the scan, it preempts)."""
+        try:
+            if self.channel is not None:
+                self.channel.send_held()
+        except Exception as exc:
+            self._internal(f"answering: {type(exc).__name__}: {exc}", self.clock.now_ns())
+        self.boot.settle()
+        self.helpers.sweep()  # threads started since (downloads, devices): off the scan's CPU
 
     def _after(self, commands: Sequence[ProgramCommand],
                replies: Sequence[CommandReply]) -> None:
@@ -181,11 +192,7 @@ class ScanLoop:
             self.swap_drivers(accepted)
             self.boot.keep(accepted, later=self._paced)  # run(): settled after the scan
             self.analysis = accepted.analysis
-            if accepted.analysis and accepted.analysis["findings"]:
-                replies = [CommandReply(r.id, r.ok, f"{r.message}; {accepted.analysis['summary']}"
-                                        + f" ({len(accepted.analysis['findings'])} finding(s), "
-                                        "see status)", r.state, r.expired)
-                           if r.id == accepted.request.id else r for r in replies]
+            replies = [accepted.telling(r) for r in replies]
         elif any(c.command is Command.DOWNLOAD and c.id == 0 for c in commands):
             self.swap_drivers(None)
         for reply in replies:
@@ -226,7 +233,6 @@ class ScanLoop:
         if replaced is not None and replaced[0] is not None \
                 and self.runner.plc.net is not replaced[0]:
             self._retired += replaced  # let go of off the scan thread, next scan
-            netview.forget()
         if was_running and self.runner.plc.state is not PlcState.RUNNING:
             self._confirm_safe(now_ns)  # stop, kill, fault: the devices confirm before replies
         if commands or result.replies:  # the steady scan has nothing to swap or answer
@@ -245,8 +251,7 @@ class ScanLoop:
     def _event(self, name: str, now_ns: int) -> None:
         self.log.add(name, self.runner.plc.scan_count, now_ns)
 
-    def document(self) -> dict[str, Any]:
-        """The status board: what `softplc status` and the HTTP API show."""
+    def document(self) -> dict[str, Any]:  # what `softplc status` and the HTTP API show
         return statusdoc.document(self)
 
     def status(self) -> Status:
@@ -289,8 +294,9 @@ class ScanLoop:
                 if exec_ns > self.budget_ns or self.watchdog.over:
                     self._watchdog(exec_ns, done, watched=not handled_commands)
                 self.stats.record(exec_ns, late, skipped=schedule.advance(done))
-                self.boot.settle()  # in the slack: a thread woken in the scan would preempt it
+                self._slack()
         finally:
+            self._slack()
             self.hang.close()
 
     def _stall(self, late_ns: int) -> Observed:
@@ -320,8 +326,7 @@ class ScanLoop:
                 self.summary = self.stats.summary()
             # A new program is on the board before its hash is in the snapshot: a service that
             # sees the hash finds the program's symbols (hmi/eng.py: what Modbus presents).
-            net = self.runner.plc.net
-            program = net.program_hash if net is not None else None
+            program = net.program_hash if (net := self.runner.plc.net) is not None else None
             if self.board is not None and program != self._board_program:
                 self._board_program, refresh = program, False
                 self.board.publish(self.document())
@@ -330,9 +335,7 @@ class ScanLoop:
                 self._board_pause, refresh = pause, True
             if self.writer is not None:
                 self.writer.publish(self.runner.plc.image, self.status())
-            interval = self.config.retain_interval_ns
-            if self.retain is not None:
-                self._retain(now_ns, interval > 0 and now_ns - self.retained_ns >= interval)
+            self._retain(now_ns)
             if self.board is not None and refresh:
                 self.board.publish(self.document())
         except Exception as exc:

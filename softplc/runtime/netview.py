@@ -1,22 +1,41 @@
-"""The net as the operator's page draws it: structure once per program, live state per board.
+"""The net as the operator's page draws it: what a program is, once per program; live state
+per board.
 
 Owns: the "net" part of the status board (places, transitions, arcs, the subnet instance of
-each node, place-attached and busy outputs, guards and timing as text) and its "net_live"
-part (timed firings in progress with their remaining time, coloured tokens, how often each
-transition fired). Both are capped so that a very large net never fills the board.
+each node, place-attached and busy outputs, guards and timing as text), the fixed part of
+each "symbols" entry (all but its value), and its "net_live" part (timed firings in progress
+with their remaining time, coloured tokens, how often each transition fired). Both are capped
+so that a very large net never fills the board. What is fixed per program is described once,
+before a download's swap scan (`prewarm`, between scans while it is prepared), so that the
+swap scan publishes the new program's board without describing it.
 Does not know: HTTP, the browser, how the board is shared, clocks (`now_ns` is an argument).
 """
 
 from __future__ import annotations
 
-from typing import Any, Final
+from typing import Any, Final, NamedTuple
 
 from softplc.core.net import CompiledNet, NetState
 from softplc.core.present import entry_form
+from softplc.core.symbols import Symbol
 
 MAX_NODES: Final = 1500  # beyond this the page shows counts only (the board is 1 MiB)
 MAX_TOKENS_SHOWN: Final = 8  # coloured tokens per place on the board
-_cache: dict[int, tuple[CompiledNet, dict[str, Any]]] = {}
+KEPT: Final = 2  # programs described: the running one and the one being downloaded
+
+
+class Described(NamedTuple):
+    """What the board shows of a program that does not change while it runs."""
+
+    structure: dict[str, Any]
+    # (symbol, its board entry without the value: statusdoc sets "value" and "raw")
+    symbols: tuple[tuple[Symbol, dict[str, Any]], ...]
+
+
+# By program hash (it covers the program's texts and its io image: one hash, one
+# description), newest last. No net is kept here: letting go of a net is the loop's, off the
+# scan thread.
+_cache: dict[str, Described] = {}
 
 
 def _instance(name: str, subnets: tuple[str, ...]) -> str | None:
@@ -33,24 +52,37 @@ def _ms(ns: int) -> float:
 
 
 def structure(net: CompiledNet) -> dict[str, Any]:
-    """The drawable structure of `net` (computed once per compiled net). Never raises: a
-    bug here must not stop the scan that publishes it."""
+    """The drawable structure of `net` (described once per program). Never raises: a bug here
+    must not stop the scan that publishes it."""
+    return described(net).structure
+
+
+def prewarm(net: CompiledNet) -> None:
+    """Describe `net` now, before its swap scan publishes its board (runtime/prepare.py)."""
+    described(net)
+
+
+def described(net: CompiledNet) -> Described:
+    """`net` described: from the cache when its program was described before."""
+    key = net.program_hash
+    hit = _cache.pop(key, None) if key else None  # a net built without a hash: every time
+    if hit is None:
+        hit = Described(_structure(net), tuple((s, _fixed(s)) for s in net.io.symbols.values()))
+        while key and len(_cache) >= KEPT:
+            del _cache[next(iter(_cache))]
+    if key:
+        _cache[key] = hit  # the newest last
+    return hit
+
+
+def _structure(net: CompiledNet) -> dict[str, Any]:
     try:
-        return _structure(net)
+        return _drawn(net)
     except Exception as exc:
         return {"error": f"net structure unavailable ({type(exc).__name__}: {exc})"}
 
 
-def forget() -> None:
-    """Drop the cached structure (its net was replaced: the loop lets go of that net off the
-    scan thread, and this cache must not be what frees it later)."""
-    _cache.clear()
-
-
-def _structure(net: CompiledNet) -> dict[str, Any]:
-    cached = _cache.get(id(net))
-    if cached is not None and cached[0] is net:
-        return cached[1]
+def _drawn(net: CompiledNet) -> dict[str, Any]:
     places, transitions = net.place_names, net.transitions
     document: dict[str, Any] = {"program": net.name, "program_hash": net.program_hash,
                                 "places": len(places), "transitions": len(transitions),
@@ -60,9 +92,22 @@ def _structure(net: CompiledNet) -> dict[str, Any]:
         document["arcs"] = _arcs(net)
     else:
         document["too_large"] = True
-    _cache.clear()  # one program at a time: keep only the newest
-    _cache[id(net)] = (net, document)
     return document
+
+
+def _fixed(s: Symbol) -> dict[str, Any]:
+    """A symbol's board entry without its value, in the entry's order (statusdoc sets `value`
+    as people read it and `raw`, the bits its location holds)."""
+    entry: dict[str, Any] = {
+        "address": str(s.address), "type": s.type.value, "direction": s.direction.value,
+        "value": None, "raw": 0, "hmi_writable": s.hmi_writable,
+        "description": s.description}
+    if s.scaling is not None:  # the value is in engineering units; the raw count in `raw`
+        entry["scale"] = s.scaling.as_dict()
+        entry["unit"] = s.scaling.unit
+    if not s.finite:  # the Modbus slave lets a NaN's bits in (core/nonfinite.py)
+        entry["finite"] = False
+    return entry
 
 
 def _nodes(net: CompiledNet) -> dict[str, list[dict[str, Any]]]:

@@ -35,6 +35,7 @@ from softplc.devices.driver import DeviceError, Driver
 from softplc.program import boot, wire
 from softplc.program import bundle as bundles
 from softplc.program.compiler import compile_file, compile_text
+from softplc.runtime import netview
 from softplc.runtime.config import LoopConfig
 from softplc.runtime.runner import open_drivers
 
@@ -88,6 +89,16 @@ class Prepared:
     plan: online.CarryPlan | None = None  # the marking's carry-over from the running net
     analysis: dict[str, Any] | None = None  # the gate's summary and findings
     staged: Path | None = None  # the next boot program, written, not yet in force
+    boot_program: boot.BootProgram | None = None  # what `staged` holds, to put in force
+
+    def telling(self, reply: CommandReply) -> CommandReply:
+        """`reply`, when it is this download's, with what the analysis gate found."""
+        found = self.analysis["findings"] if self.analysis else None
+        if not found or reply.id != self.request.id:
+            return reply
+        assert self.analysis is not None
+        return CommandReply(reply.id, reply.ok, f"{reply.message}; {self.analysis['summary']} "
+                            f"({len(found)} finding(s), see status)", reply.state, reply.expired)
 
     def close_drivers(self) -> None:
         """Its devices closed: opened for nothing (another download changed the devices)."""
@@ -212,6 +223,9 @@ class Preparer:
             net = yield from wire.loading(net)
         engine = yield from Engine.stepwise(net, NetState.initial(net))
         yield from engine.priming()
+        if not req.dry_run:  # what its board shows, described before its swap scan
+            yield
+            netview.prewarm(net)
         running = self._running()
         plan = (yield from online.planning(running, net)) if running is not None \
             and (running.name == net.name or req.dry_run) else None

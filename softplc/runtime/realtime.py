@@ -2,7 +2,9 @@
 
 Owns: applying a priority and CPU pinning to the calling process and saying what it got;
 the interpreter's switch interval of the scan process (how long a helper thread may keep the
-scan thread waiting for the interpreter lock).
+scan thread waiting for the interpreter lock); every other thread of the scan process kept
+at normal priority off the scan's CPU (HelperThreads: one sweep of the process's threads,
+whoever started them).
 What soft PLCs on Linux do (CODESYS, OpenPLC's RT patches): a FIFO priority lets the scan
 preempt Modbus, HTTP and everything else on its CPU the moment its deadline comes. Refusal
 (no CAP_SYS_NICE, a container) is reported, never fatal: the PLC runs at normal priority.
@@ -14,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+import threading
 from dataclasses import dataclass
 
 
@@ -105,3 +108,33 @@ def keep_off_scan_cpu(pid: int, rt: Realtime) -> None:
     if others:  # on failure (process gone, not allowed) it shares the CPU, as unpinned
         with contextlib.suppress(OSError):
             os.sched_setaffinity(pid, others)
+
+
+class HelperThreads:
+    """The scan process's other threads (the watchdog's, the download's, the retain and boot
+    writers', a device's I/O thread, numpy's) inherit the scan thread's CPU and priority
+    when it starts them. Each one woken on the scan's CPU took it from the busy-waiting scan
+    and then waited for the interpreter lock, which the scan gave up a switch interval later:
+    idle scans started 0.7-3.7 ms late, every quarter second (the watchdog's poll) and at
+    each download (measured, issue 40). `sweep()`, on the scan thread: every other thread
+    of the process moved off the scan's CPU at normal priority, again whenever the number of
+    Python threads changed since the last sweep (a check of one counter; the sweep reads
+    /proc/self/task, ~50 us)."""
+
+    def __init__(self, rt: Realtime) -> None:
+        self.rt = rt
+        self.seen = -1  # Python threads at the last sweep; -1: never swept
+
+    def sweep(self) -> None:
+        if self.rt.cpu is None and self.rt.priority is None:
+            return  # nothing was applied to the scan thread: nothing to undo in the others
+        if (count := threading.active_count()) == self.seen:
+            return
+        self.seen = count
+        me = threading.get_native_id()
+        with contextlib.suppress(OSError):  # /proc not mounted: the threads share the CPU
+            for tid in (int(t) for t in os.listdir("/proc/self/task")):
+                if tid != me:
+                    with contextlib.suppress(OSError):  # ended meanwhile
+                        os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+                    keep_off_scan_cpu(tid, self.rt)

@@ -15,12 +15,13 @@ from typing import Any, Protocol
 from weakref import WeakKeyDictionary
 
 from softplc.core.context import ScanContext
+from softplc.core.image import ProcessImage
 from softplc.core.judge import CycleWatchdog
 from softplc.core.lifecycle import PlcState, Stage
 from softplc.core.net import CompiledNet, NetState
 from softplc.core.present import shown
 from softplc.core.snapshot import Status
-from softplc.core.symbols import Symbol, scalings
+from softplc.core.symbols import scalings
 from softplc.core.waiting import Waits
 from softplc.runtime import netview
 from softplc.runtime.bootkeeper import BootKeeper
@@ -89,8 +90,7 @@ def document(loop: LoopView) -> dict[str, Any]:
     # scan's net time, so countdowns and live `why` stand still and agree with a step.
     now_ns = loop.clock.now_ns()
     net_now_ns = now_ns - plc.debug.frozen_shift(now_ns)
-    symbols = {} if net is None else {s.name: _symbol(s, plc.image.get(s.address))
-                                      for s in net.io.symbols.values()}
+    symbols = {} if net is None else _symbols(net, plc.image)
     return {
         "state": plc.state.name, "program": net.name if net else None,
         "program_hash": net.program_hash if net else None, "scan_count": plc.scan_count,
@@ -167,20 +167,17 @@ def status(loop: LoopView) -> Status:
                   plc.stage is Stage.SUSPENDED)
 
 
-def _symbol(s: Symbol, raw: int) -> dict[str, Any]:
-    """A symbol's board entry: `value` as people read it (core/present.py: a negative int, a
-    real, a scaled symbol's engineering value with its `unit` and `scale`), `raw` the bits
-    its location holds (what the why route puts back into an image)."""
-    entry: dict[str, Any] = {
-        "address": str(s.address), "type": s.type.value, "direction": s.direction.value,
-        "value": shown(s.type.value, raw, s.scaling), "raw": raw,
-        "hmi_writable": s.hmi_writable, "description": s.description}
-    if s.scaling is not None:  # the value is in engineering units; the raw count in `raw`
-        entry["scale"] = s.scaling.as_dict()
-        entry["unit"] = s.scaling.unit
-    if not s.finite:  # the Modbus slave lets a NaN's bits in (core/nonfinite.py)
-        entry["finite"] = False
-    return entry
+def _symbols(net: CompiledNet, image: ProcessImage) -> dict[str, dict[str, Any]]:
+    """Every symbol's board entry: `value` as people read it (core/present.py: a negative
+    int, a real, a scaled symbol's engineering value with its `unit` and `scale`), `raw` the
+    bits its location holds (what the why route puts back into an image); the rest is fixed
+    per program (runtime/netview.py)."""
+    entries = {}
+    for s, fixed in netview.described(net).symbols:
+        raw = image.get(s.address)
+        entry = entries[s.name] = dict(fixed)
+        entry["value"], entry["raw"] = shown(s.type.value, raw, s.scaling), raw
+    return entries
 
 
 def _records(net: CompiledNet | None, state: NetState | None) -> dict[str, list[Any]]:

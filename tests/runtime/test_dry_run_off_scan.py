@@ -82,9 +82,10 @@ def test_a_dry_run_is_described_between_scans_and_answered_in_order(
     sent: list[int] = []
     reply_to = channel.reply
 
-    def reply(answer: CommandReply) -> None:
-        sent.append(answer.id)
-        reply_to(answer)
+    def reply(answer: CommandReply, later: bool = False) -> None:
+        if not later:  # sent now (a held reply comes back through here when it is sent)
+            sent.append(answer.id)
+        reply_to(answer, later=later)
     monkeypatch.setattr(channel, "reply", reply)
     stop = threading.Event()
     thread = threading.Thread(target=loop.run, args=(stop,), daemon=True)

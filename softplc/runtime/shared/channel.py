@@ -129,6 +129,7 @@ class Channel:
         self._awaiting: dict[int, deque[tuple[int, int]]] = {}
         self._backlog: dict[int, deque[bytes]] = {}
         self._ready: dict[int, select.poll] = {}  # Connection.poll() costs ~5 µs a call
+        self._held: deque[CommandReply] = deque()  # reply(later=True)
 
     def _readable(self, reader: Connection) -> bool:
         fd = reader.fileno()
@@ -155,6 +156,7 @@ class Channel:
         least one: a 500 KB download is ~125 frames of 4 KiB, the 16 a full pipe holds took
         1.3 ms of a 1 ms scan); the rest waits for the next call. Every drained command must
         get exactly one reply(), in drain order among commands that share an id."""
+        self.send_held()
         self._flush_replies()
         commands: list[CommandRequest] = []
         reader = self._commands[0]
@@ -193,17 +195,26 @@ class Channel:
         request: CommandRequest = pickle.loads(blob)
         return request
 
-    def reply(self, reply: CommandReply) -> None:
-        """Send `reply` to the caller of the drained command with the same id. Never blocks."""
+    def reply(self, reply: CommandReply, later: bool = False) -> None:
+        """Send `reply` to the caller of the drained command with the same id. Never blocks.
+        `later`: held (not yet encoded) until send_held() or the next drain()."""
         waiting = self._awaiting.get(reply.id)
         if not waiting:
             raise ValueError(f"no drained command with id {reply.id} is waiting for a reply")
+        if later:
+            self._held.append(reply)
+            return
         lane, ticket = waiting.popleft()
         if not waiting:
             del self._awaiting[reply.id]
         backlog = self._backlog.setdefault(lane, deque(maxlen=_MAX_BACKLOG))
         backlog.extend(_frames(pickle.dumps(reply, pickle.HIGHEST_PROTOCOL), (ticket,)))
         self._flush_replies()
+
+    def send_held(self) -> None:
+        """The replies held by reply(later=True), in the order they were given."""
+        while self._held:
+            self.reply(self._held.popleft())
 
     def _flush_replies(self) -> None:
         for lane, backlog in self._backlog.items():
