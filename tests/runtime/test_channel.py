@@ -226,3 +226,37 @@ def test_a_spent_budget_drains_one_frame_a_call_and_the_command_arrives_whole() 
     channel.reply(CommandReply(5, True, "ok", PlcState.STOPPED))
     sender.join(timeout=30)
     assert replies.get_nowait().ok
+
+
+def test_a_held_reply_is_sent_by_send_held_or_the_next_drain() -> None:
+    """reply(later=True) (the paced scan loop: answered after the scan's publish) sends
+    nothing until send_held() or the next drain(); a reply for no drained command is
+    refused when it is given, not when it is sent."""
+    channel = Channel()
+    replies: queue.Queue[CommandReply] = queue.Queue()
+    senders = [threading.Thread(target=lambda n=n: replies.put(
+        channel.send_command(CommandRequest(n, Command.STOP), 30))) for n in (8, 9)]
+    drained: list[CommandRequest] = []
+    for sender in senders:
+        sender.start()
+        for _ in range(10_000):
+            if got := channel.drain()[0]:
+                drained += got
+                break
+            sender.join(timeout=0.001)
+    assert [r.id for r in drained] == [8, 9]
+    with pytest.raises(ValueError, match="id 10"):
+        channel.reply(CommandReply(10, True, "", PlcState.STOPPED), later=True)
+    channel.reply(CommandReply(9, True, "second", PlcState.STOPPED), later=True)
+    senders[1].join(timeout=0.3)
+    assert senders[1].is_alive() and replies.empty()  # held: nothing sent yet
+    channel.drain()  # the next scan's drain sends what was held
+    senders[1].join(timeout=30)
+    assert replies.get_nowait().message == "second"
+    channel.reply(CommandReply(8, True, "first", PlcState.STOPPED), later=True)
+    senders[0].join(timeout=0.3)
+    assert senders[0].is_alive() and replies.empty()
+    channel.send_held()
+    senders[0].join(timeout=30)
+    assert replies.get_nowait().message == "first"
+    channel.close()

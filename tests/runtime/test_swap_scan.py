@@ -1,0 +1,157 @@
+"""The swap scan of an online change only swaps, fires and publishes (issue 40 item 8): what
+its board shows of the new program is described while the download is prepared, between
+scans (runtime/netview.py, `prewarm`), and the reply goes after the scan, once the board
+shows the new program (runtime/loop.py, `_slack`).
+
+Before, the swap scan described the new program for its board (its structure and symbols,
+~0.1-0.4 ms) and sent the reply (~0.1 ms) before publishing that board: at a 1 ms period
+every change missed the slot after its swap scan, and a client told "applied" could read
+the board of the program before."""
+
+from __future__ import annotations
+
+import sys
+import threading
+import uuid
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from softplc.core.judge import NOTHING_OBSERVED, Observed
+from softplc.core.lifecycle import Command
+from softplc.core.net import CompiledNet
+from softplc.core.snapshot import CommandReply, CommandRequest
+from softplc.program.compiler import compile_file, compile_text
+from softplc.runtime import netview
+from softplc.runtime.config import LoopConfig
+from softplc.runtime.loop import ScanLoop
+from softplc.runtime.shared.board import StatusBoard
+from softplc.runtime.shared.channel import Channel
+
+ROOT = Path(__file__).resolve().parents[2]
+TRANSPORT = ROOT / "programs" / "transport.yaml"
+Record = list[tuple[str, Any]]
+
+
+class WatchedLoop(ScanLoop):
+    """A loop that says whether its thread is in a scan (the program's scan and its publish:
+    what the scan's execution time counts) right now."""
+
+    in_scan = False
+
+    def scan_once(self, now_ns: int, observed: Observed = NOTHING_OBSERVED) -> bool:
+        self.in_scan = True
+        try:
+            return super().scan_once(now_ns, observed)
+        finally:
+            self.in_scan = False
+
+    def _publish(self, now_ns: int) -> None:
+        self.in_scan = True
+        try:
+            super()._publish(now_ns)
+        finally:
+            self.in_scan = False
+
+
+class RecordingBoard(StatusBoard):
+    """The real board, noting the program of each document it publishes."""
+
+    record: Record
+
+    def publish(self, document: dict[str, Any]) -> None:
+        super().publish(document)
+        if hasattr(self, "record"):
+            self.record.append(("board", document.get("program_hash")))
+
+
+class RecordingChannel(Channel):
+    """The real channel, noting each reply when it is sent (a held one: when sent)."""
+
+    record: Record
+
+    def reply(self, reply: CommandReply, later: bool = False) -> None:
+        super().reply(reply, later)
+        if not later:
+            self.record.append(("reply", reply.id))
+
+
+def _online_change(monkeypatch: pytest.MonkeyPatch) -> tuple[Record, str, Record]:
+    """One online change of the transport system on a paced loop: what was published and
+    sent, in order; the new program's hash; each program drawn for a board, with whether
+    that was inside a scan."""
+    record: Record = []
+    drawn: Record = []
+    channel = RecordingChannel()
+    channel.record = record
+    board = RecordingBoard.create(f"softplc_test_{uuid.uuid4().hex[:12]}")
+    assert isinstance(board, RecordingBoard)
+    board.record = record
+    loop = WatchedLoop(LoopConfig(program=str(TRANSPORT), start=True, root=str(ROOT),
+                                  period_ns=10_000_000), channel, None, board=board)
+    text = TRANSPORT.read_text() + "\n# the same net, another text\n"
+    draw = netview._drawn
+
+    def watched(net: CompiledNet) -> dict[str, Any]:
+        drawn.append((net.program_hash, loop.in_scan))
+        return draw(net)
+    monkeypatch.setattr(netview, "_drawn", watched)
+    stop = threading.Event()
+    thread = threading.Thread(target=loop.run, args=(stop,), daemon=True)
+    try:
+        thread.start()
+        reply = channel.send_command(CommandRequest(
+            7, Command.DOWNLOAD, program_text=text, program_path=str(TRANSPORT), online=True),
+            timeout_s=60)
+        assert reply.ok, reply.message
+        new_hash = loop.runner.plc.net.program_hash if loop.runner.plc.net else ""
+    finally:
+        stop.set()
+        thread.join(30)
+        board.close()
+        channel.close()
+    assert not thread.is_alive()
+    return record, new_hash, drawn
+
+
+def test_the_new_programs_board_is_described_before_its_swap_scan(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    netview._cache.clear()  # the transport system described by another test: not here
+    record, new_hash, drawn = _online_change(monkeypatch)
+    assert ("board", new_hash) in record
+    described = [in_scan for program, in_scan in drawn if program == new_hash]
+    assert described, f"the new program was never described: {drawn}"
+    assert not any(described), f"described inside a scan: {drawn}"
+
+
+def test_a_reply_goes_after_the_board_that_shows_its_program(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    record, new_hash, _ = _online_change(monkeypatch)
+    assert ("reply", 7) in record and ("board", new_hash) in record, record
+    assert record.index(("board", new_hash)) < record.index(("reply", 7)), record
+
+
+def test_a_program_is_described_once_by_its_hash_and_no_net_is_kept() -> None:
+    """netview's cache: one description per program hash (the hash covers the program's
+    texts and io image), the running program's and the next one's (KEPT); a net itself is
+    never kept there (letting go of a net is the loop's, off the scan thread)."""
+    netview._cache.clear()
+    first = compile_file(str(TRANSPORT))
+    again = compile_file(str(TRANSPORT))  # another object, the same program
+    assert first is not again and first.program_hash == again.program_hash
+    described = netview.described(first)
+    assert netview.described(again) is described
+    assert described.structure["program_hash"] == first.program_hash
+    assert [s.name for s, _ in described.symbols] == list(first.io.symbols)
+    others = [compile_text(TRANSPORT.read_text() + f"\n# variant {n}\n", str(TRANSPORT))
+              for n in range(2)]
+    for net in others:
+        netview.prewarm(net)
+    assert list(netview._cache) == [net.program_hash for net in others]  # KEPT, newest last
+    assert netview.KEPT == 2
+    # No net in the cache: describing one takes no lasting reference to it.
+    net = compile_text(TRANSPORT.read_text() + "\n# let go\n", str(TRANSPORT))
+    references = sys.getrefcount(net)
+    netview.prewarm(net)
+    assert net.program_hash in netview._cache and sys.getrefcount(net) == references
