@@ -100,16 +100,13 @@ class ScanLoop:
         if config.paused_at_restart:  # not run on (docs/debug.md): start_reason says why
             self._event("plc_restarted_stopped:paused", 0)
 
-    def _sim_plants(self) -> dict[str, object]:
-        return {d.name: d.plant for d in self.runner.drivers if hasattr(d, "plant")}
-
     def _retain(self, now_ns: int) -> None:
         """At a scan boundary, when due: a consistent copy handed to the writer thread."""
         interval = self.config.retain_interval_ns
         if self.retain is None or interval <= 0 or now_ns - self.retained_ns < interval:
             return
-        if (cap := capture(self.runner.plc, now_ns, self._sim_plants())) is not None:
-            self.retain.submit(cap)
+        if (cap := capture(self.runner.plc, now_ns, self.runner.sim_plants())) is not None:
+            self.retain.submit(cap, later=self._paced)  # run(): handed over in _slack
             self.retained_ns = now_ns
 
     # -- commands ---------------------------------------------------------------------------
@@ -169,13 +166,16 @@ class ScanLoop:
 
     def _slack(self) -> None:
         """After the scan and its publish: its replies (a client told "applied" reads the new
-        program) and the boot program handed to its writer (woken in the scan, it preempts)."""
+        program), what the boot and retain writers are handed (woken in the scan, they
+        take the interpreter lock from it), other threads off the scan's CPU."""
         try:
             if self.channel is not None:
                 self.channel.send_held()
         except Exception as exc:
             self._internal(f"answering: {type(exc).__name__}: {exc}", self.clock.now_ns())
         self.boot.settle()
+        if self.retain is not None:
+            self.retain.settle()
         self.helpers.sweep()  # threads started since (downloads, devices): off the scan's CPU
 
     def _after(self, commands: Sequence[ProgramCommand],
@@ -377,7 +377,7 @@ class ScanLoop:
         plc = self.runner.plc
         now_ns = self.clock.now_ns()
         # Captured before the outputs go safe: a warm restart resumes what the program drove.
-        final = capture(plc, now_ns, self._sim_plants()) if self.retain is not None else None
+        final = capture(plc, now_ns, self.runner.sim_plants()) if self.retain is not None else None
         plc.drive_safe()
         self._confirm_safe(now_ns, timeout_s=0.5)
         if self.writer is not None:

@@ -98,6 +98,10 @@ class ScanRunner:
         self._state_name = ""
         self._open = opened(self.drivers)  # the PLC's view of them (its start-up gate)
 
+    def sim_plants(self) -> dict[str, object]:
+        """The simulated plants behind the drivers, by driver name (retain keeps them)."""
+        return {d.name: d.plant for d in self.drivers if hasattr(d, "plant")}
+
     def set_drivers(self, drivers: Sequence[Driver]) -> None:
         for driver in self.drivers:
             driver.close()

@@ -21,6 +21,7 @@ from softplc.core.plc import ProgramCommand
 from softplc.runtime.retain import writer as retain
 from softplc.runtime.retain.writer import FileOps, RetainStore, RetainWriter, Stage, WriteFailed
 from tests.core.helpers import Bench, compile_program
+from tests.support import eventually
 
 
 def payload(seq: int, size: int = 200) -> dict[str, Any]:
@@ -398,3 +399,16 @@ transitions:
     assert new.plc.engine is not None
     assert new.plc.engine.state.tokens[net.place_index["kept"]] == [{"n": 0}, {"n": 1}]
     assert new.marking() == {"src": 1, "kept": 2}  # src is not persistent: initial
+
+
+def test_a_held_capture_waits_for_settle_and_close_writes_it(tmp_path: Path) -> None:
+    """submit(later=True) (the paced scan loop) wakes nothing until settle(); close() writes
+    a capture still held, as it writes one still pending."""
+    writer = RetainWriter(RetainStore.open(tmp_path / "state", ops=Faulty()))
+    writer.submit(a_capture(tmp_path), later=True)
+    assert writer.writes == 0 and writer._pending is None  # the thread was not woken
+    writer.settle()
+    eventually(lambda: writer.writes == 1, 10, "the settled capture written")
+    writer.submit(a_capture(tmp_path), later=True)  # held again: close() must not lose it
+    final = writer.close()
+    assert final.written and writer.writes == 2, (final, writer.writes)

@@ -155,3 +155,35 @@ def test_a_program_is_described_once_by_its_hash_and_no_net_is_kept() -> None:
     references = sys.getrefcount(net)
     netview.prewarm(net)
     assert net.program_hash in netview._cache and sys.getrefcount(net) == references
+
+
+def test_a_retain_capture_is_handed_to_its_writer_after_the_scan(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """The capture is taken at the scan boundary (consistent) and given to the writer thread
+    in the slack: woken inside the scan, the writer took the interpreter lock from it to
+    encode, and every capture's scan ran ~1.3 ms at a 1 ms period (a slot a second)."""
+    from softplc.runtime.retain.writer import RetainWriter
+
+    woken: list[bool] = []
+    loop: WatchedLoop | None = None
+    submit = RetainWriter.submit
+
+    def watched(self: RetainWriter, cap: Any, later: bool = False) -> None:
+        if later:  # held until the slack
+            submit(self, cap, later)
+            return
+        if loop is not None:  # the writer thread is woken now
+            woken.append(loop.in_scan)
+        submit(self, cap)
+    monkeypatch.setattr(RetainWriter, "submit", watched)
+    loop = WatchedLoop(LoopConfig(program=str(TRANSPORT), start=True, root=str(ROOT),
+                                  period_ns=10_000_000, state_dir=str(tmp_path / "state"),
+                                  retain_interval_ns=50_000_000, max_scans=40), None, None)
+    assert loop.retain is not None
+    thread = threading.Thread(target=loop.run, daemon=True)
+    thread.start()
+    thread.join(30)
+    assert not thread.is_alive()
+    assert len(woken) >= 3, woken  # 0.4 s of scans, a capture every 50 ms
+    assert not any(woken), f"woken inside a scan: {woken}"
+    assert loop.retain.writes >= 3  # and written

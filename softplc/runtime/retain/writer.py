@@ -159,6 +159,7 @@ class RetainWriter:
         self.restarts = 0
         self.final: FinalWrite | None = None
         self._last = FinalWrite(False, "", "nothing written yet")
+        self._held: Capture | None = None  # submit(later=True), until settle()
         self._thread = self._start()
 
     def _start(self) -> threading.Thread:
@@ -166,7 +167,13 @@ class RetainWriter:
         thread.start()
         return thread
 
-    def submit(self, cap: Capture) -> None:
+    def submit(self, cap: Capture, later: bool = False) -> None:
+        """`cap` to write next (replacing one not yet taken). `later`: held until settle(),
+        after the scan (woken in the scan, the writer took the interpreter lock from it to
+        encode: every capture's scan ran ~1.3 ms at a 1 ms period, a slot a second)."""
+        if later:
+            self._held = cap
+            return
         with self._cond:
             if self._closing:
                 return
@@ -176,6 +183,12 @@ class RetainWriter:
             self.restarts += 1
             self._failed(Stage.OTHER, "writer thread had ended; restarted")
             self._thread = self._start()
+
+    def settle(self) -> None:
+        """The capture held by submit(later=True), to the writer thread."""
+        if (cap := self._held) is not None:
+            self._held = None
+            self.submit(cap)
 
     def stop(self, cap: Capture | None, timeout_s: float = 10.0) -> FinalWrite:
         """At a clean stop: wait (bounded) for a write in progress, drop what is pending (`cap`
@@ -198,7 +211,8 @@ class RetainWriter:
         """Write what is pending (synchronously), then stop the thread and release the state
         directory. Returns the fate of the last capture submitted."""
         with self._cond:
-            cap, self._pending = self._pending, None
+            cap, self._pending = self._held or self._pending, None  # the newest
+        self._held = None
         if cap is not None:
             return self.stop(cap, timeout_s)
         with self._cond:
