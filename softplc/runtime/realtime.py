@@ -98,16 +98,29 @@ def background_thread(rt: Realtime = NORMAL) -> None:
 
 
 def keep_off_scan_cpu(pid: int, rt: Realtime) -> None:
-    """Another process of the runtime (communication, HMI load): on every CPU but the scan's,
-    so its work and the network stack's soft interrupts it causes stay off that CPU."""
+    """Another process of the runtime (communication, HMI load), every thread of it (pid 0:
+    the calling thread): on every CPU but the scan's, so its work and the network stack's
+    soft interrupts it causes stay off that CPU. Every thread: the threads a process started
+    before this call (numpy's, a server's) kept the CPUs they had, the scan's among them."""
     if rt.cpu is None:
         return
+    tids = [0]
+    if pid:
+        try:
+            tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+        except OSError:  # no /proc, or the process is gone: its main thread at least
+            tids = [pid]
+    for tid in tids:
+        _off_scan_cpu(tid, rt.cpu)
+
+
+def _off_scan_cpu(tid: int, cpu: int) -> None:
     # Every CPU of the machine, not the caller's: the scan process itself (pinned to its
     # CPU) starts the compile process. The kernel keeps a cpuset's limits.
-    others = set(range(os.cpu_count() or 1)) - {rt.cpu}
-    if others:  # on failure (process gone, not allowed) it shares the CPU, as unpinned
+    others = set(range(os.cpu_count() or 1)) - {cpu}
+    if others:  # on failure (thread gone, not allowed) it shares the CPU, as unpinned
         with contextlib.suppress(OSError):
-            os.sched_setaffinity(pid, others)
+            os.sched_setaffinity(tid, others)
 
 
 class HelperThreads:
@@ -137,4 +150,5 @@ class HelperThreads:
                 if tid != me:
                     with contextlib.suppress(OSError):  # ended meanwhile
                         os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
-                    keep_off_scan_cpu(tid, self.rt)
+                    if self.rt.cpu is not None:
+                        _off_scan_cpu(tid, self.rt.cpu)

@@ -83,3 +83,30 @@ def test_every_other_thread_of_a_pinned_scan_process_runs_off_its_cpu(tmp_path: 
         scan_thread = _threads(scan)[scan]
         assert scan_thread[1] == {cpu}, scan_thread  # the scan itself stays where it was put
         assert scan_thread[2] == (os.SCHED_FIFO if fifo else os.SCHED_OTHER), scan_thread
+
+
+def test_another_process_is_kept_off_the_scan_cpu_with_every_thread_it_started(
+        tmp_path: Path) -> None:
+    """keep_off_scan_cpu(pid) moves every thread of that process (the supervisor calls it for
+    each service, the benchmark for itself): threads started before the call (numpy's, a
+    server's) kept the CPUs they had, the scan's among them; only the main thread moved."""
+    import subprocess
+
+    from softplc.runtime.realtime import Realtime, keep_off_scan_cpu
+
+    cpu = max(os.sched_getaffinity(0))
+    ready = tmp_path / "ready"
+    child = subprocess.Popen([sys.executable, "-c", (
+        "import threading, time, pathlib\n"
+        "for _ in range(3): threading.Thread(target=time.sleep, args=(60,), daemon=True).start()\n"
+        f"pathlib.Path({str(ready)!r}).write_text('x')\n"
+        "time.sleep(60)\n")])
+    try:
+        eventually(ready.exists, 20, "the child's threads started")
+        assert len(_threads(child.pid)) == 4
+        keep_off_scan_cpu(child.pid, Realtime(cpu=cpu))
+        placed = _threads(child.pid)
+        assert all(cpu not in allowed for _, allowed, _ in placed.values()), placed
+    finally:
+        child.kill()
+        child.wait(10)
