@@ -50,16 +50,16 @@ def save(state_dir: str | Path, program: BootProgram) -> None:
     commit(stage(state_dir, program))
 
 
-def stage(state_dir: str | Path, program: BootProgram) -> Path:
+def stage(state_dir: str | Path, program: BootProgram, encoded: bytes | None = None) -> Path:
     """Write `program` beside the boot program, flushed to the disk, not yet in force: what
     can fail (a full or read-only disk) fails here. `commit` puts it in force, `unstage`
-    drops it."""
+    drops it. `encoded`: its file as `encode` made it, elsewhere (the compile process)."""
     directory = Path(state_dir)
     directory.mkdir(mode=0o700, parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=".boot-", dir=directory)
     try:
         with os.fdopen(fd, "wb") as out:
-            for piece in _json_pieces(program):
+            for piece in _json_pieces(program) if encoded is None else (encoded,):
                 out.write(piece)
             out.flush()
             os.fsync(out.fileno())
@@ -67,6 +67,11 @@ def stage(state_dir: str | Path, program: BootProgram) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return Path(tmp)
+
+
+def encode(program: BootProgram) -> bytes:
+    """The boot file of `program`, as `stage` writes it."""
+    return b"".join(_json_pieces(program))
 
 
 _PIECE: Final = 1 << 15  # characters of text, bytes of bundle (a multiple of 3) per piece

@@ -21,7 +21,6 @@ from typing import Any
 
 from softplc.core.net import CompiledNet
 from softplc.core.problems import ProgramError
-from softplc.core.snapshot import CommandRequest
 from softplc.program import boot
 from softplc.program import bundle as bundles
 from softplc.program.compiler import compile_file, compile_text
@@ -151,12 +150,13 @@ class BootKeeper:
         """On the download's helper thread, before the download is decided: the program
         written beside the boot program, so that a download the PLC could not keep across a
         restart is refused (BootNotKept) rather than answered ok and lost at the next start."""
-        program = self._boot_program(prepared.request, prepared.net)
+        program = self._prep.boot_program(prepared.request, prepared.net)
+        encoded, prepared.boot_file = prepared.boot_file, None
         if program is None or self.config.state_dir is None:
             return
         try:
-            prepared.staged, prepared.boot_program = boot.stage(self.config.state_dir,
-                                                                program), program
+            prepared.staged = boot.stage(self.config.state_dir, program, encoded)
+            prepared.boot_program = program
         except OSError as exc:
             raise BootNotKept(
                 f"it cannot be kept as the boot program in {self.config.state_dir} "
@@ -183,16 +183,6 @@ class BootKeeper:
             if self._writer is None:
                 self._writer = ThreadPoolExecutor(1, thread_name_prefix="boot")
             self._writer.submit(self._commit, *self._later.pop(0))
-
-    def _boot_program(self, req: CommandRequest, net: CompiledNet) -> boot.BootProgram | None:
-        if req.bundle is not None:
-            # Its text and folder are in the bundle, unpacked again when it boots.
-            return boot.BootProgram(net.source, "", None, req.bundle, net.program_hash)
-        if req.program_text is not None:
-            name = self._prep.download_name(req.program_path or "downloaded.yaml")
-            return boot.BootProgram(name, req.program_text, self.config.root, None,
-                                    net.program_hash)
-        return None
 
     def _commit(self, staged: Path, program: boot.BootProgram) -> None:
         try:

@@ -163,12 +163,12 @@ class DownloadJob:
         built: Built = self._waiting.result()  # raises the refusal: step() refuses with it
         self._waiting = None
         self.prep.bundle_roots.update(built.bundle_roots)
-        self._load(built.net, built.analysis)
+        self._load(built.net, built.analysis, built.boot_file)
         return True
 
-    def _load(self, net: CompiledNet | tuple[Piece, ...],
-              analysis: dict[str, Any] | None) -> None:
-        self._steps = self.prep.finishing(self.request, net, analysis)
+    def _load(self, net: CompiledNet | tuple[Piece, ...], analysis: dict[str, Any] | None,
+              boot_file: bytes | None = None) -> None:
+        self._steps = self.prep.finishing(self.request, net, analysis, boot_file)
         # Loading allocates a net's worth of objects: a full collection meanwhile holds the
         # interpreter for tens of ms over the whole heap. Off while loading; what was built
         # is frozen at the end (out of every later collection).

@@ -68,6 +68,7 @@ class Built:
     net: tuple[wire.Piece, ...]
     analysis: dict[str, Any] | None
     bundle_roots: tuple[str, ...] = ()
+    boot_file: bytes | None = None  # the boot program's file, encoded (Preparer.build)
 
 
 class Remote(Protocol):
@@ -90,6 +91,7 @@ class Prepared:
     analysis: dict[str, Any] | None = None  # the gate's summary and findings
     staged: Path | None = None  # the next boot program, written, not yet in force
     boot_program: boot.BootProgram | None = None  # what `staged` holds, to put in force
+    boot_file: bytes | None = None  # its file, encoded by the compile process (Built)
 
     def telling(self, reply: CommandReply) -> CommandReply:
         """`reply`, when it is this download's, with what the analysis gate found."""
@@ -188,7 +190,24 @@ class Preparer:
     def build(self, req: CommandRequest) -> Built:
         """Compile and analyse: what the compile process does for each download."""
         net = self.compile(req)
-        return Built(wire.dumps(net), self.analyse(net), tuple(sorted(self.bundle_roots)))
+        analysis = self.analyse(net)
+        # The boot program's file encoded here too: JSON-escaping a 500 KB program on a
+        # thread of the scan process held the scan's interpreter lock 1-1.5 ms at a time.
+        program = self.boot_program(req, net) if self.config.state_dir and not req.dry_run \
+            else None
+        return Built(wire.dumps(net), analysis, tuple(sorted(self.bundle_roots)),
+                     None if program is None else boot.encode(program))
+
+    def boot_program(self, req: CommandRequest, net: CompiledNet) -> boot.BootProgram | None:
+        """What keeps `req`'s program as the boot program (None: nothing to keep)."""
+        if req.bundle is not None:
+            # Its text and folder are in the bundle, unpacked again when it boots.
+            return boot.BootProgram(net.source, "", None, req.bundle, net.program_hash)
+        if req.program_text is not None:
+            name = self.download_name(req.program_path or "downloaded.yaml")
+            return boot.BootProgram(name, req.program_text, self.config.root, None,
+                                    net.program_hash)
+        return None
 
     def opening(self, prepared: Prepared) -> Callable[[], None] | None:
         """What must block before `prepared` can be swapped in, as one piece of work for the
@@ -213,7 +232,8 @@ class Preparer:
         return work
 
     def finishing(self, req: CommandRequest, net: CompiledNet | tuple[wire.Piece, ...],
-                   analysis: dict[str, Any] | None) -> Steps[Prepared]:
+                  analysis: dict[str, Any] | None, boot_file: bytes | None = None
+                  ) -> Steps[Prepared]:
         """Everything the swap needs, a step at a time: the net loaded (when it came as bytes
         from the compile process: every expression compiled again from its text by the
         sandboxed compiler, ~50 ms for 10,000 transitions), the engine's tables primed on its
@@ -229,7 +249,7 @@ class Preparer:
         running = self._running()
         plan = (yield from online.planning(running, net)) if running is not None \
             and (running.name == net.name or req.dry_run) else None
-        return Prepared(net, req, None, engine, plan, analysis)
+        return Prepared(net, req, None, engine, plan, analysis, boot_file=boot_file)
 
     def replanning(self, prepared: Prepared) -> Steps[None] | None:
         """The carry plan of a download made again, a step at a time, when the net running

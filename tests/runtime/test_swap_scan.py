@@ -77,7 +77,8 @@ class RecordingChannel(Channel):
             self.record.append(("reply", reply.id))
 
 
-def _online_change(monkeypatch: pytest.MonkeyPatch) -> tuple[Record, str, Record]:
+def _online_change(monkeypatch: pytest.MonkeyPatch,
+                   state_dir: Path | None = None) -> tuple[Record, str, Record]:
     """One online change of the transport system on a paced loop: what was published and
     sent, in order; the new program's hash; each program drawn for a board, with whether
     that was inside a scan."""
@@ -89,7 +90,9 @@ def _online_change(monkeypatch: pytest.MonkeyPatch) -> tuple[Record, str, Record
     assert isinstance(board, RecordingBoard)
     board.record = record
     loop = WatchedLoop(LoopConfig(program=str(TRANSPORT), start=True, root=str(ROOT),
-                                  period_ns=10_000_000), channel, None, board=board)
+                                  period_ns=10_000_000,
+                                  state_dir=None if state_dir is None else str(state_dir)),
+                       channel, None, board=board)
     text = TRANSPORT.read_text() + "\n# the same net, another text\n"
     draw = netview._drawn
 
@@ -187,3 +190,25 @@ def test_a_retain_capture_is_handed_to_its_writer_after_the_scan(
     assert len(woken) >= 3, woken  # 0.4 s of scans, a capture every 50 ms
     assert not any(woken), f"woken inside a scan: {woken}"
     assert loop.retain.writes >= 3  # and written
+
+
+def test_the_boot_program_of_a_download_is_encoded_in_the_compile_process(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """With a state dir, the download's boot program file comes encoded from the compile
+    process; the scan process's helper thread only writes and syncs it (JSON-escaping a
+    500 KB program there held the scan's interpreter lock 1-1.5 ms at a time)."""
+    from softplc.program import boot
+
+    encoded_here: list[str] = []
+    pieces = boot._json_pieces
+
+    def watched(program: boot.BootProgram) -> Any:
+        encoded_here.append(program.program_hash)
+        return pieces(program)
+    monkeypatch.setattr(boot, "_json_pieces", watched)
+    state = tmp_path / "state"
+    _, new_hash, _ = _online_change(monkeypatch, state)
+    kept = boot.load(state)
+    assert kept is not None and kept.program_hash == new_hash
+    assert kept.text.endswith("# the same net, another text\n")
+    assert new_hash not in encoded_here, "encoded in the scan process"
