@@ -18,34 +18,24 @@ from typing import Any
 
 import pytest
 
-from softplc.core.judge import NOTHING_OBSERVED, Observed
 from softplc.core.lifecycle import Command
 from softplc.core.net import CompiledNet
 from softplc.core.snapshot import CommandReply, CommandRequest
 from softplc.program.compiler import compile_file, compile_text
 from softplc.runtime import netview
 from softplc.runtime.config import LoopConfig
-from softplc.runtime.loop import ScanLoop
 from softplc.runtime.shared.board import StatusBoard
 from softplc.runtime.shared.channel import Channel
+from tests.runtime.test_dry_run_off_scan import WatchedLoop as InScan
 
 ROOT = Path(__file__).resolve().parents[2]
 TRANSPORT = ROOT / "programs" / "transport.yaml"
 Record = list[tuple[str, Any]]
 
 
-class WatchedLoop(ScanLoop):
+class WatchedLoop(InScan):
     """A loop that says whether its thread is in a scan (the program's scan and its publish:
     what the scan's execution time counts) right now."""
-
-    in_scan = False
-
-    def scan_once(self, now_ns: int, observed: Observed = NOTHING_OBSERVED) -> bool:
-        self.in_scan = True
-        try:
-            return super().scan_once(now_ns, observed)
-        finally:
-            self.in_scan = False
 
     def _publish(self, now_ns: int) -> None:
         self.in_scan = True
