@@ -17,7 +17,7 @@ from typing import Any, Final, NamedTuple
 
 from softplc.core.net import CompiledNet, NetState
 from softplc.core.present import entry_form
-from softplc.core.symbols import Symbol
+from softplc.core.symbols import IoImage, Symbol
 
 MAX_NODES: Final = 1500  # beyond this the page shows counts only (the board is 1 MiB)
 MAX_TOKENS_SHOWN: Final = 8  # coloured tokens per place on the board
@@ -32,10 +32,11 @@ class Described(NamedTuple):
     symbols: tuple[tuple[Symbol, dict[str, Any]], ...]
 
 
-# By program hash (it covers the program's texts and its io image: one hash, one
-# description), newest last. No net is kept here: letting go of a net is the loop's, off the
-# scan thread.
-_cache: dict[str, Described] = {}
+# By program hash and io image (the hash leaves out what does not change the PLC's behaviour,
+# descriptions, `hmi_writable:`, `finite:`, units, which the board shows), newest last; the
+# io image is kept with its entry, so that its identity stays its own. No net is kept here:
+# letting go of a net is the loop's, off the scan thread.
+_cache: dict[tuple[str, int], tuple[IoImage, Described]] = {}
 
 
 def _instance(name: str, subnets: tuple[str, ...]) -> str | None:
@@ -63,16 +64,17 @@ def prewarm(net: CompiledNet) -> None:
 
 
 def described(net: CompiledNet) -> Described:
-    """`net` described: from the cache when its program was described before."""
-    key = net.program_hash
-    hit = _cache.pop(key, None) if key else None  # a net built without a hash: every time
+    """`net` described: from the cache when it was described before (by its io image: one
+    per compile, the same object from a download's preparation to its swap)."""
+    key = (net.program_hash, id(net.io))
+    hit = _cache.pop(key, None)
     if hit is None:
-        hit = Described(_structure(net), tuple((s, _fixed(s)) for s in net.io.symbols.values()))
-        while key and len(_cache) >= KEPT:
+        hit = (net.io, Described(_structure(net),
+                                 tuple((s, _fixed(s)) for s in net.io.symbols.values())))
+        while len(_cache) >= KEPT:
             del _cache[next(iter(_cache))]
-    if key:
-        _cache[key] = hit  # the newest last
-    return hit
+    _cache[key] = hit  # the newest last
+    return hit[1]
 
 
 def _structure(net: CompiledNet) -> dict[str, Any]:
