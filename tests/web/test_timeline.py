@@ -50,8 +50,11 @@ def test_timing_diagram_watch_list_and_scrubbing(
         moving = data(browser, "return softplc.timeline.plot.data[3]")
         assert len(moving) == data(browser, "return d.scans.length")
         assert {round(v % 1.4, 6) for v in moving if v is not None} <= {0.0, 1.0}
-        watch = browser.find_elements("css selector", "#tl-watch tbody tr")
-        assert [w.get_attribute("data-name") for w in watch] == ["s1_i"]
+        # Read in one call: the live page rebuilds the watch rows as samples come (an element
+        # found, then read, went stale in a CI run beside 4 busy loops).
+        watch = js(browser, "return [...document.querySelectorAll('#tl-watch tbody tr')]"
+                            ".map(r => r.getAttribute('data-name'))")
+        assert watch == ["s1_i"]
         save(browser, shots, "web-timeline.png")
 
         # Scrub back 100 scans: the slider, then what the page shows for that scan.
