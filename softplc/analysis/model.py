@@ -136,8 +136,6 @@ def _write_value(kind: ActionKind, value: Compiled | None) -> WriteValue:
     return value.text
 
 
-
-
 class _Valuation:
     """An EvalContext over one valuation of the guard variables."""
 

@@ -45,8 +45,6 @@ class Runner(Protocol):
     def marking(self) -> list[int]: ...
 
 
-
-
 class OursRunner:
     """softplc's Engine as a scan calls it: one `fire_round` per scan, time advancing."""
 

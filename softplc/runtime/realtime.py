@@ -104,14 +104,16 @@ def keep_off_scan_cpu(pid: int, rt: Realtime) -> None:
     before this call (numpy's, a server's) kept the CPUs they had, the scan's among them."""
     if rt.cpu is None:
         return
-    tids = [0]
-    if pid:
-        try:
-            tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-        except OSError:  # no /proc, or the process is gone: its main thread at least
-            tids = [pid]
-    for tid in tids:
+    for tid in _threads(pid) if pid else (0,):
         _off_scan_cpu(tid, rt.cpu)
+
+
+def _threads(pid: int | str) -> list[int]:
+    """The thread ids of process `pid` ("self": this one); without /proc, its main thread."""
+    try:
+        return [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    except OSError:  # no /proc, or the process is gone
+        return [os.getpid() if pid == "self" else int(pid)]
 
 
 def _off_scan_cpu(tid: int, cpu: int) -> None:
@@ -126,13 +128,12 @@ def _off_scan_cpu(tid: int, cpu: int) -> None:
 class HelperThreads:
     """The scan process's other threads (the watchdog's, the download's, the retain and boot
     writers', a device's I/O thread, numpy's) inherit the scan thread's CPU and priority
-    when it starts them. Each one woken on the scan's CPU took it from the busy-waiting scan
-    and then waited for the interpreter lock, which the scan gave up a switch interval later:
-    idle scans started 0.7-3.7 ms late, every quarter second (the watchdog's poll) and at
-    each download (measured, issue 40). `sweep()`, on the scan thread: every other thread
-    of the process moved off the scan's CPU at normal priority, again whenever the number of
-    Python threads changed since the last sweep (a check of one counter; the sweep reads
-    /proc/self/task, ~50 us)."""
+    when it starts them: pinned, they ran on the scan's CPU, and under --rt-priority at its
+    SCHED_FIFO priority, where one would not yield to the scan when its deadline comes
+    (tests/runtime/test_helper_threads.py read both from /proc). `sweep()`, on the scan
+    thread: every other thread of the process moved off the scan's CPU at normal priority,
+    again whenever the number of Python threads changed since the last sweep (a check of one
+    counter; the sweep reads /proc/self/task)."""
 
     def __init__(self, rt: Realtime) -> None:
         self.rt = rt
@@ -145,10 +146,9 @@ class HelperThreads:
             return
         self.seen = count
         me = threading.get_native_id()
-        with contextlib.suppress(OSError):  # /proc not mounted: the threads share the CPU
-            for tid in (int(t) for t in os.listdir("/proc/self/task")):
-                if tid != me:
-                    with contextlib.suppress(OSError):  # ended meanwhile
-                        os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
-                    if self.rt.cpu is not None:
-                        _off_scan_cpu(tid, self.rt.cpu)
+        for tid in _threads("self"):
+            if tid != me:
+                with contextlib.suppress(OSError):  # ended meanwhile
+                    os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+                if self.rt.cpu is not None:
+                    _off_scan_cpu(tid, self.rt.cpu)
