@@ -2,11 +2,10 @@
 priority, whoever started it (issue 40 item 8; runtime/realtime.py HelperThreads).
 
 Linux threads inherit their creator's CPU and policy: the scan-watchdog, retain writer,
-download and boot writer threads, started by the pinned scan thread, ran on its CPU (read
-from /proc here: `Cpus_allowed_list` was the scan's CPU alone). Woken there, each took the
-CPU from the busy-waiting scan and then waited for the interpreter lock: idle scans started
-0.7-3.7 ms late every quarter second and at each download in the online-change bench. The
-test enumerates the process's threads from /proc, so a thread added later cannot be missed.
+download and boot writer threads, started by the pinned scan thread, ran on its CPU, and
+under --rt-priority at its SCHED_FIFO priority (read from /proc here on the old code: those
+threads allowed the scan's CPU alone, policy FIFO). The test enumerates the process's threads
+from /proc, so a thread added later cannot be missed.
 """
 
 from __future__ import annotations
