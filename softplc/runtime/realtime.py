@@ -3,8 +3,9 @@
 Owns: applying a priority and CPU pinning to the calling process and saying what it got;
 the interpreter's switch interval of the scan process (how long a helper thread may keep the
 scan thread waiting for the interpreter lock); every other thread of the scan process kept
-at normal priority off the scan's CPU (HelperThreads: one sweep of the process's threads,
-whoever started them).
+off the scan's CPU, its Python threads at the interpreter lock's priority ceiling and named
+for `ps -L`, `top -H` and `perf` (HelperThreads: one sweep of the process's threads, whoever
+started them).
 What soft PLCs on Linux do (CODESYS, OpenPLC's RT patches): a FIFO priority lets the scan
 preempt Modbus, HTTP and everything else on its CPU the moment its deadline comes. Refusal
 (no CAP_SYS_NICE, a container) is reported, never fatal: the PLC runs at normal priority.
@@ -85,16 +86,46 @@ def recommended() -> Realtime:
 
 
 def background_thread(rt: Realtime = NORMAL) -> None:
-    """In a helper thread of the scan process (compiler, retain writer): back to normal
-    scheduling on any CPU, but `rt`'s scan CPU. Linux threads inherit the creator's policy and
-    CPU, and a FIFO helper on the scan's CPU would not yield to the scan when its deadline
-    comes (nor a normal one to a busy-waiting scan for the rest of a tick)."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    """In a helper thread of the scan process (compiler, retain writer), as it starts: its
+    place (`helper_policy`) on any CPU but `rt`'s scan CPU. Linux threads inherit the
+    creator's policy and CPU, and a FIFO helper on the scan's CPU would not yield to the scan
+    when its deadline comes (nor a normal one to a busy-waiting scan for the rest of a tick)."""
+    _place(0, *helper_policy(rt))
+    with contextlib.suppress(OSError):
         os.sched_setaffinity(0, range(os.cpu_count() or 1))
-    except OSError:
-        pass  # still the process's own policy: only as good as the scan's
     keep_off_scan_cpu(0, rt)  # 0: this thread
+
+
+# The interpreter lock's priority ceiling: the SCHED_FIFO priority of the scan process's
+# Python threads but the scan's (HelperThreads).
+CEILING = 1
+
+
+def helper_policy(rt: Realtime) -> tuple[int, int]:
+    """(policy, priority) of a Python thread of the scan process other than the scan thread.
+    Such a thread holds the scan's interpreter lock whenever it runs Python: preempted
+    meanwhile by a normal task (the compile process, the communication process), it kept
+    the scan waiting at its deadline until it ran again (perf sched, issue 40 item 8: the
+    download thread preempted for 3.0 ms by the compile process it had just woken, the
+    scan 2.8 ms late). So they run at SCHED_FIFO CEILING, above every normal task and below
+    the scan, whenever the scan has a CPU of its own or a FIFO priority above CEILING: the
+    priority ceiling of real-time locks. Otherwise the scan itself is a normal task, and so
+    are they."""
+    if rt.cpu is not None or (rt.priority is not None and rt.priority > CEILING):
+        return os.SCHED_FIFO, CEILING
+    return os.SCHED_OTHER, 0
+
+
+def _place(tid: int, policy: int, priority: int) -> str:
+    """Thread `tid` (0: this one) at `policy`; "" or why it was refused (then at normal
+    scheduling: a refused ceiling leaves it where any normal task is)."""
+    try:
+        os.sched_setscheduler(tid, policy, os.sched_param(priority))
+        return ""
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+        return exc.strerror or str(exc)
 
 
 def keep_off_scan_cpu(pid: int, rt: Realtime) -> None:
@@ -131,24 +162,50 @@ class HelperThreads:
     when it starts them: pinned, they ran on the scan's CPU, and under --rt-priority at its
     SCHED_FIFO priority, where one would not yield to the scan when its deadline comes
     (tests/runtime/test_helper_threads.py read both from /proc). `sweep()`, on the scan
-    thread: every other thread of the process moved off the scan's CPU at normal priority,
-    again whenever the number of Python threads changed since the last sweep (a check of one
-    counter; the sweep reads /proc/self/task)."""
+    thread after a scan: every other thread of the process off the scan's CPU, its Python
+    threads at `helper_policy` (the interpreter lock's ceiling) and named as Python names
+    them (their /proc comm), the others (numpy's, C threads: they never hold the lock) at
+    normal scheduling; again whenever the set of Python threads changed since the last
+    sweep (one `threading.enumerate()`; the sweep reads /proc/self/task). `said`: how the
+    Python threads run, in words, for status."""
 
     def __init__(self, rt: Realtime) -> None:
         self.rt = rt
-        self.seen = -1  # Python threads at the last sweep; -1: never swept
+        self.policy = helper_policy(rt)
+        self.seen: frozenset[int | None] = frozenset({-1})  # never swept
+        self.said = _said(*self.policy, "")
 
     def sweep(self) -> None:
         if self.rt.cpu is None and self.rt.priority is None:
             return  # nothing was applied to the scan thread: nothing to undo in the others
-        if (count := threading.active_count()) == self.seen:
+        python = {t.native_id: t.name for t in threading.enumerate()}
+        if (now := frozenset(python)) == self.seen:
             return
-        self.seen = count
-        me = threading.get_native_id()
+        self.seen = now
+        me, refused = threading.get_native_id(), ""
         for tid in _threads("self"):
-            if tid != me:
-                with contextlib.suppress(OSError):  # ended meanwhile
-                    os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
-                if self.rt.cpu is not None:
-                    _off_scan_cpu(tid, self.rt.cpu)
+            if tid == me:
+                continue
+            if tid in python:
+                refused = _place(tid, *self.policy) or refused
+                _name_thread(tid, python[tid])
+            else:
+                _place(tid, os.SCHED_OTHER, 0)
+            if self.rt.cpu is not None:
+                _off_scan_cpu(tid, self.rt.cpu)
+        self.said = _said(*self.policy, refused)
+
+
+def _said(policy: int, priority: int, refused: str) -> str:
+    if refused:
+        return f"helper threads at normal scheduling (SCHED_FIFO {priority} refused: {refused})"
+    if policy == os.SCHED_FIFO:
+        return f"helper threads at SCHED_FIFO {priority} (the interpreter lock's ceiling)"
+    return "helper threads at normal scheduling"
+
+
+def _name_thread(tid: int, name: str) -> None:
+    """Thread `tid` of this process shown as `name` (its first 15 bytes) in /proc, `ps -L`,
+    `top -H` and `perf`, where every thread showed as its process."""
+    with contextlib.suppress(OSError), open(f"/proc/self/task/{tid}/comm", "wb") as comm:
+        comm.write(name.encode()[:15])

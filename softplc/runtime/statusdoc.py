@@ -28,6 +28,7 @@ from softplc.runtime.bootkeeper import BootKeeper
 from softplc.runtime.clock import Clock
 from softplc.runtime.compileproc import CompileProcess
 from softplc.runtime.config import LoopConfig
+from softplc.runtime.realtime import HelperThreads
 from softplc.runtime.download import Downloads
 from softplc.runtime.retain.writer import RetainWriter
 from softplc.runtime.runner import ScanRunner
@@ -63,6 +64,8 @@ class LoopView(Protocol):
     def start_reason(self) -> str: ...
     @property
     def realtime(self) -> str: ...
+    @property
+    def helpers(self) -> HelperThreads: ...
     @property
     def boot(self) -> BootKeeper: ...
     @property
@@ -103,7 +106,7 @@ def document(loop: LoopView) -> dict[str, Any]:
         "start_program": loop.boot.started,  # compiled once by `softplc run`, or here
         "boot_policy": loop.config.boot_policy,
         "boot_policy_source": loop.config.boot_policy_source,
-        "realtime": loop.realtime,
+        "realtime": loop.realtime, "helper_threads": loop.helpers.said,
         "restarts": loop.config.restarts, "restart_reason": loop.config.restart_reason,
         "scan_pid": os.getpid(),
         "on_stall": loop.config.on_stall, "watchdog_ms": loop.budget_ns / 1e6,
