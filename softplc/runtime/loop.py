@@ -5,9 +5,10 @@ cycle supervision (scans over period x watchdog, a cycle that starts that late: 
 measured here and judged by the PLC (core/judge.py's CycleWatchdog; a scan that never ends:
 scanwatch.py); commands and HMI writes drained at the scan boundary, expired commands refused
 unapplied; downloads stepped between scans on this thread (download.py: the job table), so
-the scan only swaps, and a dry run only copies the PLC at its turn; the snapshot published
-after every scan; retain captures at scan boundaries; the cold or warm start; safe outputs,
-confirmed by the devices, on every way out.
+the scan only swaps, and a dry run only copies the PLC at its turn; the snapshot and the
+board published after every scan (publisher.py: the board in the slack); retain captures
+at scan boundaries; the cold or warm start; safe outputs, confirmed by the devices, on
+every way out.
 The boot program: bootkeeper.py; the process around the loop: scanproc.py.
 Does not know: Modbus, HTTP (the communication process), terminals (the CLI).
 """
@@ -33,6 +34,7 @@ from softplc.runtime.config import LoopConfig as LoopConfig  # importable from h
 from softplc.runtime.download import Downloads, refusal_of
 from softplc.runtime.eventlog import EventLog
 from softplc.runtime.prepare import Prepared, Preparer, answering, boundary
+from softplc.runtime.publisher import Publisher
 from softplc.runtime.realtime import HelperThreads
 from softplc.runtime.retain.writer import RetainWriter, capture
 from softplc.runtime.runner import ScanRunner, open_drivers
@@ -54,9 +56,9 @@ class ScanLoop:
         self.channel = channel
         self.writer = writer
         self.board = board
-        self.board_every = max(1, 50_000_000 // config.period_ns)  # about every 50 ms
-        self._board_program: str | None = None  # the program hash the board was published with
-        self._board_pause: object = None  # the pause the board shows (core/breakpoints.py)
+        # The snapshot and the board, the board after the scan (publisher.py).
+        self.views = Publisher(writer, board, config.period_ns, lambda: self.document(),
+                               lambda: self.status())
         self.budget_ns = int(config.period_ns * config.watchdog)
         self.watchdog = CycleWatchdog(
             self.budget_ns, config.watchdog_sensitivity, config.watchdog_hard_ns,
@@ -71,7 +73,7 @@ class ScanLoop:
         self.clock: Clock = clock or MonotonicClock(busy=config.realtime.busy_wait)
         self.stats = TimingStats()
         self.stalls, self.longest_gap_ns, self.internal_errors = 0, 0, 0
-        self.summary = self.stats.summary()  # refreshed every board_every scans, not every scan
+        self.summary = self.stats.summary()  # refreshed with the board, not every scan
         self.runner = ScanRunner(Plc.empty(), [],
                                  TraceWriter(config.trace) if config.trace else None)
         self.pending: list[ProgramCommand] = []
@@ -165,9 +167,14 @@ class ScanLoop:
         self.channel.reply(reply, later=self._paced)  # run(): sent after the scan (_slack)
 
     def _slack(self) -> None:
-        """After the scan and its publish: its replies (a client told "applied" reads the new
-        program), what the boot and retain writers are handed (woken in the scan, they
-        take the interpreter lock from it), other threads off the scan's CPU."""
+        """After the scan and its snapshot: its board (publisher.py), its replies (a client
+        told "applied" reads the new program), what the boot and retain writers are handed
+        (woken in the scan, they take the interpreter lock from it), other threads off the
+        scan's CPU."""
+        try:
+            self.views.out()  # the board first: what a reply tells, the board shows
+        except Exception as exc:
+            self._internal(f"publishing: {type(exc).__name__}: {exc}", self.clock.now_ns())
         try:
             if self.channel is not None:
                 self.channel.send_held()
@@ -290,7 +297,7 @@ class ScanLoop:
                     self._confirm_safe(self.clock.now_ns())
                 self._publish(reached)
                 done = self.clock.now_ns()
-                exec_ns = done - reached  # the whole scan: I/O, round, publish, retain, board
+                exec_ns = done - reached  # I/O, round, snapshot, retain (the board: _slack)
                 if exec_ns > self.budget_ns or self.watchdog.over:
                     self._watchdog(exec_ns, done, watched=not handled_commands)
                 self.stats.record(exec_ns, late, skipped=schedule.advance(done))
@@ -320,24 +327,10 @@ class ScanLoop:
 
     def _publish(self, now_ns: int) -> None:
         try:
-            # Counted in cycles, not scans: a paused PLC counts no scans (docs/debug.md).
-            refresh = (self.stats.scans + 1) % self.board_every == 0
-            if refresh:  # percentiles cost ~20 µs: not on every scan
+            if self.views.refreshing(self.stats.scans):  # percentiles cost ~20 us: not always
                 self.summary = self.stats.summary()
-            # A new program is on the board before its hash is in the snapshot: a service that
-            # sees the hash finds the program's symbols (hmi/eng.py: what Modbus presents).
-            program = net.program_hash if (net := self.runner.plc.net) is not None else None
-            if self.board is not None and program != self._board_program:
-                self._board_program, refresh = program, False
-                self.board.publish(self.document())
-            # A pause on the board at once: the supervisor reads it if this process dies.
-            if (pause := self.runner.plc.debug.pause) is not self._board_pause:
-                self._board_pause, refresh = pause, True
-            if self.writer is not None:
-                self.writer.publish(self.runner.plc.image, self.status())
+            self.views.scanned(self.stats.scans, self.runner.plc, later=self._paced)
             self._retain(now_ns)
-            if self.board is not None and refresh:
-                self.board.publish(self.document())
         except Exception as exc:
             self._internal(f"publishing: {type(exc).__name__}: {exc}", now_ns)
 

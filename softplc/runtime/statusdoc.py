@@ -28,8 +28,8 @@ from softplc.runtime.bootkeeper import BootKeeper
 from softplc.runtime.clock import Clock
 from softplc.runtime.compileproc import CompileProcess
 from softplc.runtime.config import LoopConfig
-from softplc.runtime.realtime import HelperThreads
 from softplc.runtime.download import Downloads
+from softplc.runtime.realtime import HelperThreads
 from softplc.runtime.retain.writer import RetainWriter
 from softplc.runtime.runner import ScanRunner
 from softplc.runtime.stats import TimingStats, TimingSummary

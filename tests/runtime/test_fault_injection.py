@@ -166,8 +166,8 @@ def test_publishing_or_retain_raising_faults_instead_of_ending_the_loop(
         raise ValueError("injected into the status board")
 
     monkeypatch.setattr(loop, "document", broken_document)
-    loop.board = type("Board", (), {"publish": lambda self, doc: None})()
-    loop.board_every = 1
+    loop.views.board = type("Board", (), {"publish": lambda self, doc: None})()
+    loop.views.every = 1
     loop._publish(loop.clock.now_ns())
     monkeypatch.undo()
     assert loop.internal_errors == 1
