@@ -122,6 +122,8 @@ def _place(tid: int, policy: int, priority: int) -> str:
     try:
         os.sched_setscheduler(tid, policy, os.sched_param(priority))
         return ""
+    except ProcessLookupError:
+        return ""  # it ended meanwhile
     except OSError as exc:
         with contextlib.suppress(OSError):
             os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))

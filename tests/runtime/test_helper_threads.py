@@ -127,3 +127,13 @@ def test_another_process_is_kept_off_the_scan_cpu_with_every_thread_it_started(
     finally:
         child.kill()
         child.wait(10)
+
+
+def test_a_thread_that_ended_meanwhile_is_no_refusal() -> None:
+    """The sweep lists /proc/self/task, then places each thread: one that ended in between
+    (ESRCH) is not what status calls a refused ceiling. The id used is pid_max, which no
+    task has (ids are below it): never another task's, as a reused id could be."""
+    from softplc.runtime.realtime import _place
+
+    gone = int(Path("/proc/sys/kernel/pid_max").read_text())
+    assert _place(gone, os.SCHED_FIFO, 1) == ""
