@@ -282,13 +282,20 @@ def parse_io_image(text: str, filename: str) -> IoImage:
 
 def hashed_text(io: IoImage) -> str:
     """The symbol table as the program hash covers it (program/compiler.py): what changes the
-    PLC's behaviour. `init:` and `modbus: eng` only where declared, so the hashes of io images
-    without them (and the golden traces that record them) stay as they were; `retain:`,
-    `hmi_writable:` and descriptions not at all (a change of them alone keeps a warm start)."""
+    PLC's behaviour, at its doors too. `init:`, `modbus: eng`, `hmi_writable: false` and
+    `finite: false` only where declared, so the hashes of io images without them (and the
+    golden traces that record them) stay as they were; `retain:`, descriptions and units not
+    at all (texts and keeping: a change of them alone keeps a warm start). The doors keep
+    what they built from the status board by this hash (the Modbus write predicate, the OPC
+    UA address space, the Sparkplug door): left out of it, a download that only locked a
+    symbol (`hmi_writable: false`) left Modbus writing it while HTTP refused
+    (tests/security/test_lock_by_download.py)."""
     return repr(sorted((s.name, str(s.address), s.type.value, s.safe)
                        + ((s.scaling.raw, s.scaling.eng, s.scaling.clamp) if s.scaling else ())
                        + (("init", s.init_raw) if s.init_raw is not None else ())
                        + (("modbus", "eng") if s.scaling and s.scaling.modbus != "raw" else ())
+                       + (("hmi_writable", False) if not s.hmi_writable else ())
+                       + (("finite", False) if not s.finite else ())
                        for s in io.symbols.values()))
 
 

@@ -32,8 +32,8 @@ class Described(NamedTuple):
     symbols: tuple[tuple[Symbol, dict[str, Any]], ...]
 
 
-# By program hash and io image (the hash leaves out what does not change the PLC's behaviour,
-# descriptions, `hmi_writable:`, `finite:`, units, which the board shows), newest last; the
+# By program hash and io image (the hash leaves out texts that do not change the PLC's
+# behaviour, descriptions and units, which the board shows), newest last; the
 # io image is kept with its entry, so that its identity stays its own. No net is kept here:
 # letting go of a net is the loop's, off the scan thread.
 _cache: dict[tuple[str, int], tuple[IoImage, Described]] = {}

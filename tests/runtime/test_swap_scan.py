@@ -170,9 +170,10 @@ def test_a_net_is_described_once_what_its_hash_leaves_out_too_and_no_net_is_kept
         tmp_path: Path) -> None:
     """netview's cache: a compiled net described once, the running program's and the next
     one's (KEPT); two compiles of programs whose hash is the same but whose io images differ
-    in what the hash leaves out (`finite:`, a description, `hmi_writable:`) each shown as
-    they are (keyed by the hash alone, the second showed the first's: CI caught it in
-    tests/hmi/test_nonfinite_modbus.py); a net itself never kept there."""
+    in what the hash leaves out (a description, a unit) each shown as they are (keyed by the
+    hash alone, the second showed the first's: CI caught it in
+    tests/hmi/test_nonfinite_modbus.py, when the hash still left `finite:` out); a net
+    itself never kept there."""
     netview._cache.clear()
     tank = ROOT / "programs" / "tank.yaml"
     first = compile_file(str(tank))
@@ -180,20 +181,21 @@ def test_a_net_is_described_once_what_its_hash_leaves_out_too_and_no_net_is_kept
     assert netview.described(first) is described
     assert described.structure["program_hash"] == first.program_hash
     assert [s.name for s, _ in described.symbols] == list(first.io.symbols)
-    # The same program, its setpoint declared `finite: false`: the same hash (the hash leaves
-    # it out), not the same board (the Modbus slave lets a NaN in by what the board says).
+    # The same program, its setpoint described otherwise: the same hash (the hash leaves a
+    # text out), not the same board (what the doors show is what the board says).
     (tmp_path / "programs").mkdir()
     (tmp_path / "io_images").mkdir()
     (tmp_path / "programs" / "tank.yaml").write_text(tank.read_text())
     io = (ROOT / "io_images" / "tank.yaml").read_text()
-    io = io.replace('fill_to:      {address: "%MD2", type: real,',
-                    'fill_to:      {address: "%MD2", type: real, finite: false,')
+    cut = io.index('description: "', io.index("fill_to:")) + len('description: "')
+    io = io[:cut] + "RENAMED " + io[cut:]
     (tmp_path / "io_images" / "tank.yaml").write_text(io)
     changed = compile_file(str(tmp_path / "programs" / "tank.yaml"))
     assert changed.program_hash == first.program_hash
     fixed = {s.name: entry for s, entry in netview.described(changed).symbols}
-    assert fixed["fill_to"].get("finite") is False, fixed["fill_to"]
-    assert "finite" not in {s.name: e for s, e in described.symbols}["fill_to"]
+    assert fixed["fill_to"]["description"].startswith("RENAMED "), fixed["fill_to"]
+    before = {s.name: e for s, e in described.symbols}["fill_to"]["description"]
+    assert not before.startswith("RENAMED "), before
     others = [compile_text(TRANSPORT.read_text() + f"\n# variant {n}\n", str(TRANSPORT))
               for n in range(2)]
     for net in others:
