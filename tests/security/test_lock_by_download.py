@@ -24,31 +24,24 @@ from softplc.api.client import ApiClient
 from softplc.program.compiler import compile_file
 from tests.api.helpers import Answer, call
 from tests.hmi.helpers import connect, request
-from tests.opcua.conftest import Plc, start_plc, stop_plc
-from tests.security.test_write_rule import CHECKOUT, LOCKED, WORDS, _opcua_write, _symbol
-from tests.support import eventually, free_port
+from tests.opcua.conftest import Plc
+from tests.security.test_write_rule import (
+    CHECKOUT,
+    LOCKED,
+    WORDS,
+    _opcua_write,
+    _symbol,
+    transport_serving,
+)
+from tests.support import eventually
 
 
 @pytest.fixture
 def plc(tmp_path: Path) -> Iterator[tuple[Plc, str, int, Path]]:
-    """transport.yaml RUNNING with `speed` (%MW5) writable, with its Modbus slave (policy
-    open), HTTP API and OPC UA server on loopback; the io image's path, to lock `speed` in."""
-    for folder in ("programs", "io_images"):
-        shutil.copytree(CHECKOUT / folder, tmp_path / folder)
-    io = tmp_path / "io_images" / "transport.yaml"
-    io.write_text(io.read_text().replace("\nevents:", "\n" + OPEN + "\nevents:", 1))
-    state = tmp_path / "state"
-    state.mkdir()
-    modbus, api = free_port(), free_port()
-    plc = start_plc(str(tmp_path / "programs" / "transport.yaml"), state,
-                    "--modbus", f"127.0.0.1:{modbus}", "--api", f"127.0.0.1:{api}",
-                    "--programs-dir", str(tmp_path / "programs"))
-    try:
-        url = f"http://127.0.0.1:{api}"
-        eventually(lambda: _symbol(url) is not None, timeout_s=60, what="the HTTP API")
-        yield plc, url, modbus, io
-    finally:
-        stop_plc(plc.proc)
+    """transport.yaml RUNNING with `speed` (%MW5) writable (test_write_rule.py's, unlocked);
+    the io image's path, to lock `speed` in."""
+    with transport_serving(tmp_path, OPEN) as (running, url, modbus):
+        yield running, url, modbus, tmp_path / "io_images" / "transport.yaml"
 
 
 OPEN = '  speed: {address: "%MW5", type: word}\n'  # LOCKED, but writable

@@ -12,6 +12,7 @@ value; before the rule had one owner, Modbus "open" and OPC UA wrote it while HT
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import shutil
 from collections.abc import Iterator
@@ -52,25 +53,35 @@ def test_every_door_that_writes_the_image_applies_the_symbol_rule() -> None:
         assert name in modules[where][1], f"{door}: {where} no longer calls {name}"
 
 
-@pytest.fixture
-def plc(tmp_path: Path) -> Iterator[tuple[Plc, str, int]]:
-    """transport.yaml RUNNING with `speed` (%MW5) declared hmi_writable: false, and its
-    Modbus slave (default policy: open), HTTP API and OPC UA server on loopback."""
+@contextlib.contextmanager
+def transport_serving(tmp_path: Path, line: str) -> Iterator[tuple[Plc, str, int]]:
+    """transport.yaml RUNNING from a copy of the checkout in `tmp_path`, `line` added to its
+    io image's symbols, with its Modbus slave (default policy: open), HTTP API and OPC UA
+    server on loopback (the PLC, the API's URL, the Modbus port); a plain-text download
+    finds its io image in that copy."""
     for folder in ("programs", "io_images"):
         shutil.copytree(CHECKOUT / folder, tmp_path / folder)
     io = tmp_path / "io_images" / "transport.yaml"
-    io.write_text(io.read_text().replace("\nevents:", "\n" + LOCKED + "\nevents:", 1))
+    io.write_text(io.read_text().replace("\nevents:", "\n" + line + "\nevents:", 1))
     state = tmp_path / "state"
     state.mkdir()
     modbus, api = free_port(), free_port()
     plc = start_plc(str(tmp_path / "programs" / "transport.yaml"), state,
-                    "--modbus", f"127.0.0.1:{modbus}", "--api", f"127.0.0.1:{api}")
+                    "--modbus", f"127.0.0.1:{modbus}", "--api", f"127.0.0.1:{api}",
+                    "--programs-dir", str(tmp_path / "programs"))
     try:
         url = f"http://127.0.0.1:{api}"
         eventually(lambda: _symbol(url) is not None, timeout_s=60, what="the HTTP API")
         yield plc, url, modbus
     finally:
         stop_plc(plc.proc)
+
+
+@pytest.fixture
+def plc(tmp_path: Path) -> Iterator[tuple[Plc, str, int]]:
+    """transport.yaml RUNNING with `speed` (%MW5) declared hmi_writable: false."""
+    with transport_serving(tmp_path, LOCKED) as serving:
+        yield serving
 
 
 def _symbol(url: str) -> dict[str, object] | None:
