@@ -48,10 +48,11 @@ class Publisher:
         paused PLC counts no scans (docs/debug.md)."""
         return (scans + 1) % self.every == 0
 
-    def scanned(self, scans: int, plc: Plc, later: bool) -> None:
+    def scanned(self, plc: Plc, refresh: bool, later: bool) -> None:
         """After a scan: the snapshot now, unless the program changed (then behind its
-        board); the board when due. Held for `out()` when `later` (a paced loop)."""
-        board = self.refreshing(scans)
+        board); the board when due (`refresh`: what `refreshing` said of this scan, or a new
+        program, or a pause). Held for `out()` when `later` (a paced loop)."""
+        board = refresh
         program = net.program_hash if (net := plc.net) is not None else None
         swapped = self.board is not None and program != self._program
         if swapped:

@@ -32,6 +32,7 @@ from tests.security.test_write_rule import (
     _opcua_write,
     _symbol,
     transport_serving,
+    with_symbol,
 )
 from tests.support import eventually
 
@@ -68,7 +69,7 @@ def test_what_the_doors_enforce_is_in_the_program_hash(tmp_path: Path) -> None:
     text = io.read_text()
 
     def hashed(line: str) -> str:
-        io.write_text(text.replace("\nevents:", "\n" + line + "\nevents:", 1))
+        io.write_text(with_symbol(text, line))
         return compile_file(str(program)).program_hash
 
     assert hashed(LOCKED) != hashed(OPEN)

@@ -53,6 +53,11 @@ def test_every_door_that_writes_the_image_applies_the_symbol_rule() -> None:
         assert name in modules[where][1], f"{door}: {where} no longer calls {name}"
 
 
+def with_symbol(io_text: str, line: str) -> str:
+    """An io image's text with a symbol's `line` added to its symbols (before `events:`)."""
+    return io_text.replace("\nevents:", "\n" + line + "\nevents:", 1)
+
+
 @contextlib.contextmanager
 def transport_serving(tmp_path: Path, line: str) -> Iterator[tuple[Plc, str, int]]:
     """transport.yaml RUNNING from a copy of the checkout in `tmp_path`, `line` added to its
@@ -62,7 +67,7 @@ def transport_serving(tmp_path: Path, line: str) -> Iterator[tuple[Plc, str, int
     for folder in ("programs", "io_images"):
         shutil.copytree(CHECKOUT / folder, tmp_path / folder)
     io = tmp_path / "io_images" / "transport.yaml"
-    io.write_text(io.read_text().replace("\nevents:", "\n" + line + "\nevents:", 1))
+    io.write_text(with_symbol(io.read_text(), line))
     state = tmp_path / "state"
     state.mkdir()
     modbus, api = free_port(), free_port()
